@@ -1,0 +1,1 @@
+"""One module per CLI command; each only wires pipeline stages together."""

@@ -1,0 +1,362 @@
+"""Job configuration: YAML validated into frozen dataclasses.
+
+Units are in the key names: ``_m`` metres, ``_m2`` square metres, ``_deg`` degrees,
+``_deg2`` square degrees, ``_rad2`` square radians, ``_s`` seconds. Every error names the
+key and the file. Unknown keys are errors (a typo must not silently fall back to a default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from gpocc.errors import GpoccError
+
+
+@dataclass(frozen=True)
+class MountConfig:
+    """Static laser mount on the robot base: offset (metres) and yaw (degrees)."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """One robot's laser and pose source, with its noise model.
+
+    ``pose_covariance`` is the 3x3 covariance of (x, y, yaw) in (m^2, m^2, rad^2, with
+    m*rad off-diagonals). It is used for inputs that carry no covariance (CARMEN logs,
+    PoseStamped-like sources) or for every scan when ``override_pose_covariance`` is set.
+    """
+
+    name: str = "robot"
+    inputs: tuple[str, ...] = ()
+    scan_topic: str | None = None
+    pose_topic: str | None = None
+    range_variance_m2: float = 0.0004
+    bearing_variance_deg2: float = 0.01
+    pose_covariance: tuple[tuple[float, ...], ...] = (
+        (0.0025, 0.0, 0.0),
+        (0.0, 0.0025, 0.0),
+        (0.0, 0.0, 0.0003),
+    )
+    override_pose_covariance: bool = False
+    mount: MountConfig = field(default_factory=MountConfig)
+    max_pose_gap_s: float = 0.25
+    no_return_free_m: float = 5.0
+    range_min_m: float | None = None
+    range_max_m: float | None = None
+
+    @property
+    def bearing_variance_rad2(self) -> float:
+        return self.bearing_variance_deg2 * (math.pi / 180.0) ** 2
+
+    @property
+    def pose_covariance_matrix(self) -> np.ndarray:
+        """(3, 3) covariance of (x, y, yaw)."""
+        return np.asarray(self.pose_covariance, dtype=float)
+
+
+@dataclass(frozen=True)
+class UnscentedConfig:
+    """Unscented-transform spread (alpha), prior (beta) and secondary scaling (kappa)."""
+
+    alpha: float = 1.0
+    beta: float = 2.0
+    kappa: float = 0.0
+
+
+@dataclass(frozen=True)
+class SamplesConfig:
+    """How beams become training samples.
+
+    Free samples lie along each beam every ``free_spacing_m`` from the sensor, stopping
+    ``hit_gap_m`` short of the hit. ``thin_cell_m`` keeps at most one sample of each label
+    per square cell of that side (the most certain one), which bounds the training set by
+    the mapped area instead of the log length; 0 disables thinning.
+    """
+
+    free_spacing_m: float = 0.4
+    hit_gap_m: float = 0.25
+    beam_stride: int = 1
+    scan_stride: int = 1
+    thin_cell_m: float = 0.15
+    unscented: UnscentedConfig = field(default_factory=UnscentedConfig)
+
+
+@dataclass(frozen=True)
+class HyperparametersConfig:
+    """Initial (or fixed) kernel hyperparameters.
+
+    Neural-network kernel: ``signal_variance`` (dimensionless, labels are +-1),
+    ``bias_variance`` and ``weight_variance`` (1/m^2, per axis x, y). Squared exponential:
+    ``signal_variance`` and ``lengthscale_m`` (per axis). ``noise_variance`` is the
+    label-noise variance added to the diagonal.
+    """
+
+    signal_variance: float = 1.0
+    bias_variance: float = 1.0
+    weight_variance: tuple[float, float] = (4.0, 4.0)
+    lengthscale_m: tuple[float, float] = (0.5, 0.5)
+    noise_variance: float = 0.1
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """Hyperparameter learning: log marginal likelihood summed over local patches.
+
+    ``patches`` neighbourhoods of ``patch_size`` samples each, centred on randomly chosen
+    samples (spatially stratified), each centred at the origin as at inference. Global
+    stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations;
+    then L-BFGS-B for at most ``lbfgs_maxiter`` iterations. ``learn: false`` keeps the
+    initial values.
+    """
+
+    learn: bool = True
+    patches: int = 6
+    patch_size: int = 160
+    anneal_maxfun: int = 60
+    lbfgs_maxiter: int = 40
+    log_bounds_width: float = 4.0
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The GP model and its local inference.
+
+    ``kernel``: ``nn`` (neural network / arcsin, default) or ``se``. ``input_noise``: use
+    the samples' covariances (false is the GP-without-input-uncertainty baseline).
+    ``quadrature_level``: Gauss-Hermite nodes per dimension. ``neighbours``: training
+    samples per local problem. ``block_size_m``: side of the square block of queries that
+    shares one neighbourhood.
+    """
+
+    kernel: str = "nn"
+    input_noise: bool = True
+    quadrature_level: int = 3
+    neighbours: int = 160
+    block_size_m: float = 1.0
+    hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+
+
+@dataclass(frozen=True)
+class ClassifyConfig:
+    """Thresholds on p(occupied): above ``occupied`` is occupied, below ``free`` is free."""
+
+    occupied: float = 0.65
+    free: float = 0.35
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Map output defaults. ``epsg``: a projected CRS code, or null for a local frame."""
+
+    resolution_m: float = 0.1
+    margin_m: float = 1.0
+    epsg: int | None = None
+    tile_pixels: int = 4096
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """Log-odds occupancy grid baseline (inverse sensor model, clamped log-odds)."""
+
+    log_odds_occupied: float = 0.85
+    log_odds_free: float = -0.4
+    clamp_min: float = -4.0
+    clamp_max: float = 4.0
+    spread_hits: bool = False
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole job's configuration."""
+
+    seed: int = 0
+    sensors: tuple[SensorConfig, ...] = ()
+    samples: SamplesConfig = field(default_factory=SamplesConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    classify: ClassifyConfig = field(default_factory=ClassifyConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
+
+
+# --------------------------------------------------------------------------- loading
+
+_NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
+_NON_NEGATIVE_KEYS = {
+    "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
+    "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width",
+}
+_POSITIVE_KEYS = {
+    "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",
+    "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
+    "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
+    "weight_variance", "bias_variance",
+}
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _convert(value, inner[0], key, source)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise GpoccError(f"{source}: key '{key}' must be a mapping, got {value!r}")
+        return _build(tp, value, key, source)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise GpoccError(f"{source}: key '{key}' must be a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{key}[{i}]", source) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise GpoccError(f"{source}: key '{key}' must have {len(args)} entries, got {value!r}")
+        return tuple(_convert(v, a, f"{key}[{i}]", source) for i, (v, a) in enumerate(zip(value, args)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise GpoccError(f"{source}: key '{key}' must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise GpoccError(f"{source}: key '{key}' must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise GpoccError(f"{source}: key '{key}' must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise GpoccError(f"{source}: key '{key}' must be finite, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise GpoccError(f"{source}: key '{key}' must be a string, got {value!r}")
+        return value
+    raise GpoccError(f"{source}: key '{key}' has unsupported type {_type_name(tp)}")
+
+
+def _check_range(name: str, value: Any, key: str, source: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
+    if name in _POSITIVE_KEYS and value <= 0:
+        raise GpoccError(f"{source}: key '{key}' must be positive, got {value!r}")
+    if (name in _NON_NEGATIVE_KEYS or name.endswith(_NON_NEGATIVE_SUFFIXES)) and value < 0:
+        raise GpoccError(f"{source}: key '{key}' must not be negative, got {value!r}")
+
+
+def _build(cls: Any, data: dict[str, Any], prefix: str, source: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        where = f"under '{prefix}'" if prefix else "at top level"
+        raise GpoccError(
+            f"{source}: unknown key '{unknown[0]}' {where}; known keys: {', '.join(sorted(known))}"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        converted = _convert(value, hints[name], key, source)
+        if isinstance(converted, tuple):
+            for i, v in enumerate(converted):
+                if isinstance(v, (int, float)):
+                    _check_range(name, v, f"{key}[{i}]", source)
+        else:
+            _check_range(name, converted, key, source)
+        kwargs[name] = converted
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:  # pragma: no cover - guarded by the unknown-key check
+        raise GpoccError(f"{source}: {exc}") from None
+
+
+def _validate(config: Config, source: str) -> Config:
+    names = [s.name for s in config.sensors]
+    if len(set(names)) != len(names):
+        raise GpoccError(f"{source}: sensor names must be unique, got {names}")
+    for i, sensor in enumerate(config.sensors):
+        key = f"sensors[{i}].pose_covariance"
+        cov = np.asarray(sensor.pose_covariance, dtype=float)
+        if cov.shape != (3, 3):
+            raise GpoccError(f"{source}: key '{key}' must be a 3x3 matrix of (x, y, yaw)")
+        if not np.allclose(cov, cov.T, atol=1e-12):
+            raise GpoccError(f"{source}: key '{key}' must be symmetric")
+        if np.linalg.eigvalsh(cov).min() < -1e-12:
+            raise GpoccError(
+                f"{source}: key '{key}' is not positive semi-definite; fix its off-diagonals"
+            )
+        if sensor.range_min_m is not None and sensor.range_max_m is not None:
+            if sensor.range_min_m >= sensor.range_max_m:
+                raise GpoccError(f"{source}: key 'sensors[{i}].range_min_m' must be < range_max_m")
+    c = config.classify
+    if not 0.0 < c.free <= c.occupied < 1.0:
+        raise GpoccError(
+            f"{source}: key 'classify' needs 0 < free <= occupied < 1, got {c.free}, {c.occupied}"
+        )
+    if config.model.kernel not in ("nn", "se"):
+        raise GpoccError(
+            f"{source}: key 'model.kernel' must be 'nn' or 'se', got {config.model.kernel!r}"
+        )
+    if config.model.quadrature_level > 10:
+        raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")
+    return config
+
+
+def config_from_dict(data: dict[str, Any] | None, source: str = "<config>") -> Config:
+    """Validate a parsed YAML mapping into a :class:`Config`."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise GpoccError(f"{source}: the config must be a YAML mapping of keys to values")
+    return _validate(_build(Config, data, "", source), source)
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read and validate a YAML config; ``None`` gives the defaults."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    if not p.is_file():
+        raise GpoccError(f"{p}: config file not found; check the --config path")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise GpoccError(f"{p}: not valid YAML{where}; fix the syntax") from None
+    return config_from_dict(data, str(p))
+
+
+def config_to_dict(config: Config) -> dict[str, Any]:
+    """Plain-data form of a config (lists for tuples), for model files and metadata."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, tuple):
+            return [plain(v) for v in value]
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        return value
+
+    return plain(dataclasses.asdict(config))
+
+
+def replace(config: Any, **changes: Any) -> Any:
+    """``dataclasses.replace`` re-exported for nested frozen configs."""
+    return dataclasses.replace(config, **changes)

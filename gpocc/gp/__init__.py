@@ -1,0 +1,1 @@
+"""The GP occupancy model: kernels, expected kernels, local inference, training, classifier."""

@@ -1,0 +1,1 @@
+"""Readers and writers: bags, CARMEN logs, rasters, map_server files."""

@@ -1,0 +1,52 @@
+"""The readers' output: laser scans with the robot's pose and pose covariance."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ScanBatch:
+    """All scans of one sensor (one robot's laser), aligned on the scan index.
+
+    Ranges are kept raw, as recorded (REP 117): NaN invalid, ``-inf`` too close, ``+inf``
+    no return. Values outside ``[range_min, range_max]`` are classified later, by the
+    samples stage. A reader converts a format's own no-return code (CARMEN's 81.8 m) to
+    ``+inf``.
+
+    Attributes:
+        sensor: sensor name (the config entry's ``name``).
+        source: file the scans came from (for messages).
+        stamps: (S,) seconds.
+        angles: (B,) beam bearings in the laser frame, radians, counter-clockwise.
+        ranges: (S, B) metres.
+        poses: (S, 3) robot base pose (x m, y m, yaw rad) in the map frame.
+        pose_covariances: (S, 3, 3) covariance of (x, y, yaw), m^2 / rad^2.
+        range_min: metres; ranges below are not hits.
+        range_max: metres; ranges above are not hits.
+        has_pose_covariance: whether the covariances came from the input (False: the
+            reader filled zeros and the config's covariance must be used).
+        skipped_scans: scans dropped for want of a pose within the allowed gap.
+    """
+
+    sensor: str
+    source: str
+    stamps: np.ndarray
+    angles: np.ndarray
+    ranges: np.ndarray
+    poses: np.ndarray
+    pose_covariances: np.ndarray
+    range_min: float
+    range_max: float
+    has_pose_covariance: bool = True
+    skipped_scans: int = 0
+
+    @property
+    def n_scans(self) -> int:
+        return int(self.ranges.shape[0])
+
+    @property
+    def n_beams(self) -> int:
+        return int(self.ranges.shape[1])

@@ -1,0 +1,1 @@
+"""Sampling a trained model on a raster: blocks, executors, rendering."""

@@ -1,0 +1,1 @@
+"""From scans to uncertain training samples: beams, unscented transform."""

@@ -1,0 +1,79 @@
+"""Uncertain training samples: Gaussian input positions with +-1 labels."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SampleSet:
+    """Training samples x_i ~ N(means[i], covariances[i]) with label labels[i].
+
+    Samples of one scan share that scan's pose error, so their positions are correlated:
+    ``Cov(x_i, x_j) = pose_factors[i] @ pose_factors[j].T`` when ``scan_ids[i] ==
+    scan_ids[j]`` (i != j), and zero otherwise. ``pose_factors[i]`` is G_i L where G_i
+    (2x3) is the unscented (statistically linearised) sensitivity of the sample to the
+    pose and L L^T the scan's pose covariance.
+
+    Attributes:
+        means: (N, 2) metres, map frame.
+        covariances: (N, 2, 2) m^2.
+        labels: (N,) +1.0 occupied, -1.0 free.
+        scan_ids: (N,) int64, unique per scan across all sensors of a job.
+        pose_factors: (N, 2, 3) metres.
+        sensor_ids: (N,) int16 index into the job's sensor list.
+    """
+
+    means: np.ndarray
+    covariances: np.ndarray
+    labels: np.ndarray
+    scan_ids: np.ndarray
+    pose_factors: np.ndarray
+    sensor_ids: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    def subset(self, index: np.ndarray) -> SampleSet:
+        """The samples at ``index`` (boolean mask or integer indices)."""
+        return SampleSet(
+            means=self.means[index],
+            covariances=self.covariances[index],
+            labels=self.labels[index],
+            scan_ids=self.scan_ids[index],
+            pose_factors=self.pose_factors[index],
+            sensor_ids=self.sensor_ids[index],
+        )
+
+    def without_input_noise(self) -> SampleSet:
+        """The same samples with every covariance zero (the no-input-noise baseline)."""
+        return SampleSet(
+            means=self.means,
+            covariances=np.zeros_like(self.covariances),
+            labels=self.labels,
+            scan_ids=self.scan_ids,
+            pose_factors=np.zeros_like(self.pose_factors),
+            sensor_ids=self.sensor_ids,
+        )
+
+    @staticmethod
+    def concatenate(parts: list[SampleSet]) -> SampleSet:
+        if not parts:
+            return SampleSet(
+                means=np.zeros((0, 2)),
+                covariances=np.zeros((0, 2, 2)),
+                labels=np.zeros(0),
+                scan_ids=np.zeros(0, dtype=np.int64),
+                pose_factors=np.zeros((0, 2, 3)),
+                sensor_ids=np.zeros(0, dtype=np.int16),
+            )
+        return SampleSet(
+            means=np.concatenate([p.means for p in parts]),
+            covariances=np.concatenate([p.covariances for p in parts]),
+            labels=np.concatenate([p.labels for p in parts]),
+            scan_ids=np.concatenate([p.scan_ids for p in parts]),
+            pose_factors=np.concatenate([p.pose_factors for p in parts]),
+            sensor_ids=np.concatenate([p.sensor_ids for p in parts]),
+        )
