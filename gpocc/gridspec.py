@@ -1,0 +1,95 @@
+"""Raster geometry shared by maps, grids and ground truth: a north-up metric grid."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from gpocc.errors import GpoccError
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A north-up raster in the map frame.
+
+    ``(x0, y0)`` is the lower-left corner of the lower-left cell, metres. Row 0 is the
+    top (north) row, as in GeoTIFF and PGM; column 0 is the west column. The centre of
+    cell (row r, col c) is ``(x0 + (c + 0.5) * resolution, y0 + (height - r - 0.5) *
+    resolution)``.
+    """
+
+    x0: float
+    y0: float
+    resolution: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if not (self.resolution > 0 and math.isfinite(self.resolution)):
+            raise GpoccError(f"resolution must be a positive number of metres, got {self.resolution}")
+        if self.width <= 0 or self.height <= 0:
+            raise GpoccError(f"the map area is empty ({self.width} x {self.height} cells)")
+
+    @classmethod
+    def from_bounds(
+        cls, x_min: float, y_min: float, x_max: float, y_max: float, resolution: float
+    ) -> GridSpec:
+        """The smallest grid of ``resolution`` anchored at (x_min, y_min) covering the box."""
+        if not (x_max > x_min and y_max > y_min):
+            raise GpoccError(
+                f"bounds must satisfy XMIN < XMAX and YMIN < YMAX, got "
+                f"{x_min} {y_min} {x_max} {y_max}"
+            )
+        if not (resolution > 0 and math.isfinite(resolution)):
+            raise GpoccError(f"resolution must be a positive number of metres, got {resolution}")
+        width = max(1, int(math.ceil((x_max - x_min) / resolution - 1e-9)))
+        height = max(1, int(math.ceil((y_max - y_min) / resolution - 1e-9)))
+        return cls(float(x_min), float(y_min), float(resolution), width, height)
+
+    @property
+    def x1(self) -> float:
+        """East edge, metres."""
+        return self.x0 + self.width * self.resolution
+
+    @property
+    def y1(self) -> float:
+        """North edge, metres."""
+        return self.y0 + self.height * self.resolution
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(x_min, y_min, x_max, y_max) metres."""
+        return (self.x0, self.y0, self.x1, self.y1)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(height, width) cells."""
+        return (self.height, self.width)
+
+    def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) arrays of cell-centre x and y, metres."""
+        xs = self.x0 + (np.arange(self.width) + 0.5) * self.resolution
+        ys = self.y0 + (self.height - np.arange(self.height) - 0.5) * self.resolution
+        return np.meshgrid(xs, ys)
+
+    def window(self, row0: int, col0: int, rows: int, cols: int) -> GridSpec:
+        """The sub-grid of ``rows`` x ``cols`` cells whose top-left cell is (row0, col0)."""
+        rows = min(rows, self.height - row0)
+        cols = min(cols, self.width - col0)
+        return GridSpec(
+            x0=self.x0 + col0 * self.resolution,
+            y0=self.y0 + (self.height - row0 - rows) * self.resolution,
+            resolution=self.resolution,
+            width=cols,
+            height=rows,
+        )
+
+    def index_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row and column of each (N, 2) point, and a mask of points inside the grid."""
+        pts = np.asarray(points, dtype=float)
+        col = np.floor((pts[:, 0] - self.x0) / self.resolution).astype(np.int64)
+        row = self.height - 1 - np.floor((pts[:, 1] - self.y0) / self.resolution).astype(np.int64)
+        inside = (col >= 0) & (col < self.width) & (row >= 0) & (row < self.height)
+        return row, col, inside
