@@ -7,7 +7,6 @@ exit status 2; results go to files and stdout, progress and logs to stderr.
 from __future__ import annotations
 
 import functools
-import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -51,7 +50,5 @@ def main() -> None:
 
 
 # Command modules register themselves on import; they come last to avoid a cycle.
-from gpocc.commands import info  # noqa: E402,F401
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+from gpocc.commands import info, map, train  # noqa: E402,F401
+from gpocc.commands import evaluate, split  # noqa: E402,F401

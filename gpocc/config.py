@@ -69,10 +69,16 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class UnscentedConfig:
-    """Unscented-transform spread (alpha), prior (beta) and secondary scaling (kappa)."""
+    """Unscented-transform spread (alpha), prior (beta) and secondary scaling (kappa).
 
-    alpha: float = 1.0
-    beta: float = 2.0
+    The defaults put the sigma points at sqrt(3) standard deviations (alpha^2 (n + kappa)
+    = 3 for the 5-D input, Julier's choice that matches the Gaussian's fourth moments);
+    against Monte Carlo at 15 deg heading noise they keep the covariance within 2%, where
+    alpha = 1, beta = 2 was 7-8% off (tests/test_unscented.py).
+    """
+
+    alpha: float = 0.7745966692414834
+    beta: float = 0.5
     kappa: float = 0.0
 
 

@@ -12,6 +12,12 @@ from pathlib import Path
 from gpocc.errors import GpoccError
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def check_can_write(path: Path, force: bool) -> None:
     """Refuse to overwrite an existing file or folder unless ``force`` is set."""
     if path.exists() and not force:
@@ -35,6 +41,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        # mkstemp makes owner-only files; outputs get the usual umask-derived mode.
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, target)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -54,6 +62,7 @@ def atomic_directory(path: str | os.PathLike[str], force: bool = False) -> Itera
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         yield tmp
+        os.chmod(tmp, 0o777 & ~_umask())
         if target.exists():
             old = target.with_name(f".{target.name}.old")
             shutil.rmtree(old, ignore_errors=True)

@@ -1,0 +1,5 @@
+"""``python -m gpocc`` runs the CLI."""
+
+from gpocc.cli import main
+
+main()

@@ -1,0 +1,69 @@
+"""``gpocc map``: model -> probability, variance and class rasters, map_server, preview."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import typer
+
+from gpocc.cli import command
+from gpocc.errors import GpoccError
+from gpocc.gp.model import load_model
+from gpocc.gridspec import GridSpec
+from gpocc.io.atomic import atomic_directory, check_can_write
+from gpocc.mapping.blocks import block_cells, plan_blocks
+from gpocc.mapping.executors import default_workers
+from gpocc.mapping.mapper import default_spec, make_map, write_metadata
+from gpocc.progress import log
+
+
+@command("map")
+def map_command(
+    model_path: Path = typer.Argument(..., metavar="MODEL", help="Model file from `gpocc train`."),
+    resolution: float = typer.Option(..., "--resolution", help="Cell size, metres."),
+    out: Path = typer.Option(..., "--out", help="Map folder to write."),
+    bounds: tuple[float, float, float, float] | None = typer.Option(
+        None, "--bounds", help="XMIN YMIN XMAX YMAX metres; default: samples' extent + margin."
+    ),
+    workers: int | None = typer.Option(None, "--workers", help="Local processes (default: all cores)."),
+    scheduler: str | None = typer.Option(
+        None, "--scheduler", help="Dask scheduler address tcp://HOST:PORT."
+    ),
+    force: bool = typer.Option(False, "--force", help="Replace an existing map folder."),
+) -> None:
+    """Sample a trained model at any resolution and write the map folder."""
+    check_can_write(out, force)
+    if not resolution > 0:
+        raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
+    if workers is not None and workers < 1:
+        raise GpoccError(f"--workers must be at least 1, got {workers}")
+    model = load_model(model_path)
+    if bounds is not None:
+        spec = GridSpec.from_bounds(*bounds, resolution)
+    else:
+        spec = default_spec(model, resolution, model.config.map.margin_m)
+    n_workers = workers or default_workers()
+    cells = block_cells(model.config.model.block_size_m, resolution)
+    total = len(plan_blocks(spec, cells))
+    log(f"mapping {spec.width} x {spec.height} cells at {resolution} m in {total} blocks "
+        f"({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
+    started = time.perf_counter()
+    done = [0]
+
+    def progress(n: int) -> None:
+        done[0] += n
+        if done[0] == total or done[0] % max(1, total // 10) < n:
+            log(f"  {done[0]}/{total} blocks")
+
+    with atomic_directory(out, force=force) as tmp:
+        summary = make_map(model, spec, tmp, n_workers, scheduler, progress)
+        write_metadata(tmp / "metadata.json", str(model_path), model, summary,
+                       {"workers": n_workers, "scheduler": scheduler})
+    seconds = time.perf_counter() - started
+    typer.echo(f"map: {out}")
+    typer.echo(f"cells: {spec.width} x {spec.height} at {resolution} m, bounds {spec.bounds}")
+    counts = summary.class_counts
+    typer.echo(f"classes: {counts['occupied']} occupied, {counts['free']} free, "
+               f"{counts['unsure']} unsure")
+    typer.echo(f"time: {seconds:.1f} s")

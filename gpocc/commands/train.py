@@ -1,0 +1,70 @@
+"""``gpocc train``: inputs -> samples -> learned model file."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from enum import Enum
+from pathlib import Path
+
+import typer
+
+from gpocc.cli import command
+from gpocc.config import load_config
+from gpocc.gp.model import build_model, kernel_parameters, save_model
+from gpocc.io.atomic import check_can_write
+from gpocc.io.inputs import read_inputs
+from gpocc.progress import log
+from gpocc.samples.beams import build_samples
+
+
+class Switch(str, Enum):
+    on = "on"
+    off = "off"
+
+
+@command("train")
+def train(
+    inputs: list[Path] = typer.Argument(..., help="Bags, bag folders, .mcap files or CARMEN logs."),
+    out: Path = typer.Option(..., "--out", help="Model file to write (.npz)."),
+    config: Path | None = typer.Option(None, "--config", help="YAML job config."),
+    input_noise: Switch | None = typer.Option(
+        None, "--input-noise", help="on: use sample covariances (default); off: the baseline."
+    ),
+    seed: int | None = typer.Option(None, "--seed", help="Overrides the config's seed."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing model file."),
+) -> None:
+    """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
+    check_can_write(out, force)
+    cfg = load_config(config)
+    if input_noise is not None:
+        cfg = dataclasses.replace(
+            cfg, model=dataclasses.replace(cfg.model, input_noise=input_noise is Switch.on)
+        )
+    if seed is not None:
+        cfg = dataclasses.replace(cfg, seed=seed)
+    started = time.perf_counter()
+    batches = read_inputs(inputs, cfg)
+    read_s = time.perf_counter() - started
+    log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
+    samples = build_samples(batches, cfg)
+    samples_s = time.perf_counter() - started - read_s
+    log(f"built {len(samples)} samples; learning hyperparameters")
+    model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs))
+    learn_s = time.perf_counter() - started - read_s - samples_s
+    save_model(model, out)
+    seconds = time.perf_counter() - started
+    occupied = int((model.samples.labels > 0).sum())
+    params = kernel_parameters(model.kernel)
+    typer.echo(f"model: {out}")
+    typer.echo(f"samples: {len(model.samples)} ({occupied} occupied, "
+               f"{len(model.samples) - occupied} free)")
+    typer.echo(f"input noise: {'on' if model.input_noise else 'off'}")
+    typer.echo("kernel: " + ", ".join(f"{k}={v}" for k, v in params.items()))
+    typer.echo(f"noise_variance: {model.noise_variance:.6g}")
+    typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
+               f"(initial {model.training['initial_log_marginal_likelihood']:.3f})")
+    typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g}")
+    typer.echo(f"stages: read {read_s:.1f} s, samples {samples_s:.1f} s, "
+               f"hyperparameters+classifier {learn_s:.1f} s")
+    typer.echo(f"time: {seconds:.1f} s")

@@ -1,0 +1,129 @@
+"""Local GP inference: each block of queries is predicted from its nearest training samples.
+
+The neural-network kernel is not translation invariant, so every local problem is moved
+to the origin (its centre subtracted from queries and sample means) exactly as during
+hyperparameter learning. Training-to-training covariances are expected kernels over the
+samples' input distributions (correlated within a scan); queries are exact points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.spatial import cKDTree
+
+from gpocc.gp.expected import expected_kernel_cross, expected_kernel_matrix
+from gpocc.samples.sampleset import SampleSet
+
+# Added to the diagonal on top of the label-noise variance; keeps Cholesky stable when two
+# samples are (numerically) the same point.
+_JITTER = 1e-8
+
+
+@dataclass(frozen=True)
+class LocalProblem:
+    """One local GP: a neighbourhood of samples, moved so that ``centre`` is the origin.
+
+    Attributes:
+        centre: (2,) metres, map frame.
+        samples: the neighbourhood, means already centred (metres, local frame).
+        index: (M,) indices of the neighbourhood in the full sample set.
+    """
+
+    centre: np.ndarray
+    samples: SampleSet
+    index: np.ndarray
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Latent GP prediction at queries: mean (Q,) and variance (Q,) of f(x*)."""
+
+    mean: np.ndarray
+    variance: np.ndarray
+
+
+class NeighbourIndex:
+    """Nearest-neighbour look-up of training samples by their mean position."""
+
+    def __init__(self, samples: SampleSet) -> None:
+        self.samples = samples
+        self._tree = cKDTree(samples.means)
+
+    def problem(self, centre: np.ndarray, neighbours: int) -> LocalProblem:
+        """The ``neighbours`` samples nearest ``centre`` (2,), centred at it."""
+        k = min(neighbours, len(self.samples))
+        _, index = self._tree.query(np.asarray(centre, dtype=float), k=k)
+        index = np.sort(np.atleast_1d(index))
+        return centred_problem(self.samples, index, np.asarray(centre, dtype=float))
+
+
+def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -> LocalProblem:
+    """The local problem of ``samples[index]`` with ``centre`` (2,) moved to the origin."""
+    local = samples.subset(index)
+    local = SampleSet(
+        means=local.means - centre,
+        covariances=local.covariances,
+        labels=local.labels,
+        scan_ids=local.scan_ids,
+        pose_factors=local.pose_factors,
+        sensor_ids=local.sensor_ids,
+    )
+    return LocalProblem(centre=centre, samples=local, index=index)
+
+
+def training_covariance(kernel, noise_variance: float, samples: SampleSet, level: int) -> np.ndarray:
+    """(M, M) covariance of the training labels: expected kernel plus label noise."""
+    k = expected_kernel_matrix(
+        kernel,
+        samples.means,
+        samples.covariances,
+        level,
+        scan_ids=samples.scan_ids,
+        pose_factors=samples.pose_factors,
+    )
+    k[np.diag_indices_from(k)] += noise_variance + _JITTER
+    return k
+
+
+def predict_local(
+    kernel, noise_variance: float, problem: LocalProblem, queries: np.ndarray, level: int
+) -> Prediction:
+    """GP predictive mean and variance at (Q, 2) map-frame queries from one local problem."""
+    local_queries = np.asarray(queries, dtype=float) - problem.centre
+    samples = problem.samples
+    if len(samples) == 0:
+        prior = kernel.diag(local_queries)
+        return Prediction(mean=np.zeros(len(local_queries)), variance=prior)
+    k_train = training_covariance(kernel, noise_variance, samples, level)
+    chol = np.linalg.cholesky(k_train)
+    k_cross = expected_kernel_cross(
+        kernel, local_queries, samples.means, samples.covariances, level
+    )
+    alpha = cho_solve((chol, True), samples.labels)
+    mean = k_cross @ alpha
+    v = solve_triangular(chol, k_cross.T, lower=True, check_finite=False)
+    variance = kernel.diag(local_queries) - np.einsum("ij,ij->j", v, v)
+    return Prediction(mean=mean, variance=np.maximum(variance, 0.0))
+
+
+def predict_full(kernel, noise_variance: float, samples: SampleSet, queries: np.ndarray,
+                 level: int) -> Prediction:
+    """The exact (non-local) GP prediction from every sample; the oracle for small problems."""
+    problem = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(len(samples)))
+    return predict_local(kernel, noise_variance, problem, queries, level)
+
+
+def leave_one_out(k_train: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form leave-one-out predictive mean and variance (M,) of a GP.
+
+    ``mu_i = y_i - [K^-1 y]_i / [K^-1]_ii`` and ``var_i = 1 / [K^-1]_ii`` (Rasmussen and
+    Williams, eq. 5.12), with ``k_train`` the label covariance including noise.
+    """
+    factor = cho_factor(k_train, lower=True)
+    inverse = cho_solve(factor, np.eye(len(labels)))
+    alpha = inverse @ labels
+    diag = np.diag(inverse)
+    return labels - alpha / diag, 1.0 / diag

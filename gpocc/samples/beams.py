@@ -1,0 +1,248 @@
+"""Laser beams to uncertain training samples: hits (+1) and free space along beams (-1).
+
+Each sample is a point at a distance along one beam of one scan. Its position is a
+nonlinear function (:func:`gpocc.samples.unscented.beam_endpoint`) of five uncertain
+inputs: the range or distance, the beam bearing and the robot pose (x, y, yaw). The
+unscented transform turns the Gaussian of those inputs into the Gaussian of the position,
+and its cross-covariance gives each sample's sensitivity to its scan's pose, so that samples
+of one scan keep their shared pose error (see :class:`~gpocc.samples.sampleset.SampleSet`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from gpocc.config import Config, SamplesConfig, SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.scans import ScanBatch
+from gpocc.samples.sampleset import SampleSet
+from gpocc.samples.unscented import beam_endpoint, matrix_sqrt, unscented_transform
+
+#: Upper bound (approximately: whole scans are never split) on the samples pushed through
+#: one unscented-transform call; bounds peak memory to a few hundred MB.
+CHUNK_SAMPLES = 100_000
+
+# Free-sample counts are floor(limit / spacing); this slack keeps a sample that lies
+# exactly on the limit when the division rounds down (e.g. 2.0 / 0.4 = 4.999...).
+_COUNT_SLACK = 1e-9
+
+
+def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
+    """Training samples from all scans of all sensors.
+
+    Beam classes follow REP 117 (``r`` the raw range, ``[range_min, range_max)`` the
+    batch's valid interval):
+
+    * NaN (invalid), ``-inf`` (too close) or ``r < range_min``: nothing.
+    * finite ``range_min <= r < range_max``: a hit (+1) at ``r`` and free samples (-1) at
+      ``d = k * free_spacing_m`` (k = 1, 2, ...) while ``d <= r - hit_gap_m``.
+    * ``+inf`` or ``r >= range_max`` (no return): no hit; free samples at the same spacing
+      up to ``min(no_return_free_m, range_max)``.
+
+    Only every ``scan_stride``-th scan and ``beam_stride``-th beam is used.
+
+    Input noise: a sample's inputs are (range or distance, bearing, x, y, yaw) with
+    covariance ``blockdiag(diag(var_r, var_b), P)``, ``P`` the scan's pose covariance.
+    Hits have ``var_r = range_variance_m2`` (the range is measured). Free samples have
+    ``var_r = 0``: their distance along the beam is chosen by us, not measured, so it
+    carries no error; a noisy range only moves where free space ends, which ``hit_gap_m``
+    absorbs. Their position error comes from the bearing and the pose alone. ``var_b`` is
+    ``bearing_variance_rad2`` for both.
+
+    Pose covariance: the batch's per-scan covariances when it has them and the sensor's
+    ``override_pose_covariance`` is off; the sensor's ``pose_covariance`` otherwise. A
+    batch whose sensor has no entry in ``config.sensors`` uses :class:`SensorConfig`
+    defaults.
+
+    Pose factors: ``A_i = G_i L`` with ``G_i = C_i^T pinv(P)`` (2x3), ``C_i`` the (3, 2)
+    pose block of the unscented cross-covariance (statistical linear regression of the
+    position on the pose) and ``L L^T = P``. For the symmetric sigma points used here
+    ``A_i`` is the central difference of the position along the columns of ``L``, so
+    ``covariances[i] - A_i A_i^T`` is the (PSD, for ``wc[0] >= 0``) part of the error not
+    shared with other beams of the scan.
+
+    Thinning (``samples.thin_cell_m > 0``): see :func:`thin_samples`; applied as the
+    chunks arrive, which gives the same result as thinning the whole set at the end.
+
+    Args:
+        batches: the readers' output, one per sensor and source.
+        config: the job configuration (``sensors`` and ``samples`` are used).
+
+    Returns:
+        The samples, ordered by batch, then by chunks of consecutive scans; within a chunk
+        hits come first, then free samples, each in (scan, beam, distance) order.
+        ``scan_ids`` are the scan's index in its batch plus the number of scans of all
+        earlier batches (unique across batches); ``sensor_ids`` index the sensors in the
+        order their names first appear in ``batches``.
+
+    Raises:
+        GpoccError: no batches, non-finite poses or pose covariances, or a batch that
+            gives no sample at all (no valid beam).
+    """
+    if not batches:
+        raise GpoccError("no scans to build training samples from; check the input files")
+    sensors = {s.name: s for s in config.sensors}
+    sensor_index: dict[str, int] = {}
+    thin_cell = float(config.samples.thin_cell_m)
+    kept: SampleSet | None = None
+    parts: list[SampleSet] = []
+    offset = 0
+    for batch in batches:
+        sensor = sensors.get(batch.sensor, SensorConfig(name=batch.sensor))
+        sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
+        n_batch = 0
+        for part in _batch_samples(batch, sensor, config.samples, offset, sensor_id):
+            n_batch += len(part)
+            if thin_cell > 0:
+                # A per-cell minimum: thinning as chunks arrive equals thinning at the end.
+                merged = part if kept is None else SampleSet.concatenate([kept, part])
+                kept = thin_samples(merged, thin_cell)
+            else:
+                parts.append(part)
+        if n_batch == 0:
+            raise GpoccError(
+                f"{batch.source}: sensor '{batch.sensor}' gave no training samples: none of "
+                f"its {batch.n_scans} scans x {batch.n_beams} beams has a usable range in "
+                f"[{batch.range_min:g}, {batch.range_max:g}) m (NaN, -inf and ranges below "
+                f"range_min are skipped); check the sensor's range_min_m / range_max_m, "
+                f"no_return_free_m and that the ranges are in metres"
+            )
+        offset += batch.n_scans
+    if kept is not None:
+        return kept
+    return SampleSet.concatenate(parts)
+
+
+def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
+    """Keep, per label and per square cell of side ``cell_m``, the most certain sample.
+
+    Cells are ``floor(mean / cell_m)`` in the map frame. "Most certain" is the smallest
+    covariance trace; ties keep the earliest sample. The kept samples stay in their
+    original order. ``cell_m <= 0`` returns the samples unchanged.
+
+    Args:
+        samples: any sample set.
+        cell_m: cell side, metres.
+    """
+    if cell_m <= 0 or len(samples) == 0:
+        return samples
+    cells = np.floor(samples.means / cell_m).astype(np.int64)
+    trace = samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]
+    # lexsort is stable, so within one (label, cell) and trace the earliest sample leads.
+    order = np.lexsort((trace, cells[:, 1], cells[:, 0], samples.labels))
+    label_s = samples.labels[order]
+    cells_s = cells[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (label_s[1:] != label_s[:-1]) | np.any(cells_s[1:] != cells_s[:-1], axis=1)
+    return samples.subset(np.sort(order[first]))
+
+
+def _pose_covariances(batch: ScanBatch, sensor: SensorConfig, scans: np.ndarray) -> np.ndarray:
+    """(S', 3, 3) pose covariance of the kept scans, from the batch or the config."""
+    if batch.has_pose_covariance and not sensor.override_pose_covariance:
+        cov = np.asarray(batch.pose_covariances, dtype=float)[scans]
+        if not np.isfinite(cov).all():
+            raise GpoccError(
+                f"{batch.source}: sensor '{batch.sensor}' has non-finite pose covariances; "
+                f"set override_pose_covariance: true and pose_covariance for it in the config"
+            )
+        return 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    return np.broadcast_to(sensor.pose_covariance_matrix, (len(scans), 3, 3)).copy()
+
+
+def _batch_samples(
+    batch: ScanBatch,
+    sensor: SensorConfig,
+    cfg: SamplesConfig,
+    scan_offset: int,
+    sensor_id: int,
+) -> Iterator[SampleSet]:
+    """The samples of one batch, in chunks of whole scans (about CHUNK_SAMPLES each)."""
+    scans = np.arange(0, batch.n_scans, cfg.scan_stride)
+    beams = np.arange(0, batch.n_beams, cfg.beam_stride)
+    ranges = np.asarray(batch.ranges, dtype=float)[np.ix_(scans, beams)]
+    angles = np.asarray(batch.angles, dtype=float)[beams]
+    poses = np.asarray(batch.poses, dtype=float)[scans]
+    if not np.isfinite(poses).all():
+        raise GpoccError(
+            f"{batch.source}: sensor '{batch.sensor}' has non-finite poses; check the pose "
+            f"source of this input"
+        )
+    pose_cov = _pose_covariances(batch, sensor, scans)
+    pose_root = matrix_sqrt(pose_cov) if len(scans) else np.zeros((0, 3, 3))
+    # A_i = C_i^T pinv(P) L: the scan-level factor pinv(P) L is shared by all its samples.
+    pose_map = np.linalg.pinv(pose_cov, hermitian=True) @ pose_root if len(scans) else pose_root
+
+    r_min, r_max = float(batch.range_min), float(batch.range_max)
+    with np.errstate(invalid="ignore"):
+        is_hit = np.isfinite(ranges) & (ranges >= r_min) & (ranges < r_max)
+        no_return = (ranges >= r_max) | (ranges == np.inf)
+    no_return_limit = min(float(sensor.no_return_free_m), r_max)
+    limit = np.where(
+        is_hit, ranges - cfg.hit_gap_m, np.where(no_return, no_return_limit, 0.0)
+    )
+    limit = np.where(np.isfinite(limit), limit, 0.0)
+    n_free = np.floor(np.maximum(limit, 0.0) / cfg.free_spacing_m + _COUNT_SLACK).astype(np.int64)
+
+    per_scan = is_hit.sum(axis=1) + n_free.sum(axis=1)
+    if per_scan.sum() == 0:
+        return
+    chunk_of_scan = (np.cumsum(per_scan) - per_scan) // CHUNK_SAMPLES
+    bounds = np.concatenate(([0], np.flatnonzero(np.diff(chunk_of_scan)) + 1, [len(scans)]))
+
+    mount = np.array([sensor.mount.x_m, sensor.mount.y_m, np.deg2rad(sensor.mount.yaw_deg)])
+    var_r_hit = float(sensor.range_variance_m2)
+    sd_b = float(np.sqrt(sensor.bearing_variance_rad2))
+    ut = cfg.unscented
+
+    def endpoint(inputs: np.ndarray) -> np.ndarray:
+        return beam_endpoint(inputs, mount)
+
+    for s0, s1 in zip(bounds[:-1], bounds[1:], strict=True):
+        hit_scan, hit_beam = np.nonzero(is_hit[s0:s1])
+        counts = n_free[s0:s1].ravel()
+        flat = np.repeat(np.arange(counts.size), counts)
+        first = np.cumsum(counts) - counts
+        k = np.arange(flat.size) - np.repeat(first, counts) + 1
+        free_scan, free_beam = np.divmod(flat, len(beams))
+        n_hit, n_free_chunk = hit_scan.size, flat.size
+        n = n_hit + n_free_chunk
+        if n == 0:
+            continue
+        scan_local = np.concatenate((hit_scan, free_scan)) + s0
+        beam_local = np.concatenate((hit_beam, free_beam))
+        dist = np.concatenate((ranges[hit_scan + s0, hit_beam], k * cfg.free_spacing_m))
+
+        mean = np.empty((n, 5))
+        mean[:, 0] = dist
+        mean[:, 1] = angles[beam_local]
+        mean[:, 2:] = poses[scan_local]
+        var_r = np.zeros(n)
+        var_r[:n_hit] = var_r_hit
+        cov = np.zeros((n, 5, 5))
+        cov[:, 0, 0] = var_r
+        cov[:, 1, 1] = sd_b**2
+        cov[:, 2:, 2:] = pose_cov[scan_local]
+        # The input covariance is block diagonal, so its root is too; this keeps the pose
+        # sigma points along the columns of L (the A_i identity in build_samples' docstring).
+        root = np.zeros((n, 5, 5))
+        root[:, 0, 0] = np.sqrt(var_r)
+        root[:, 1, 1] = sd_b
+        root[:, 2:, 2:] = pose_root[scan_local]
+        y_mean, y_cov, cross = unscented_transform(
+            endpoint, mean, cov, ut.alpha, ut.beta, ut.kappa, sqrt_cov=root
+        )
+        factors = np.swapaxes(cross[:, 2:, :], -1, -2) @ pose_map[scan_local]
+
+        labels = np.full(n, -1.0)
+        labels[:n_hit] = 1.0
+        yield SampleSet(
+            means=y_mean,
+            covariances=y_cov,
+            labels=labels,
+            scan_ids=(scans[scan_local] + scan_offset).astype(np.int64),
+            pose_factors=factors,
+            sensor_ids=np.full(n, sensor_id, dtype=np.int16),
+        )

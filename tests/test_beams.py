@@ -1,0 +1,283 @@
+"""Beams to samples: REP 117 classes, free-sample spacing, strides, thinning, ids."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from gpocc.config import Config, MountConfig, SamplesConfig, SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.scans import ScanBatch
+from gpocc.samples import beams
+from gpocc.samples.beams import build_samples, thin_samples
+from gpocc.samples.sampleset import SampleSet
+
+ZERO_POSE_COV = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+NOISELESS = SensorConfig(
+    name="r1", range_variance_m2=0.0, bearing_variance_deg2=0.0, pose_covariance=ZERO_POSE_COV,
+    no_return_free_m=2.0, mount=MountConfig(x_m=0.2, y_m=0.1, yaw_deg=30.0),
+)
+SAMPLES = SamplesConfig(free_spacing_m=0.5, hit_gap_m=0.25, thin_cell_m=0.0)
+
+
+def _batch(ranges, angles, poses, *, sensor="r1", range_min=0.1, range_max=8.0, covs=None):
+    ranges = np.asarray(ranges, dtype=float)
+    s = ranges.shape[0]
+    return ScanBatch(
+        sensor=sensor,
+        source=f"{sensor}.log",
+        stamps=np.arange(s, dtype=float),
+        angles=np.asarray(angles, dtype=float),
+        ranges=ranges,
+        poses=np.asarray(poses, dtype=float),
+        pose_covariances=np.zeros((s, 3, 3)) if covs is None else np.asarray(covs, dtype=float),
+        range_min=range_min,
+        range_max=range_max,
+        has_pose_covariance=covs is not None,
+    )
+
+
+def _se2(x, y, yaw):
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def _oracle(batch: ScanBatch, sensor: SensorConfig, cfg: SamplesConfig, scan_offset=0):
+    """REP 117 rules, one beam at a time: rows (label, scan_id, x, y)."""
+    rows = []
+    m = sensor.mount
+    mount = _se2(m.x_m, m.y_m, math.radians(m.yaw_deg))
+    for s in range(0, batch.n_scans, cfg.scan_stride):
+        laser = _se2(*batch.poses[s]) @ mount
+        for b in range(0, batch.n_beams, cfg.beam_stride):
+            r, bearing = batch.ranges[s, b], batch.angles[b]
+            if math.isnan(r) or r < batch.range_min:
+                continue
+            if r >= batch.range_max:
+                hit, limit = False, min(sensor.no_return_free_m, batch.range_max)
+            else:
+                hit, limit = True, r - cfg.hit_gap_m
+            points = []
+            if hit:
+                points.append((1.0, r))
+            k = 1
+            while k * cfg.free_spacing_m <= limit + 1e-12:
+                points.append((-1.0, k * cfg.free_spacing_m))
+                k += 1
+            for label, d in points:
+                p = laser @ np.array([d * math.cos(bearing), d * math.sin(bearing), 1.0])
+                rows.append((label, s + scan_offset, p[0], p[1]))
+    return np.array(rows).reshape(-1, 4)
+
+
+def _rows(samples: SampleSet) -> np.ndarray:
+    return np.column_stack([samples.labels, samples.scan_ids, samples.means])
+
+
+def _assert_same_rows(got: np.ndarray, expected: np.ndarray):
+    """Same multiset of (label, scan, x, y), matched by nearest point (order-free)."""
+    assert got.shape == expected.shape
+    used = np.zeros(len(got), dtype=bool)
+    for row in expected:
+        d = np.linalg.norm(got[:, 2:] - row[2:], axis=1)
+        d[(got[:, 0] != row[0]) | (got[:, 1] != row[1]) | used] = np.inf
+        j = int(np.argmin(d))
+        assert d[j] < 1e-9, f"no sample for {row}"
+        used[j] = True
+
+
+def _config(sensor=NOISELESS, **samples):
+    return Config(sensors=(sensor,), samples=replace(SAMPLES, **samples))
+
+
+ANGLES = [-1.2, -0.4, 0.3, 1.1]
+POSES = [[1.0, -2.0, 0.3], [4.0, 0.5, -2.5]]
+
+
+def test_hits_exact_and_free_samples_at_documented_distances():
+    ranges = [[2.25, 0.6, 5.1, 3.3], [1.0, 7.9, 0.3, 4.75]]
+    batch = _batch(ranges, ANGLES, POSES)
+    samples = build_samples([batch], _config())
+    _assert_same_rows(_rows(samples), _oracle(batch, NOISELESS, SAMPLES))
+    # spot checks of the rules themselves, in the laser frame of scan 0, beam 0
+    laser = _se2(*POSES[0]) @ _se2(0.2, 0.1, math.radians(30.0))
+    local = np.linalg.solve(laser, np.column_stack([samples.means, np.ones(len(samples))]).T).T
+    along = np.hypot(local[:, 0], local[:, 1])
+    on_beam0 = (samples.scan_ids == 0) & np.isclose(np.arctan2(local[:, 1], local[:, 0]), -1.2)
+    np.testing.assert_allclose(np.sort(along[on_beam0 & (samples.labels < 0)]),
+                               [0.5, 1.0, 1.5, 2.0])  # 2.0 == 2.25 - hit_gap is included
+    np.testing.assert_allclose(along[on_beam0 & (samples.labels > 0)], [2.25])
+    # no noise anywhere: zero covariances and pose factors
+    np.testing.assert_allclose(samples.covariances, 0.0, atol=1e-20)
+    np.testing.assert_allclose(samples.pose_factors, 0.0, atol=1e-20)
+    assert samples.labels.dtype == np.float64 and samples.scan_ids.dtype == np.int64
+    assert samples.sensor_ids.dtype == np.int16 and (samples.sensor_ids == 0).all()
+
+
+def test_invalid_ranges_give_nothing_and_no_return_gives_free_space():
+    ranges = [[np.nan, -np.inf, 0.05, 2.0], [np.inf, 3.0, 9.0, 2.0]]
+    batch = _batch(ranges, ANGLES, POSES, range_max=3.0)
+    sensor = replace(NOISELESS, no_return_free_m=2.0)
+    samples = build_samples([batch], _config(sensor))
+    _assert_same_rows(_rows(samples), _oracle(batch, sensor, SAMPLES))
+    per_scan = np.bincount(samples.scan_ids, minlength=2)
+    # scan 0: only the 2.0 m beam: a hit + free at 0.5, 1.0, 1.5
+    assert per_scan[0] == 4
+    # scan 1: +inf -> 4 free up to 2.0; 3.0 (== range_max) and 9.0 -> 4 free each
+    # (min(no_return_free_m, range_max) = 2.0); plus the 2.0 m beam's 4
+    assert per_scan[1] == 16
+    assert (samples.labels[samples.scan_ids == 1] > 0).sum() == 1
+
+    # range_max below no_return_free_m caps the no-return free space
+    capped = replace(sensor, no_return_free_m=5.0)
+    samples = build_samples([batch], _config(capped))
+    _assert_same_rows(_rows(samples), _oracle(batch, capped, SAMPLES))
+    assert np.bincount(samples.scan_ids, minlength=2)[1] == 4 + 3 * 6
+
+
+def test_strides_keep_every_sth_scan_and_bth_beam():
+    rng = np.random.default_rng(0)
+    ranges = rng.uniform(0.5, 6.0, size=(5, 7))
+    angles = np.linspace(-1.5, 1.5, 7)
+    poses = np.column_stack([rng.normal(size=5), rng.normal(size=5), rng.uniform(-3, 3, 5)])
+    batch = _batch(ranges, angles, poses)
+    cfg = replace(SAMPLES, scan_stride=2, beam_stride=3)
+    samples = build_samples([batch], _config(scan_stride=2, beam_stride=3))
+    _assert_same_rows(_rows(samples), _oracle(batch, NOISELESS, cfg))
+    assert set(samples.scan_ids.tolist()) == {0, 2, 4}
+
+
+def _noisy_batch(n_scans=30, seed=1):
+    rng = np.random.default_rng(seed)
+    angles = np.linspace(-1.5, 1.5, 40)
+    ranges = rng.uniform(0.5, 4.0, size=(n_scans, 40))
+    poses = np.column_stack([rng.uniform(0, 1, n_scans), rng.uniform(0, 1, n_scans),
+                             rng.uniform(-3, 3, n_scans)])
+    covs = np.zeros((n_scans, 3, 3))
+    covs[:, 0, 0] = rng.uniform(0.001, 0.01, n_scans)
+    covs[:, 1, 1] = rng.uniform(0.001, 0.01, n_scans)
+    covs[:, 2, 2] = rng.uniform(1e-4, 1e-3, n_scans)
+    return _batch(ranges, angles, poses, covs=covs)
+
+
+def _brute_force_thin(samples: SampleSet, cell: float) -> np.ndarray:
+    best: dict[tuple, int] = {}
+    trace = np.trace(samples.covariances, axis1=1, axis2=2)
+    for i in range(len(samples)):
+        key = (samples.labels[i], math.floor(samples.means[i, 0] / cell),
+               math.floor(samples.means[i, 1] / cell))
+        if key not in best or trace[i] < trace[best[key]]:
+            best[key] = i
+    return np.sort(np.array(list(best.values())))
+
+
+def test_thinning_keeps_the_most_certain_sample_per_cell_and_label(monkeypatch):
+    batch = _noisy_batch()
+    sensor = replace(NOISELESS, range_variance_m2=0.0004, bearing_variance_deg2=0.1)
+    everything = build_samples([batch], _config(sensor))
+    expected = everything.subset(_brute_force_thin(everything, 0.5))
+
+    thinned = build_samples([batch], _config(sensor, thin_cell_m=0.5))
+    assert len(thinned) == len(expected) < len(everything) / 4
+    np.testing.assert_array_equal(thinned.means, expected.means)
+    np.testing.assert_array_equal(thinned.covariances, expected.covariances)
+
+    # the same when the samples arrive in many chunks (thinning as they come)
+    monkeypatch.setattr(beams, "CHUNK_SAMPLES", 300)
+    chunked = build_samples([batch], _config(sensor, thin_cell_m=0.5))
+    _assert_same_rows(_rows(chunked), _rows(expected))
+    chunked_all = build_samples([batch], _config(sensor))
+    _assert_same_rows(_rows(chunked_all), _rows(everything))
+
+
+def test_thin_samples_ties_keep_the_first():
+    means = np.array([[0.1, 0.1], [0.2, 0.3], [0.3, 0.2], [0.1, 0.1], [1.2, 0.1]])
+    covs = np.repeat(np.eye(2)[None], 5, axis=0)
+    covs[2] *= 0.5
+    samples = SampleSet(
+        means=means, covariances=covs, labels=np.array([1.0, 1.0, -1.0, -1.0, 1.0]),
+        scan_ids=np.arange(5), pose_factors=np.zeros((5, 2, 3)),
+        sensor_ids=np.zeros(5, dtype=np.int16),
+    )
+    kept = thin_samples(samples, 1.0)
+    # +1 in cell (0, 0): 0 and 1 tie -> 0; -1 in (0, 0): 2 has the smaller trace; +1 in (1, 0)
+    np.testing.assert_array_equal(kept.scan_ids, [0, 2, 4])
+    assert thin_samples(samples, 0.0) is samples
+
+
+def test_scan_ids_unique_across_batches_and_sensor_ids_by_first_appearance():
+    rng = np.random.default_rng(2)
+    a = _batch(rng.uniform(1, 3, (3, 4)), ANGLES, np.zeros((3, 3)), sensor="r1")
+    b = _batch(rng.uniform(1, 3, (2, 4)), ANGLES, np.zeros((2, 3)), sensor="r2")
+    c = _batch(rng.uniform(1, 3, (4, 4)), ANGLES, np.zeros((4, 3)), sensor="r1")
+    r2 = replace(NOISELESS, name="r2", mount=MountConfig())
+    config = Config(sensors=(NOISELESS, r2), samples=SAMPLES)
+    samples = build_samples([a, b, c], config)
+    for ids, sensor_id in ((range(0, 3), 0), (range(3, 5), 1), (range(5, 9), 0)):
+        mask = samples.sensor_ids == sensor_id
+        assert set(ids) <= set(samples.scan_ids[mask].tolist())
+    assert set(samples.scan_ids.tolist()) == set(range(9))
+    assert (samples.sensor_ids[np.isin(samples.scan_ids, [3, 4])] == 1).all()
+    # the oracle with the same offsets
+    _assert_same_rows(
+        _rows(samples),
+        np.concatenate([_oracle(a, NOISELESS, SAMPLES), _oracle(b, r2, SAMPLES, 3),
+                        _oracle(c, NOISELESS, SAMPLES, 5)]),
+    )
+
+
+def test_pose_covariance_source_batch_config_or_override():
+    """Translation-only pose noise Q moves every sample by the same Q: exact in the UT."""
+    q_batch = np.array([[0.02, 0.005, 0.0], [0.005, 0.01, 0.0], [0.0, 0.0, 0.0]])
+    q_config = np.array([[0.03, -0.01, 0.0], [-0.01, 0.04, 0.0], [0.0, 0.0, 0.0]])
+    batch = _batch([[2.0, 3.0, np.inf, 1.5]], ANGLES, [POSES[0]], covs=[q_batch])
+    sensor = replace(NOISELESS, pose_covariance=tuple(map(tuple, q_config)))
+
+    def check(samples, q):
+        expected = np.broadcast_to(q[:2, :2], (len(samples), 2, 2))
+        np.testing.assert_allclose(samples.covariances, expected, atol=1e-12)
+        np.testing.assert_allclose(samples.pose_factors @ np.swapaxes(samples.pose_factors, 1, 2),
+                                   samples.covariances, atol=1e-12)
+
+    check(build_samples([batch], _config(sensor)), q_batch)
+    check(build_samples([batch], _config(replace(sensor, override_pose_covariance=True))), q_config)
+    check(build_samples([replace(batch, has_pose_covariance=False)], _config(sensor)), q_config)
+
+
+def test_unknown_sensor_uses_defaults():
+    batch = _batch([[2.0, 3.0, 2.5, 1.5]], ANGLES, [POSES[0]], sensor="ghost")
+    got = build_samples([batch], _config())
+    expected = build_samples([batch], Config(sensors=(SensorConfig(name="ghost"),),
+                                             samples=SAMPLES))
+    np.testing.assert_array_equal(got.covariances, expected.covariances)
+    assert got.covariances.any()  # the default noise model, not NOISELESS
+
+
+def test_hits_carry_range_variance_free_samples_do_not():
+    """Only the range is noisy: a hit's covariance is var_r along the beam, a free one's zero."""
+    sensor = replace(NOISELESS, range_variance_m2=0.09)
+    batch = _batch([[2.0]], [0.0], [[0.0, 0.0, 0.0]])
+    samples = build_samples([batch], _config(sensor, free_spacing_m=0.5, hit_gap_m=0.0))
+    direction = np.array([math.cos(math.pi / 6), math.sin(math.pi / 6)])  # mount yaw 30 deg
+    hit = samples.covariances[samples.labels > 0]
+    np.testing.assert_allclose(hit, [0.09 * np.outer(direction, direction)], atol=1e-12)
+    free = samples.covariances[samples.labels < 0]
+    assert len(free) == 4  # 0.5 .. 2.0 m, hit_gap 0
+    np.testing.assert_allclose(free, 0.0, atol=1e-15)
+
+
+def test_no_valid_beam_is_a_clear_error():
+    batch = _batch([[np.nan, -np.inf, 0.01, np.nan]], ANGLES, [POSES[0]], sensor="r9")
+    with pytest.raises(GpoccError, match=r"r9\.log.*'r9'.*range_min"):
+        build_samples([batch], _config())
+    with pytest.raises(GpoccError, match="no scans"):
+        build_samples([], _config())
+
+
+def test_non_finite_poses_are_a_clear_error():
+    batch = _batch([[2.0, 2.0, 2.0, 2.0]], ANGLES, [[np.nan, 0.0, 0.0]])
+    with pytest.raises(GpoccError, match="r1.log.*non-finite poses"):
+        build_samples([batch], _config())

@@ -1,0 +1,134 @@
+"""Local GP inference against the full GP, and the uncertain-input 1-D case (paper Fig. 1)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.gp.local import (
+    NeighbourIndex,
+    leave_one_out,
+    predict_full,
+    predict_local,
+    training_covariance,
+)
+from gpocc.samples.sampleset import SampleSet
+
+
+def make_samples(means, covariances, labels, scan_ids=None) -> SampleSet:
+    n = len(means)
+    return SampleSet(
+        means=np.asarray(means, float),
+        covariances=np.asarray(covariances, float),
+        labels=np.asarray(labels, float),
+        scan_ids=np.arange(n) if scan_ids is None else np.asarray(scan_ids),
+        pose_factors=np.zeros((n, 2, 3)),
+        sensor_ids=np.zeros(n, dtype=np.int16),
+    )
+
+
+def room_samples(rng: np.random.Generator, n: int = 400) -> SampleSet:
+    """Random points in a 6 x 6 m square: occupied near the walls, free inside."""
+    pts = rng.uniform(-3, 3, size=(n, 2))
+    near_wall = np.max(np.abs(pts), axis=1) > 2.6
+    labels = np.where(near_wall, 1.0, -1.0)
+    covs = np.einsum("n,ij->nij", rng.uniform(0.0005, 0.01, n), np.eye(2))
+    return make_samples(pts, covs, labels)
+
+
+def test_full_neighbourhood_equals_full_gp():
+    rng = np.random.default_rng(0)
+    samples = room_samples(rng, 120)
+    kernel = NeuralNetworkKernel(1.0, 1.0, (2.0, 2.0))
+    queries = rng.uniform(-3, 3, size=(50, 2))
+    full = predict_full(kernel, 0.1, samples, queries, 3)
+    problem = NeighbourIndex(samples).problem(np.zeros(2), len(samples))
+    local = predict_local(kernel, 0.1, problem, queries, 3)
+    np.testing.assert_allclose(local.mean, full.mean, atol=1e-8)
+    np.testing.assert_allclose(local.variance, full.variance, atol=1e-8)
+
+
+def test_local_approximation_converges_to_full_gp():
+    # With a short-range kernel, distant samples carry little weight: local problems must
+    # reproduce the brute-force full GP closely, and more neighbours must bring them closer.
+    rng = np.random.default_rng(1)
+    samples = room_samples(rng, 500)
+    kernel = SquaredExponentialKernel(1.0, (0.4, 0.4))
+    index = NeighbourIndex(samples)
+    queries = rng.uniform(-2.5, 2.5, size=(40, 2))
+    full = predict_full(kernel, 0.1, samples, queries, 3)
+
+    def local_error(neighbours: int) -> tuple[float, float]:
+        preds = [predict_local(kernel, 0.1, index.problem(q, neighbours), q[None, :], 3)
+                 for q in queries]
+        mean = np.array([p.mean[0] for p in preds])
+        var = np.array([p.variance[0] for p in preds])
+        return np.max(np.abs(mean - full.mean)), np.max(np.abs(var - full.variance))
+
+    coarse = local_error(100)
+    fine = local_error(250)
+    assert fine[0] < 0.02 and fine[1] < 0.02
+    assert fine[0] < coarse[0] and fine[1] <= coarse[1]
+
+
+def test_local_problem_is_centred_and_translation_consistent_for_nn_kernel():
+    # The NN kernel is not translation invariant: shifting all data and queries must give
+    # the same local prediction, because every local problem is centred at the origin.
+    rng = np.random.default_rng(2)
+    samples = room_samples(rng, 200)
+    kernel = NeuralNetworkKernel(1.0, 1.0, (3.0, 3.0))
+    shift = np.array([250.0, -140.0])
+    shifted = make_samples(samples.means + shift, samples.covariances, samples.labels)
+    q = rng.uniform(-1, 1, size=(10, 2))
+    centre = np.array([0.2, -0.3])
+    a = predict_local(kernel, 0.1, NeighbourIndex(samples).problem(centre, 80), q, 3)
+    b = predict_local(kernel, 0.1, NeighbourIndex(shifted).problem(centre + shift, 80),
+                      q + shift, 3)
+    np.testing.assert_allclose(a.mean, b.mean, atol=1e-9)
+    np.testing.assert_allclose(a.variance, b.variance, atol=1e-9)
+
+
+def test_uncertain_input_does_not_drag_the_mean():
+    """1-D case like the method paper's Figure 1, on the line y = 0.
+
+    Accurate samples follow f(x) = sin(x); one sample far off the curve has a large input
+    variance. With input noise modelled, the mean near it stays close to f; ignoring input
+    noise, the one bad sample pulls the mean towards itself.
+    """
+    x = np.linspace(-4, 4, 41)
+    y = np.sin(x)
+    cov = np.zeros((len(x), 2, 2))
+    bad = 20  # x = 0
+    x_bad = x.copy()
+    x_bad[bad] = 1.2  # recorded at the wrong place: its true input was x = 0
+    y_bad = y.copy()
+    y_bad[bad] = np.sin(0.0)
+    cov[bad] = np.diag([1.5**2, 1e-6])
+    means = np.column_stack([x_bad, np.zeros_like(x)])
+    kernel = SquaredExponentialKernel(1.0, (0.8, 5.0))
+    noisy = make_samples(means, cov, y_bad)
+    queries = np.column_stack([np.linspace(0.8, 1.6, 9), np.zeros(9)])
+    truth = np.sin(queries[:, 0])
+    with_noise = predict_full(kernel, 0.01, noisy, queries, 8)
+    without = predict_full(kernel, 0.01, noisy.without_input_noise(), queries, 8)
+    err_with = np.max(np.abs(with_noise.mean - truth))
+    err_without = np.max(np.abs(without.mean - truth))
+    assert err_without > 0.15
+    assert err_with < 0.1 * err_without
+
+
+@pytest.mark.parametrize("kernel", [NeuralNetworkKernel(1.0, 1.0, (2.0, 2.0)),
+                                    SquaredExponentialKernel(1.0, (0.7, 0.7))])
+def test_leave_one_out_matches_refitting(kernel):
+    rng = np.random.default_rng(3)
+    samples = room_samples(rng, 40)
+    k = training_covariance(kernel, 0.1, samples, 3)
+    mu, var = leave_one_out(k, samples.labels)
+    for i in (0, 7, 23):
+        keep = np.arange(len(samples)) != i
+        kk = k[np.ix_(keep, keep)]
+        ks = k[i, keep]
+        alpha = np.linalg.solve(kk, samples.labels[keep])
+        assert mu[i] == pytest.approx(ks @ alpha, rel=1e-6, abs=1e-9)
+        assert var[i] == pytest.approx(k[i, i] - ks @ np.linalg.solve(kk, ks), rel=1e-6)

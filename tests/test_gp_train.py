@@ -1,0 +1,105 @@
+"""Hyperparameter learning and the Platt classifier."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from gpocc.config import TrainingConfig
+from gpocc.gp.classify import PlattClassifier, classify, fit_classifier, loo_log_probability
+from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.gp.local import leave_one_out, training_covariance
+from gpocc.gp.train import learn_hyperparameters, make_patches, negative_log_likelihood
+from gpocc.samples.sampleset import SampleSet
+
+
+def samples_from(means, labels, covariances=None, scan_ids=None, pose_factors=None):
+    n = len(means)
+    return SampleSet(
+        means=np.asarray(means, float),
+        covariances=np.zeros((n, 2, 2)) if covariances is None else covariances,
+        labels=np.asarray(labels, float),
+        scan_ids=np.arange(n) if scan_ids is None else scan_ids,
+        pose_factors=np.zeros((n, 2, 3)) if pose_factors is None else pose_factors,
+        sensor_ids=np.zeros(n, dtype=np.int16),
+    )
+
+
+def test_likelihood_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    n = 300
+    means = rng.uniform(-3, 3, (n, 2))
+    covs = np.einsum("n,ij->nij", rng.uniform(0.001, 0.02, n), np.eye(2))
+    scan_ids = rng.integers(0, 20, n)
+    pose_factors = rng.normal(0, 0.03, (n, 2, 3))
+    labels = np.where(rng.random(n) < 0.3, 1.0, -1.0)
+    samples = samples_from(means, labels, covs, scan_ids, pose_factors)
+    patches = make_patches(samples, TrainingConfig(patches=2, patch_size=40), seed=1)
+    kernel = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
+    x = np.append(kernel.theta, math.log(0.2))
+    _, grad = negative_log_likelihood(x, kernel, patches, 3)
+    for i in range(len(x)):
+        step = np.zeros_like(x)
+        step[i] = 1e-5
+        plus, _ = negative_log_likelihood(x + step, kernel, patches, 3)
+        minus, _ = negative_log_likelihood(x - step, kernel, patches, 3)
+        assert grad[i] == pytest.approx((plus - minus) / 2e-5, rel=1e-4, abs=1e-5)
+
+
+def test_recovers_known_hyperparameters():
+    """Draw labels from a GP with known SE hyperparameters and learn them back."""
+    rng = np.random.default_rng(42)
+    n = 900
+    means = rng.uniform(0, 12, (n, 2))
+    truth = SquaredExponentialKernel(1.5, (0.8, 0.8))
+    noise = 0.05
+    cov = truth(means, means) + noise * np.eye(n)
+    labels = np.linalg.cholesky(cov + 1e-9 * np.eye(n)) @ rng.standard_normal(n)
+    samples = samples_from(means, labels)
+    start = SquaredExponentialKernel(0.5, (2.0, 2.0))
+    config = TrainingConfig(patches=8, patch_size=120, anneal_maxfun=40, lbfgs_maxiter=60)
+    result = learn_hyperparameters(start, 0.5, samples, 3, config, seed=0)
+    assert result.log_marginal_likelihood > result.initial_log_marginal_likelihood
+    assert result.kernel.lengthscale[0] == pytest.approx(0.8, rel=0.3)
+    assert result.kernel.lengthscale[1] == pytest.approx(0.8, rel=0.3)
+    assert result.noise_variance == pytest.approx(noise, rel=0.5)
+    # Signal variance is the least identifiable from local patches; a factor of two.
+    assert 0.5 * 1.5 < result.kernel.signal_variance < 2.0 * 1.5
+
+
+def test_classifier_maximises_loo_log_probability():
+    rng = np.random.default_rng(5)
+    n = 200
+    means = rng.uniform(-3, 3, (n, 2))
+    labels = np.where(np.abs(means[:, 0]) > 2.2, 1.0, -1.0)
+    flip = rng.random(n) < 0.05
+    labels[flip] *= -1
+    samples = samples_from(means, labels)
+    patches = make_patches(samples, TrainingConfig(patches=2, patch_size=100), seed=0)
+    kernel = NeuralNetworkKernel(1.0, 1.0, (2.0, 2.0))
+    fitted = fit_classifier(kernel, 0.1, patches, 3)
+    mu, var, y = [], [], []
+    for p in patches:
+        m, v = leave_one_out(training_covariance(kernel, 0.1, p.samples, 3), p.samples.labels)
+        mu.append(m)
+        var.append(v)
+        y.append(p.samples.labels)
+    mu, var, y = map(np.concatenate, (mu, var, y))
+    best = loo_log_probability(fitted.a, fitted.b, mu, var, y)
+    # Brute-force grid search cannot beat the optimiser by more than its resolution.
+    grid = max(loo_log_probability(a, b, mu, var, y)
+               for a in np.linspace(0.05, 10, 60) for b in np.linspace(-3, 3, 61))
+    assert best >= grid - 1e-6
+
+
+def test_probability_formula_and_classes():
+    clf = PlattClassifier(a=2.0, b=0.5)
+    mean = np.array([-1.0, 0.0, 1.0])
+    var = np.array([0.5, 0.1, 2.0])
+    expected = ndtr((2.0 * mean + 0.5) / np.sqrt(1 + 4.0 * var))
+    np.testing.assert_allclose(clf.probability(mean, var), expected)
+    p = np.array([0.1, 0.5, 0.9, np.nan])
+    np.testing.assert_array_equal(classify(p, 0.65, 0.35), [0, 2, 1, 255])

@@ -1,0 +1,193 @@
+"""Model files and `gpocc map`: values, resolutions, tiling, executors, atomic output."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import rasterio
+from typer.testing import CliRunner
+
+from gpocc.cli import app
+from gpocc.config import Config, ModelConfig, TrainingConfig
+from gpocc.gp.local import NeighbourIndex, predict_local
+from gpocc.gp.model import FORMAT_VERSION, build_model, load_model, save_model
+from gpocc.gridspec import GridSpec
+from gpocc.io.mapserver import read_map_server
+from gpocc.samples.sampleset import SampleSet
+
+runner = CliRunner()
+
+
+def room_samples(seed: int = 0) -> SampleSet:
+    """Samples of a 4 x 3 m room seen from its middle: walls occupied, inside free."""
+    rng = np.random.default_rng(seed)
+    walls = []
+    for t in np.linspace(0, 1, 60, endpoint=False):
+        walls += [(-2 + 4 * t, -1.5), (-2 + 4 * t, 1.5)]
+    for t in np.linspace(0, 1, 45, endpoint=False):
+        walls += [(-2, -1.5 + 3 * t), (2, -1.5 + 3 * t)]
+    walls = np.array(walls)
+    free = rng.uniform([-1.8, -1.3], [1.8, 1.3], size=(300, 2))
+    means = np.vstack([walls, free])
+    n = len(means)
+    labels = np.concatenate([np.ones(len(walls)), -np.ones(len(free))])
+    covs = np.einsum("n,ij->nij", rng.uniform(0.0005, 0.004, n), np.eye(2))
+    scan_ids = rng.integers(0, 30, n)
+    pose_factors = rng.normal(0.0, 0.01, (n, 2, 3))
+    return SampleSet(means, covs, labels, scan_ids, pose_factors, np.zeros(n, dtype=np.int16))
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    config = Config(model=ModelConfig(
+        neighbours=120, block_size_m=0.6,
+        training=TrainingConfig(patches=3, patch_size=80, anneal_maxfun=10, lbfgs_maxiter=10),
+    ))
+    model = build_model(room_samples(), config)
+    path = tmp_path_factory.mktemp("model") / "model.npz"
+    save_model(model, path)
+    return path
+
+
+def test_model_round_trip(model_path):
+    model = load_model(model_path)
+    again = model_path.with_name("again.npz")
+    save_model(model, again)
+    other = load_model(again)
+    assert other.kernel == model.kernel
+    assert other.classifier == model.classifier
+    assert other.config == model.config
+    np.testing.assert_array_equal(other.samples.covariances, model.samples.covariances)
+    np.testing.assert_array_equal(other.samples.pose_factors, model.samples.pose_factors)
+
+
+def test_model_learns_the_room(model_path):
+    model = load_model(model_path)
+    index = NeighbourIndex(model.samples)
+    inside = np.array([[0.0, 0.0], [0.8, 0.5]])
+    wall = np.array([[0.0, 1.5], [2.0, 0.3]])
+    for pts, sign in ((inside, -1), (wall, 1)):
+        for p in pts:
+            pred = predict_local(model.kernel, model.noise_variance,
+                                 index.problem(p, 120), p[None], model.level)
+            prob = model.classifier.probability(pred.mean, pred.variance)[0]
+            assert (prob - 0.5) * sign > 0.1
+
+
+def test_newer_or_corrupt_model_file_is_a_clear_error(model_path, tmp_path):
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(model_path.read_bytes()[:500])
+    newer = tmp_path / "newer.npz"
+    with np.load(model_path) as data:
+        arrays = dict(data)
+    meta = json.loads(bytes(arrays["metadata"]).decode())
+    meta["format_version"] = FORMAT_VERSION + 1
+    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(newer, **arrays)
+    for path, words in ((corrupt, "corrupt"), (newer, "newer")):
+        result = runner.invoke(app, ["map", str(path), "--resolution", "0.2",
+                                     "--out", str(tmp_path / "m")])
+        assert result.exit_code != 0
+        assert words in result.output
+        assert "Traceback" not in result.output
+        assert not (tmp_path / "m").exists()
+
+
+def run_map(model_path, out, *extra):
+    result = runner.invoke(app, ["map", str(model_path), "--out", str(out), *extra])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path):
+    out = run_map(model_path, tmp_path / "map", "--resolution", "0.1", "--workers", "1")
+    for name in ("probability.tif", "variance.tif", "class.tif", "map.yaml", "map.pgm",
+                 "preview.png", "metadata.json"):
+        assert (out / name).is_file(), name
+    model = load_model(model_path)
+    with rasterio.open(out / "probability.tif") as ds:
+        prob = ds.read(1)
+        transform = ds.transform
+    with rasterio.open(out / "class.tif") as ds:
+        classes = ds.read(1)
+    # Re-predict a few cells directly from the model with the cell's block neighbourhood.
+    index = NeighbourIndex(model.samples)
+    cells = 6  # block_size_m 0.6 / 0.1
+    for row, col in ((3, 4), (20, 30), (35, 10)):
+        x, y = transform @ (col + 0.5, row + 0.5)
+        r0, c0 = (row // cells) * cells, (col // cells) * cells
+        cx, cy = transform @ (c0 + min(cells, prob.shape[1] - c0) / 2,
+                              r0 + min(cells, prob.shape[0] - r0) / 2)
+        pred = predict_local(model.kernel, model.noise_variance,
+                             index.problem(np.array([cx, cy]), model.config.model.neighbours),
+                             np.array([[x, y]]), model.level)
+        expected = model.classifier.probability(pred.mean, pred.variance)[0]
+        assert prob[row, col] == pytest.approx(expected, abs=1e-6)
+    spec_classes, spec = read_map_server(out / "map.yaml")
+    np.testing.assert_array_equal(spec_classes == 1, classes == 1)
+    np.testing.assert_array_equal(spec_classes == 0, classes == 0)
+    assert spec.x0 == pytest.approx(transform.c)
+
+
+def test_existing_output_needs_force(model_path, tmp_path):
+    out = run_map(model_path, tmp_path / "map", "--resolution", "0.3")
+    result = runner.invoke(app, ["map", str(model_path), "--resolution", "0.3", "--out", str(out)])
+    assert result.exit_code != 0 and "--force" in result.output
+    run_map(model_path, out, "--resolution", "0.3", "--force")
+
+
+def test_two_resolutions_agree(model_path, tmp_path):
+    bounds = ["--bounds", "-2.4", "-1.8", "2.4", "1.8"]
+    coarse = run_map(model_path, tmp_path / "c", "--resolution", "0.2", *bounds)
+    fine = run_map(model_path, tmp_path / "f", "--resolution", "0.1", *bounds)
+    with rasterio.open(coarse / "probability.tif") as ds:
+        pc = ds.read(1)
+    with rasterio.open(fine / "probability.tif") as ds:
+        pf = ds.read(1)
+    # Average each 2 x 2 group of fine cells onto the coarse cell that contains them.
+    pf2 = pf.reshape(pc.shape[0], 2, pc.shape[1], 2).mean(axis=(1, 3))
+    assert np.mean(np.abs(pf2 - pc)) < 0.03
+    assert np.mean((pf2 > 0.5) == (pc > 0.5)) > 0.95
+
+
+def test_parallel_tiled_and_dask_outputs_identical_to_serial(model_path, tmp_path):
+    serial = run_map(model_path, tmp_path / "s", "--resolution", "0.1", "--workers", "1")
+    parallel = run_map(model_path, tmp_path / "p", "--resolution", "0.1", "--workers", "2")
+    with rasterio.open(serial / "probability.tif") as ds:
+        reference = ds.read(1)
+    with rasterio.open(parallel / "probability.tif") as ds:
+        np.testing.assert_array_equal(ds.read(1), reference)
+
+    # A tiny tile size forces the tiled layout: tiles + VRT, same values.
+    model = load_model(model_path)
+    tiled_model = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, tile_pixels=12)))
+    tiled_path = tmp_path / "tiled.npz"
+    save_model(tiled_model, tiled_path)
+    tiled = run_map(tiled_path, tmp_path / "t", "--resolution", "0.1", "--workers", "2")
+    assert (tiled / "probability.vrt").is_file()
+    assert len(list((tiled / "tiles" / "probability").glob("*.tif"))) > 1
+    with rasterio.open(tiled / "probability.vrt") as ds:
+        np.testing.assert_array_equal(ds.read(1), reference)
+
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1",
+                      dashboard_address=None, processes=True) as cluster:
+        dask_out = run_map(model_path, tmp_path / "d", "--resolution", "0.1",
+                           "--scheduler", cluster.scheduler_address)
+    with rasterio.open(dask_out / "probability.tif") as ds:
+        np.testing.assert_array_equal(ds.read(1), reference)
+
+
+def test_bounds_and_grid_geometry(model_path, tmp_path):
+    out = run_map(model_path, tmp_path / "b", "--resolution", "0.25",
+                  "--bounds", "-1", "-1", "1.5", "0.5")
+    with rasterio.open(out / "variance.tif") as ds:
+        expected = GridSpec.from_bounds(-1, -1, 1.5, 0.5, 0.25)
+        assert (ds.width, ds.height) == (expected.width, expected.height)
+        assert ds.bounds.left == pytest.approx(-1) and ds.bounds.top == pytest.approx(0.5)
+        assert np.all(ds.read(1) >= 0)
