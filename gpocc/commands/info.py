@@ -1,0 +1,99 @@
+"""``gpocc info``: what the inputs hold and what training samples they would give."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from gpocc.cli import command
+from gpocc.config import Config, load_config
+from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
+from gpocc.io.scans import ScanBatch
+
+
+def _span(summary: InputSummary) -> str:
+    if summary.start_s is None or summary.end_s is None:
+        return "time span: (no messages)"
+    length = summary.end_s - summary.start_s
+    # A CARMEN log's scans may be stamped by line order instead (see gpocc.io.carmen).
+    which = " (logger stamps)" if summary.format == "carmen" else ""
+    return (f"time span{which}: {summary.start_s:.3f} .. {summary.end_s:.3f} s "
+            f"({length:.1f} s)")
+
+
+def format_input(summary: InputSummary) -> list[str]:
+    """Lines describing one input: format, time span and topics (CARMEN: message counts)."""
+    lines = [f"input {summary.path}", f"  format: {summary.format_name}", f"  {_span(summary)}"]
+    if summary.format != "carmen":
+        width = max((len(t.name) for t in summary.topics), default=0)
+        lines.append("  topics:")
+        lines += [f"    {t.name:<{width}}  {t.msgtype}  {t.count}" for t in summary.topics]
+    else:
+        counts = ", ".join(f"{t.name} {t.count}" for t in summary.topics)
+        lines.append(f"  messages: {counts}")
+    return lines
+
+
+def format_input_sensors(summary: InputSummary, config: Config) -> list[str]:
+    """Lines naming the sensors (and their topics) that would be read from one input."""
+    sensors = sensors_for_input(summary, config)
+    if summary.format == "carmen":
+        return [f"  sensor: {s.name} (FLASER scans and poses)" for s in sensors]
+    return [f"  sensor: {s.name} (scans {s.scan_topic}, poses {s.pose_topic})" for s in sensors]
+
+
+def format_sensors(batches: Sequence[ScanBatch]) -> list[str]:
+    """Per sensor: scans used and skipped, beams per scan, range limits, pose covariance."""
+    lines = ["sensors"]
+    for name in dict.fromkeys(b.sensor for b in batches):
+        own = [b for b in batches if b.sensor == name]
+        used = sum(b.n_scans for b in own)
+        skipped = sum(b.skipped_scans for b in own)
+        beams = "/".join(str(n) for n in sorted({b.n_beams for b in own}))
+        covariance = "input" if all(b.has_pose_covariance for b in own) else (
+            "config" if not any(b.has_pose_covariance for b in own) else "input and config")
+        limits = "/".join(sorted({f"{b.range_min:g}..{b.range_max:g}" for b in own}))
+        lines.append(
+            f"  {name}: {used} scans used, {skipped} skipped, {beams} beams per scan, "
+            f"range {limits} m, pose covariance from {covariance}"
+        )
+    return lines
+
+
+def format_samples(batches: list[ScanBatch], config: Config) -> list[str]:
+    """Counts of occupied and free training samples and their mean position spread."""
+    from gpocc.samples.beams import build_samples
+
+    samples = build_samples(batches, config)
+    occupied = int(np.count_nonzero(samples.labels > 0))
+    free = len(samples) - occupied
+    trace = np.trace(samples.covariances, axis1=1, axis2=2)
+    spread = float(np.mean(np.sqrt(np.maximum(trace, 0.0)))) if len(samples) else float("nan")
+    thin = config.samples.thin_cell_m
+    return [
+        "training samples" + (f" (thinned to one per {thin:g} m cell and label)" if thin else ""),
+        f"  occupied: {occupied}",
+        f"  free: {free}",
+        f"  mean sqrt(trace(covariance)): {spread:.4f} m",
+    ]
+
+
+@command("info")
+def info(
+    inputs: list[Path] = typer.Argument(..., help="Bags, bag folders, .mcap files or CARMEN logs."),
+    config: Path | None = typer.Option(None, "--config", help="YAML job config."),
+) -> None:
+    """Show what the inputs hold: topics, time span, scans per sensor, training samples."""
+    cfg = load_config(config)
+    batches: list[ScanBatch] = []
+    for path in inputs:
+        summary = describe_input(path)
+        # Printed before choosing sensors, so a topic problem still shows what the input holds.
+        typer.echo("\n".join(format_input(summary)))
+        typer.echo("\n".join(format_input_sensors(summary, cfg)))
+        batches.extend(read_input(path, cfg, summary))
+    typer.echo("\n".join(format_sensors(batches)))
+    typer.echo("\n".join(format_samples(batches, cfg)))

@@ -1,0 +1,570 @@
+"""ROS bags as :class:`ScanBatch`: ROS1 ``.bag``, ROS2 bag folders, bare ``.mcap`` files.
+
+Reading goes through ``rosbags.highlevel.AnyReader`` with the message definitions the
+bag carries; bags without any (older ROS2 sqlite3 bags) fall back to the ROS2 Humble
+definitions. Scans come from ``sensor_msgs/msg/LaserScan``; poses from
+``geometry_msgs/msg/PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry`` or
+``geometry_msgs/msg/PoseStamped`` (no covariance). Times are header stamps in seconds (a
+zero header stamp falls back to the bag's record time).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import os
+import tempfile
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from gpocc.config import SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.io.scans import ScanBatch
+
+SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+#: Pose message types, and whether each carries a covariance.
+POSE_TYPES = {
+    "geometry_msgs/msg/PoseWithCovarianceStamped": True,
+    "nav_msgs/msg/Odometry": True,
+    "geometry_msgs/msg/PoseStamped": False,
+}
+#: ``write_bag`` formats; also what ``bag_format`` reports.
+FORMATS = ("ros1", "ros2-sqlite3", "ros2-mcap", "mcap")
+FORMAT_NAMES = {
+    "ros1": "ROS1 bag",
+    "ros2-sqlite3": "ROS2 bag (sqlite3)",
+    "ros2-mcap": "ROS2 bag (mcap)",
+    "mcap": "MCAP file",
+}
+
+# x, y, yaw rows/columns of a 6x6 (x, y, z, roll, pitch, yaw) ROS covariance.
+_XY_YAW = np.array([0, 1, 5])
+
+
+@dataclass(frozen=True)
+class TopicSummary:
+    """One topic of an input: name, message type and message count."""
+
+    name: str
+    msgtype: str
+    count: int
+
+
+@dataclass(frozen=True)
+class BagContents:
+    """What a bag holds: its format, topics and record-time span (seconds)."""
+
+    format: str
+    topics: tuple[TopicSummary, ...]
+    start_s: float | None
+    end_s: float | None
+
+    def topic(self, name: str) -> TopicSummary | None:
+        return next((t for t in self.topics if t.name == name), None)
+
+    def topics_of_type(self, *msgtypes: str) -> list[TopicSummary]:
+        return [t for t in self.topics if t.msgtype in msgtypes]
+
+    def listing(self) -> str:
+        """``/scan (sensor_msgs/msg/LaserScan), ...`` for error messages."""
+        if not self.topics:
+            return "none"
+        return ", ".join(f"{t.name} ({t.msgtype})" for t in self.topics)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def bag_format(path: Path) -> str | None:
+    """The bag format of ``path`` from its name (and a ROS2 folder's metadata), or None."""
+    if path.is_dir():
+        meta = path / "metadata.yaml"
+        if not meta.is_file():
+            return None
+        try:
+            info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+            storage = str(info.get("storage_identifier", "sqlite3"))
+        except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+            return "ros2-sqlite3"  # the reader reports what exactly is wrong
+        return "ros2-mcap" if storage == "mcap" else "ros2-sqlite3"
+    if path.suffix == ".bag":
+        return "ros1"
+    if path.suffix == ".mcap":
+        return "mcap"
+    if path.suffix == ".db3":
+        return "ros2-sqlite3"
+    return None
+
+
+@functools.cache
+def _typestore(store: str) -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores[store])
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _corrupt(path: Path, exc: BaseException) -> GpoccError:
+    hint = "re-record or re-export it"
+    if path.suffix == ".mcap" or (path.is_dir() and any(path.glob("*.mcap"))):
+        hint += " (`mcap recover` can often save a cut-off MCAP file)"
+    return GpoccError(
+        f"{path}: cannot read the bag ({_one_line(exc)}); it may be truncated or corrupt, "
+        f"or not a bag at all: {hint}"
+    )
+
+
+@contextlib.contextmanager
+def _open_reader(path: Path) -> Iterator[Any]:
+    """An open AnyReader on ``path``; any failure of the library becomes a GpoccError."""
+    from rosbags.highlevel import AnyReader
+
+    if not path.exists():
+        raise GpoccError(f"{path}: no such file or folder; check the input path")
+    if path.is_file() and path.stat().st_size == 0:
+        raise GpoccError(f"{path}: the file is empty; re-record or re-export the bag")
+    try:
+        reader = AnyReader([path], default_typestore=_typestore("ROS2_HUMBLE"))
+        reader.open()
+    except GpoccError:
+        raise
+    except Exception as exc:  # rosbags, sqlite and mcap raise many types on bad bytes
+        raise _corrupt(path, exc) from None
+    try:
+        yield reader
+    except GpoccError:
+        raise
+    except Exception as exc:
+        raise _corrupt(path, exc) from None
+    finally:
+        with contextlib.suppress(Exception):
+            reader.close()
+
+
+def _contents(reader: Any, fmt: str) -> BagContents:
+    topics = tuple(
+        TopicSummary(name, info.msgtype or "(mixed types)", int(info.msgcount))
+        for name, info in sorted(reader.topics.items())
+    )
+    count = sum(t.count for t in topics)
+    start = reader.start_time * 1e-9 if count else None
+    # AnyReader's end_time is one nanosecond after the last message.
+    end = (reader.end_time - 1) * 1e-9 if count else None
+    return BagContents(fmt, topics, start, end)
+
+
+def describe_bag(path: str | Path) -> BagContents:
+    """Topics (type, message count) and time span of a bag, without reading its messages."""
+    path = Path(path)
+    fmt = bag_format(path) or "mcap"
+    with _open_reader(path) as reader:
+        return _contents(reader, fmt)
+
+
+def _stamp(msg: Any, record_ns: int) -> float:
+    stamp = msg.header.stamp
+    if stamp.sec == 0 and stamp.nanosec == 0:
+        return record_ns * 1e-9
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def _yaw(q: Any) -> float:
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+@dataclass
+class _ScanTopic:
+    stamps: list[float] = field(default_factory=list)
+    ranges: list[np.ndarray] = field(default_factory=list)
+    geometry: tuple[int, float, float] | None = None
+    range_limits: tuple[float, float] | None = None
+
+
+@dataclass
+class _PoseTopic:
+    stamps: list[float] = field(default_factory=list)
+    poses: list[tuple[float, float, float]] = field(default_factory=list)
+    covariances: list[np.ndarray] = field(default_factory=list)
+
+
+def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int) -> None:
+    ranges = np.asarray(msg.ranges, dtype=float)
+    geometry = (ranges.shape[0], float(msg.angle_min), float(msg.angle_increment))
+    if acc.geometry is None:
+        acc.geometry = geometry
+        acc.range_limits = (float(msg.range_min), float(msg.range_max))
+    elif geometry[0] != acc.geometry[0] or not np.allclose(geometry[1:], acc.geometry[1:],
+                                                           atol=1e-6):
+        raise GpoccError(
+            f"{path}: topic {topic} changes its beam layout (from {acc.geometry[0]} beams to "
+            f"{geometry[0]}, or a different angle_min/angle_increment) at "
+            f"t={_stamp(msg, record_ns):.3f} s; split the bag at that time"
+        )
+    acc.stamps.append(_stamp(msg, record_ns))
+    acc.ranges.append(ranges)
+
+
+def _add_pose(acc: _PoseTopic, msg: Any, msgtype: str, record_ns: int) -> None:
+    pose = msg.pose.pose if POSE_TYPES[msgtype] else msg.pose
+    acc.stamps.append(_stamp(msg, record_ns))
+    acc.poses.append((float(pose.position.x), float(pose.position.y), _yaw(pose.orientation)))
+    if POSE_TYPES[msgtype]:
+        cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+        acc.covariances.append(cov[np.ix_(_XY_YAW, _XY_YAW)])
+
+
+def interpolate_poses(
+    pose_stamps: np.ndarray,
+    poses: np.ndarray,
+    covariances: np.ndarray,
+    stamps: np.ndarray,
+    max_gap_s: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Poses and covariances at ``stamps``, interpolated between the bracketing poses.
+
+    x and y are linear in time, yaw follows the shorter arc, the covariance is linear.
+    A stamp is served only when it equals a pose stamp, or lies between two poses at
+    most ``max_gap_s`` apart; outside the poses' time range, or inside a longer gap, it
+    is not.
+
+    Args:
+        pose_stamps: (P,) seconds, strictly increasing.
+        poses: (P, 3) x m, y m, yaw rad.
+        covariances: (P, 3, 3).
+        stamps: (S,) seconds.
+        max_gap_s: longest pose gap to interpolate across, seconds.
+
+    Returns:
+        ``(poses (S, 3), covariances (S, 3, 3), valid (S,) bool)``; rows where ``valid``
+        is False hold the nearest pose and are to be dropped.
+    """
+    n = pose_stamps.shape[0]
+    right = np.searchsorted(pose_stamps, stamps, side="right")
+    i0 = np.clip(right - 1, 0, n - 1)
+    i1 = np.clip(right, 0, n - 1)
+    exact = (right > 0) & (pose_stamps[i0] == stamps)
+    i1 = np.where(exact, i0, i1)
+    gap = pose_stamps[i1] - pose_stamps[i0]
+    inside = (right > 0) & (right < n)
+    valid = exact | (inside & (gap <= max_gap_s))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(gap > 0, (stamps - pose_stamps[i0]) / np.where(gap > 0, gap, 1.0), 0.0)
+    w = np.clip(w, 0.0, 1.0)
+    p0, p1 = poses[i0], poses[i1]
+    dyaw = np.angle(np.exp(1j * (p1[:, 2] - p0[:, 2])))
+    out = p0 + w[:, None] * (p1 - p0)
+    out[:, 2] = np.angle(np.exp(1j * (p0[:, 2] + w * dyaw)))
+    cov = (1.0 - w)[:, None, None] * covariances[i0] + w[:, None, None] * covariances[i1]
+    return out, cov, valid
+
+
+def _assemble(
+    path: Path, sensor: SensorConfig, scans: _ScanTopic, poses: _PoseTopic, pose_type: str
+) -> ScanBatch:
+    scan_topic, pose_topic = sensor.scan_topic, sensor.pose_topic
+    if not scans.stamps:
+        raise GpoccError(f"{path}: topic {scan_topic} has no messages; pick another scan_topic")
+    if not poses.stamps:
+        raise GpoccError(f"{path}: topic {pose_topic} has no messages; pick another pose_topic")
+    assert scans.geometry is not None and scans.range_limits is not None
+    stamps = np.asarray(scans.stamps)
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    ranges = np.stack(scans.ranges)[order]
+
+    pstamps = np.asarray(poses.stamps)
+    porder = np.argsort(pstamps, kind="stable")
+    pstamps, first = np.unique(pstamps[porder], return_index=True)
+    keep = porder[first]
+    pose_arr = np.asarray(poses.poses, dtype=float)[keep]
+    from_input = POSE_TYPES[pose_type] and not sensor.override_pose_covariance
+    if from_input:
+        pcov = np.stack(poses.covariances)[keep]
+        # Publishers without an estimate leave the covariance at zero: treat as absent.
+        from_input = bool(np.any(pcov != 0))
+    if not from_input:
+        pcov = np.broadcast_to(sensor.pose_covariance_matrix, (len(keep), 3, 3))
+
+    pose_s, cov_s, valid = interpolate_poses(pstamps, pose_arr, pcov, stamps,
+                                             sensor.max_pose_gap_s)
+    if not valid.any():
+        raise GpoccError(
+            f"{path}: none of the {stamps.size} scans on {scan_topic} "
+            f"({stamps[0]:.3f}..{stamps[-1]:.3f} s) has a pose on {pose_topic} "
+            f"({pstamps[0]:.3f}..{pstamps[-1]:.3f} s) within max_pose_gap_s="
+            f"{sensor.max_pose_gap_s} s; check the topics' stamps or raise "
+            f"sensors[].max_pose_gap_s"
+        )
+    n, angle_min, increment = scans.geometry
+    msg_min, msg_max = scans.range_limits
+    range_min = sensor.range_min_m if sensor.range_min_m is not None else msg_min
+    range_max = sensor.range_max_m if sensor.range_max_m is not None else msg_max
+    if not (math.isfinite(range_min) and math.isfinite(range_max) and
+            0.0 <= range_min < range_max):
+        raise GpoccError(
+            f"{path}: topic {scan_topic} gives range_min={range_min} and range_max={range_max}, "
+            "which are unusable; set sensors[].range_min_m and range_max_m in the config"
+        )
+    return ScanBatch(
+        sensor=sensor.name,
+        source=str(path),
+        stamps=stamps[valid],
+        angles=angle_min + np.arange(n) * increment,
+        ranges=ranges[valid],
+        poses=pose_s[valid],
+        pose_covariances=np.array(cov_s[valid]),
+        range_min=float(range_min),
+        range_max=float(range_max),
+        has_pose_covariance=from_input,
+        skipped_scans=int(np.count_nonzero(~valid)),
+    )
+
+
+def check_topics(path: Path, contents: BagContents, sensor: SensorConfig) -> None:
+    """Raise a GpoccError unless the sensor's scan and pose topics exist with usable types."""
+    for role, name, types in (
+        ("scan_topic", sensor.scan_topic, (SCAN_TYPE,)),
+        ("pose_topic", sensor.pose_topic, tuple(POSE_TYPES)),
+    ):
+        if name is None:
+            raise GpoccError(f"{path}: sensor '{sensor.name}' has no {role}; set it in the config")
+        topic = contents.topic(name)
+        if topic is None:
+            raise GpoccError(
+                f"{path}: topic {name} (sensor '{sensor.name}' {role}) is not in the bag; "
+                f"topics present: {contents.listing()}"
+            )
+        if topic.msgtype not in types:
+            raise GpoccError(
+                f"{path}: topic {name} is {topic.msgtype}, not {' or '.join(types)}; "
+                f"pick another {role} (topics present: {contents.listing()})"
+            )
+
+
+def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatch]:
+    """Read the scans of each sensor from one bag, with poses interpolated to each scan.
+
+    Args:
+        path: a ``.bag`` file, a ROS2 bag folder or a ``.mcap`` file.
+        sensors: config entries with ``scan_topic`` and ``pose_topic`` set.
+
+    Returns:
+        One batch per sensor, in the order given. Scans are sorted by header stamp;
+        scans without a pose within ``max_pose_gap_s`` are dropped and counted.
+
+    Raises:
+        GpoccError: unreadable bag, missing topic or wrong message type, a scan topic
+            that changes its beam layout, or no scan with a pose.
+    """
+    path = Path(path)
+    fmt = bag_format(path) or "mcap"
+    with _open_reader(path) as reader:
+        contents = _contents(reader, fmt)
+        for sensor in sensors:
+            check_topics(path, contents, sensor)
+        scan_acc = {s.scan_topic: _ScanTopic() for s in sensors}
+        pose_acc = {s.pose_topic: _PoseTopic() for s in sensors}
+        pose_types = {s.pose_topic: contents.topic(s.pose_topic).msgtype for s in sensors}
+        wanted = [c for c in reader.connections if c.topic in scan_acc or c.topic in pose_acc]
+        for conn, record_ns, raw in reader.messages(connections=wanted):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic in scan_acc:
+                _add_scan(path, conn.topic, scan_acc[conn.topic], msg, record_ns)
+            if conn.topic in pose_acc:
+                _add_pose(pose_acc[conn.topic], msg, conn.msgtype, record_ns)
+    return [
+        _assemble(path, s, scan_acc[s.scan_topic], pose_acc[s.pose_topic],
+                  pose_types[s.pose_topic])
+        for s in sensors
+    ]
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _check_writable(
+    path: Path, batches: Sequence[ScanBatch], topics: Sequence[tuple[str, str]], fmt: str
+) -> None:
+    if fmt not in FORMATS:
+        raise GpoccError(f"unknown bag format {fmt!r}; use one of {', '.join(FORMATS)}")
+    if len(batches) != len(topics):
+        raise GpoccError(
+            f"{path}: {len(batches)} scan batches but {len(topics)} (scan, pose) topic pairs; "
+            "give one pair per batch"
+        )
+    if not batches:
+        raise GpoccError(f"{path}: nothing to write (no scan batches)")
+    suffix = {"ros1": ".bag", "mcap": ".mcap"}.get(fmt)
+    if suffix and path.suffix != suffix:
+        raise GpoccError(f"{path}: a {FORMAT_NAMES[fmt]} must be named *{suffix}; rename it")
+    if suffix is None and path.suffix in (".bag", ".mcap"):
+        raise GpoccError(
+            f"{path}: a {FORMAT_NAMES[fmt]} is a folder; give it a name without .bag/.mcap"
+        )
+    names = [t for pair in topics for t in pair]
+    if len(set(names)) != len(names):
+        raise GpoccError(f"{path}: topic names must all differ, got {names}")
+    for batch in batches:
+        if batch.n_beams > 1:
+            step = np.diff(batch.angles)
+            if np.abs(step - step.mean()).max() > 1e-6:
+                raise GpoccError(
+                    f"{path}: sensor '{batch.sensor}' has unevenly spaced beams, which a "
+                    "LaserScan message cannot hold"
+                )
+        if batch.n_scans and np.min(batch.stamps) < 0:
+            raise GpoccError(f"{path}: sensor '{batch.sensor}' has negative time stamps")
+
+
+class _Messages:
+    """Builds LaserScan and PoseWithCovarianceStamped messages for one typestore."""
+
+    def __init__(self, typestore: Any, ros1: bool) -> None:
+        self.ts = typestore
+        self.ros1 = ros1
+        t = typestore.types
+        self.Time, self.Header = t["builtin_interfaces/msg/Time"], t["std_msgs/msg/Header"]
+        self.Scan = t[SCAN_TYPE]
+        self.Point, self.Quat = t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Quaternion"]
+        self.Pose = t["geometry_msgs/msg/Pose"]
+        self.PoseCov = t["geometry_msgs/msg/PoseWithCovariance"]
+        self.PoseCovStamped = t["geometry_msgs/msg/PoseWithCovarianceStamped"]
+
+    def header(self, ns: int, frame: str, seq: int) -> Any:
+        stamp = self.Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        if self.ros1:
+            return self.Header(seq=seq, stamp=stamp, frame_id=frame)
+        return self.Header(stamp=stamp, frame_id=frame)
+
+    def serialize(self, msg: Any, msgtype: str) -> bytes:
+        if self.ros1:
+            return bytes(self.ts.serialize_ros1(msg, msgtype))
+        return bytes(self.ts.serialize_cdr(msg, msgtype))
+
+    def scan(self, batch: ScanBatch, k: int, ns: int, scan_time: float) -> bytes:
+        angles = batch.angles
+        inc = float((angles[-1] - angles[0]) / (angles.size - 1)) if angles.size > 1 else 0.0
+        msg = self.Scan(
+            header=self.header(ns, "laser", k),
+            angle_min=float(angles[0]),
+            angle_max=float(angles[-1]),
+            angle_increment=inc,
+            time_increment=0.0,
+            scan_time=scan_time,
+            range_min=float(batch.range_min),
+            range_max=float(batch.range_max),
+            ranges=np.asarray(batch.ranges[k], dtype=np.float32),
+            intensities=np.zeros(0, dtype=np.float32),
+        )
+        return self.serialize(msg, SCAN_TYPE)
+
+    def pose(self, batch: ScanBatch, k: int, ns: int) -> bytes:
+        x, y, yaw = (float(v) for v in batch.poses[k])
+        cov = np.zeros((6, 6))
+        cov[np.ix_(_XY_YAW, _XY_YAW)] = batch.pose_covariances[k]
+        pose = self.Pose(
+            position=self.Point(x=x, y=y, z=0.0),
+            orientation=self.Quat(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
+        )
+        msg = self.PoseCovStamped(
+            header=self.header(ns, "map", k),
+            pose=self.PoseCov(pose=pose, covariance=cov.reshape(36)),
+        )
+        return self.serialize(msg, "geometry_msgs/msg/PoseWithCovarianceStamped")
+
+
+def _write_messages(writer: Any, messages: _Messages, batches: Sequence[ScanBatch],
+                    topics: Sequence[tuple[str, str]]) -> None:
+    pose_type = "geometry_msgs/msg/PoseWithCovarianceStamped"
+    conns = [
+        (writer.add_connection(scan, SCAN_TYPE, typestore=messages.ts),
+         writer.add_connection(pose, pose_type, typestore=messages.ts))
+        for scan, pose in topics
+    ]
+    # Record in time order across sensors, as a recorder would.
+    ns = [np.round(np.asarray(b.stamps, dtype=float) * 1e9).astype(np.int64) for b in batches]
+    which = np.concatenate([np.full(b.n_scans, i) for i, b in enumerate(batches)])
+    index = np.concatenate([np.arange(b.n_scans) for b in batches])
+    times = np.concatenate(ns) if ns else np.zeros(0, dtype=np.int64)
+    scan_times = [float(np.median(np.diff(b.stamps))) if b.n_scans > 1 else 0.0 for b in batches]
+    for j in np.lexsort((index, which, times)):
+        i, k, t = int(which[j]), int(index[j]), int(times[j])
+        writer.write(conns[i][0], t, messages.scan(batches[i], k, t, scan_times[i]))
+        writer.write(conns[i][1], t, messages.pose(batches[i], k, t))
+
+
+def write_bag(
+    path: str | Path,
+    batches: Sequence[ScanBatch],
+    topics: Sequence[tuple[str, str]],
+    fmt: str,
+    *,
+    force: bool = False,
+) -> None:
+    """Write scans and their poses as a bag, atomically.
+
+    Each scan becomes a ``sensor_msgs/msg/LaserScan`` (frame ``laser``) and a
+    ``geometry_msgs/msg/PoseWithCovarianceStamped`` (frame ``map``) at the scan's stamp,
+    the pose covariance placed at the x, y, yaw entries of the 6x6 matrix. Ranges are
+    stored as float32, as LaserScan holds them.
+
+    Args:
+        path: ``*.bag`` for ``ros1``, ``*.mcap`` for ``mcap``, a folder name for the
+            ROS2 formats.
+        batches: the scans, one batch per sensor; beams must be evenly spaced.
+        topics: ``(scan_topic, pose_topic)`` for each batch.
+        fmt: ``ros1``, ``ros2-sqlite3``, ``ros2-mcap`` or ``mcap`` (one bare file).
+        force: replace an existing output.
+
+    Raises:
+        GpoccError: existing output without ``force``, bad arguments, or a write failure.
+    """
+    path = Path(path)
+    _check_writable(path, batches, topics, fmt)
+    check_can_write(path, force)
+    try:
+        if fmt == "ros1":
+            from rosbags.rosbag1 import Writer as Writer1
+
+            with atomic_path(path) as tmp:
+                tmp.unlink()  # the writer refuses an existing file
+                with Writer1(tmp) as writer:
+                    _write_messages(writer, _Messages(_typestore("ROS1_NOETIC"), True),
+                                    batches, topics)
+            return
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
+
+        storage = StoragePlugin.SQLITE3 if fmt == "ros2-sqlite3" else StoragePlugin.MCAP
+        messages = _Messages(_typestore("ROS2_HUMBLE"), False)
+        if fmt == "mcap":
+            with atomic_path(path) as tmp, tempfile.TemporaryDirectory(dir=path.parent) as work:
+                bag = Path(work) / path.stem
+                with Writer2(bag, version=9, storage_plugin=storage) as writer:
+                    _write_messages(writer, messages, batches, topics)
+                os.replace(bag / f"{path.stem}.mcap", tmp)
+            return
+        with atomic_directory(path, force=force) as tmp:
+            # The writer creates the folder itself and names its files after it.
+            bag = tmp / path.name
+            with Writer2(bag, version=9, storage_plugin=storage) as writer:
+                _write_messages(writer, messages, batches, topics)
+            for item in bag.iterdir():
+                os.replace(item, tmp / item.name)
+            bag.rmdir()
+    except GpoccError:
+        raise
+    except OSError as exc:
+        raise GpoccError(f"{path}: cannot write the bag ({_one_line(exc)}); check the folder "
+                         "exists and is writable") from None

@@ -1,0 +1,250 @@
+"""CARMEN text logs (``FLASER`` and ``ROBOTLASER1`` lines) as :class:`ScanBatch`.
+
+CARMEN logs record the world pose of the laser with every scan, so the pose is the
+laser pose and the mount offset is zero unless the config says otherwise. They carry no
+pose covariance: the sensor config's covariance is filled in and
+``has_pose_covariance`` is False.
+
+Time stamps: the logger time stamp (last token of a line) when it strictly increases
+over the whole log, else the line order (scan k at k seconds). Logs post-processed by a
+SLAM front end (``intel.gfs.log``) have a few out-of-order stamps, so they get line order.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gpocc.config import SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.scans import ScanBatch
+
+#: Readings at or above this are CARMEN's "no return" code (81.83 m, 81.91 m in practice).
+NO_RETURN_M = 81.8
+
+#: First tokens of CARMEN log lines; used to recognise a log whatever its suffix.
+MESSAGE_TYPES = frozenset({
+    "FLASER", "RLASER", "LASER3", "LASER4", "ROBOTLASER1", "ROBOTLASER2", "RAWLASER1",
+    "RAWLASER2", "RAWLASER3", "RAWLASER4", "ODOM", "TRUEPOS", "PARAM", "SYNC", "NEFF",
+    "GPSNMEA", "SONAR", "BUMPER", "SCANMARK", "POSITIONLASER", "IMU", "VECTORMOVE",
+})
+
+_SKIPPED = ("#",)
+
+
+@dataclass(frozen=True)
+class CarmenContents:
+    """What a CARMEN log holds: message counts and the logger time span (seconds)."""
+
+    counts: dict[str, int]
+    start_s: float | None
+    end_s: float | None
+
+
+def _flaser_bearings(n: int) -> np.ndarray:
+    """(n,) bearings of a FLASER scan: a 180 degree fan starting at the robot's right.
+
+    Even counts (180, 360: CARMEN's usual) step pi/n from -pi/2; odd counts (181, 361)
+    include both ends of the fan, so they step pi/(n - 1).
+    """
+    step = math.pi / (n - 1) if n % 2 == 1 and n > 1 else math.pi / n
+    return -math.pi / 2 + np.arange(n) * step
+
+
+def is_carmen_text(head: bytes) -> bool:
+    """Whether the first bytes of a file look like a CARMEN log."""
+    try:
+        text = head.decode("ascii")
+    except UnicodeDecodeError:
+        return False
+    for line in text.splitlines():
+        tokens = line.split()
+        if not tokens or tokens[0].startswith(_SKIPPED):
+            continue
+        return tokens[0] in MESSAGE_TYPES
+    return False
+
+
+def _lines(path: Path) -> list[str]:
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise GpoccError(f"{path}: cannot read the file ({exc.strerror}); check the path") from None
+    if not data.strip():
+        raise GpoccError(f"{path}: the file is empty; pass a CARMEN log with FLASER lines")
+    try:
+        return data.decode("ascii").splitlines()
+    except UnicodeDecodeError as exc:
+        raise GpoccError(
+            f"{path}: not a text CARMEN log (binary byte at offset {exc.start}); "
+            "pass a .log/.clf text file, or a .bag/.mcap with a matching suffix"
+        ) from None
+
+
+def describe_carmen(path: str | Path) -> CarmenContents:
+    """Count the message types of a CARMEN log and its logger time span."""
+    path = Path(path)
+    counts: Counter[str] = Counter()
+    stamps: list[float] = []
+    for line in _lines(path):
+        tokens = line.split()
+        if not tokens or tokens[0].startswith(_SKIPPED):
+            continue
+        counts[tokens[0]] += 1
+        if tokens[0] in ("FLASER", "ROBOTLASER1"):
+            try:
+                stamps.append(float(tokens[-1]))
+            except ValueError:
+                pass
+    return CarmenContents(
+        counts=dict(counts),
+        start_s=min(stamps) if stamps else None,
+        end_s=max(stamps) if stamps else None,
+    )
+
+
+def _parse_numbers(path: Path, lineno: int, tokens: list[str], expected: str) -> np.ndarray:
+    try:
+        return np.asarray(tokens, dtype=float)
+    except ValueError:
+        bad = next(t for t in tokens if not _is_number(t))
+        raise GpoccError(
+            f"{path}: line {lineno}: non-numeric value {bad!r} in a {expected} line; "
+            "fix or delete that line"
+        ) from None
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+@dataclass(frozen=True)
+class _Scan:
+    lineno: int
+    ranges: np.ndarray
+    angles: np.ndarray
+    pose: np.ndarray
+    logger_stamp: float
+    no_return_m: float = NO_RETURN_M
+
+
+def _parse_flaser(path: Path, lineno: int, tokens: list[str]) -> _Scan:
+    # FLASER n r_0 .. r_{n-1} x y th odom_x odom_y odom_th ipc_ts host logger_ts
+    try:
+        n = int(tokens[1])
+    except (IndexError, ValueError):
+        raise GpoccError(
+            f"{path}: line {lineno}: FLASER needs the beam count as its second token; "
+            "fix or delete that line"
+        ) from None
+    if n <= 0 or len(tokens) != n + 11:
+        raise GpoccError(
+            f"{path}: line {lineno}: FLASER with {n} beams needs {n + 11} tokens, got "
+            f"{len(tokens)} (truncated line?); fix or delete that line"
+        )
+    values = _parse_numbers(path, lineno, tokens[2 : n + 8] + [tokens[-1]], "FLASER")
+    return _Scan(lineno, values[:n], _flaser_bearings(n), values[n : n + 3], float(values[-1]))
+
+
+def _parse_robotlaser(path: Path, lineno: int, tokens: list[str]) -> _Scan:
+    # ROBOTLASER1 type start fov res max_range accuracy remission_mode n r_0..r_{n-1}
+    #   m rem_0..rem_{m-1} laser_x laser_y laser_th robot_x robot_y robot_th tv rv
+    #   forward_safety side_safety turn_axis ipc_ts host logger_ts
+    try:
+        n = int(tokens[8])
+        m = int(tokens[9 + n])
+    except (IndexError, ValueError):
+        raise GpoccError(
+            f"{path}: line {lineno}: ROBOTLASER1 line is truncated or its reading counts are "
+            "not integers; fix or delete that line"
+        ) from None
+    if n <= 0 or m < 0 or len(tokens) != 10 + n + m + 14:
+        raise GpoccError(
+            f"{path}: line {lineno}: ROBOTLASER1 with {n} readings and {m} remissions needs "
+            f"{24 + n + m} tokens, got {len(tokens)}; fix or delete that line"
+        )
+    start, _fov, res, max_range = _parse_numbers(path, lineno, tokens[2:6], "ROBOTLASER1")
+    ranges = _parse_numbers(path, lineno, tokens[9 : 9 + n], "ROBOTLASER1")
+    tail = tokens[10 + n + m :]
+    pose = _parse_numbers(path, lineno, tail[0:3] + [tail[-1]], "ROBOTLASER1")
+    angles = start + np.arange(n) * res
+    return _Scan(lineno, ranges, angles, pose[:3], float(pose[3]), float(max_range))
+
+
+def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
+    """Read the laser scans of a CARMEN log.
+
+    ``FLASER`` lines are used; a log without them falls back to ``ROBOTLASER1`` (whose
+    laser pose, beam fan and maximum range are read from the line). Ranges at or above
+    81.8 m (FLASER) or the line's maximum range (ROBOTLASER1) become ``+inf`` (no
+    return); ``range_max`` is that value unless the config sets ``range_max_m``.
+
+    Args:
+        path: the log file.
+        sensor: the config entry for this log (name, covariance, range limits).
+
+    Returns:
+        One batch: ``poses`` (S, 3) are the laser poses (x m, y m, yaw rad).
+
+    Raises:
+        GpoccError: empty or binary file, a malformed scan line (its line number), no
+            scans, or scans of different beam counts.
+    """
+    path = Path(path)
+    flaser: list[_Scan] = []
+    robotlaser: list[_Scan] = []
+    for lineno, line in enumerate(_lines(path), start=1):
+        tokens = line.split()
+        if not tokens:
+            continue
+        if tokens[0] == "FLASER":
+            flaser.append(_parse_flaser(path, lineno, tokens))
+        elif tokens[0] == "ROBOTLASER1":
+            robotlaser.append(_parse_robotlaser(path, lineno, tokens))
+    scans = flaser or robotlaser
+    if not scans:
+        raise GpoccError(
+            f"{path}: no FLASER or ROBOTLASER1 lines, so no laser scans; pass a CARMEN log "
+            "with laser data"
+        )
+    widths = {s.ranges.shape[0] for s in scans}
+    if len(widths) > 1:
+        first = scans[0].ranges.shape[0]
+        odd = next(s for s in scans if s.ranges.shape[0] != first)
+        raise GpoccError(
+            f"{path}: line {odd.lineno}: scan has {odd.ranges.shape[0]} beams but earlier ones "
+            f"have {first}; split the log so that each part has one beam count"
+        )
+    ranges = np.stack([s.ranges for s in scans])
+    no_return = min(s.no_return_m for s in scans)
+    ranges[ranges >= no_return] = np.inf
+    poses = np.stack([s.pose for s in scans])
+    if not np.isfinite(poses).all():
+        bad = scans[int(np.flatnonzero(~np.isfinite(poses).all(axis=1))[0])].lineno
+        raise GpoccError(f"{path}: line {bad}: the pose is not finite; fix or delete that line")
+    logger = np.array([s.logger_stamp for s in scans])
+    monotonic = bool(np.isfinite(logger).all() and np.all(np.diff(logger) > 0))
+    stamps = logger if monotonic else np.arange(len(scans), dtype=float)
+    n_scans = len(scans)
+    covariance = np.broadcast_to(sensor.pose_covariance_matrix, (n_scans, 3, 3)).copy()
+    return ScanBatch(
+        sensor=sensor.name,
+        source=str(path),
+        stamps=stamps,
+        angles=scans[0].angles.copy(),
+        ranges=ranges,
+        poses=poses,
+        pose_covariances=covariance,
+        range_min=sensor.range_min_m if sensor.range_min_m is not None else 0.0,
+        range_max=sensor.range_max_m if sensor.range_max_m is not None else no_return,
+        has_pose_covariance=False,
+        skipped_scans=0,
+    )

@@ -1,0 +1,153 @@
+"""CARMEN log reader: inline logs with known geometry, corrupt lines, the real Intel log."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpocc.config import SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.carmen import describe_carmen, read_carmen
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen"
+
+SENSOR = SensorConfig(name="lab", pose_covariance=((0.01, 0, 0), (0, 0.02, 0), (0, 0, 0.003)))
+
+
+def _flaser(ranges: list[float], pose: tuple[float, float, float], stamp: float) -> str:
+    values = " ".join(str(r) for r in ranges)
+    x, y, th = pose
+    return (f"FLASER {len(ranges)} {values} {x} {y} {th} {x + 5} {y - 5} {th + 1} "
+            f"{stamp} pippo {stamp}")
+
+
+def _write(tmp_path: Path, lines: list[str], name: str = "lab.log") -> Path:
+    path = tmp_path / name
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_inline_flaser(tmp_path: Path) -> None:
+    # Four beams at -90, -45, 0 and 45 degrees (the README's -pi/2 + i*pi/N); the robot at
+    # (1, 2) facing +y, so the beams point +x, diagonally, +y and diagonally.
+    lines = [
+        "# message formats defined: PARAM SYNC ODOM FLASER",
+        "PARAM robot_use_laser on 0.1 host 0.1",
+        "ODOM 0 0 0 0 0 0 0.2 pippo 0.2",
+        _flaser([1.0, 2.0, 3.0, 81.83], (1.0, 2.0, math.pi / 2), 10.5),
+        "NEFF 12.3",
+        _flaser([4.0, 81.9, 5.0, 0.5], (-1.0, 0.5, 0.0), 11.25),
+    ]
+    batch = read_carmen(_write(tmp_path, lines), SENSOR)
+    assert (batch.n_scans, batch.n_beams, batch.sensor) == (2, 4, "lab")
+    np.testing.assert_allclose(np.degrees(batch.angles), [-90, -45, 0, 45])
+    np.testing.assert_array_equal(batch.ranges, [[1, 2, 3, np.inf], [4, np.inf, 5, 0.5]])
+    np.testing.assert_allclose(batch.poses, [[1, 2, math.pi / 2], [-1, 0.5, 0]])
+    np.testing.assert_allclose(batch.stamps, [10.5, 11.25])  # monotonic logger stamps
+    assert batch.range_max == pytest.approx(81.8) and batch.range_min == 0.0
+    assert not batch.has_pose_covariance
+    np.testing.assert_allclose(batch.pose_covariances, [SENSOR.pose_covariance_matrix] * 2)
+    # Endpoints by the README's formula: first scan, beam 0 hits (2, 2), beam 2 (1, 5).
+    p, r, a = batch.poses[0], batch.ranges[0], batch.angles
+    ends = p[:2] + r[:3, None] * np.column_stack([np.cos(p[2] + a[:3]), np.sin(p[2] + a[:3])])
+    np.testing.assert_allclose(ends[[0, 2]], [[2, 2], [1, 5]], atol=1e-12)
+
+    contents = describe_carmen(tmp_path / "lab.log")
+    assert contents.counts == {"PARAM": 1, "ODOM": 1, "FLASER": 2, "NEFF": 1}
+    assert (contents.start_s, contents.end_s) == (10.5, 11.25)
+
+
+def test_stamps_fall_back_to_line_order(tmp_path: Path) -> None:
+    lines = [_flaser([1.0] * 6, (0, 0, 0), t) for t in (5.0, 4.0, 6.0)]
+    batch = read_carmen(_write(tmp_path, lines), SENSOR)
+    np.testing.assert_array_equal(batch.stamps, [0.0, 1.0, 2.0])
+
+
+def test_config_range_limits_and_odd_beam_count(tmp_path: Path) -> None:
+    sensor = SensorConfig(range_min_m=0.2, range_max_m=30.0)
+    batch = read_carmen(_write(tmp_path, [_flaser([1.0] * 181, (0, 0, 0), 1.0)]), sensor)
+    assert (batch.range_min, batch.range_max) == (0.2, 30.0)
+    # 181 beams cover both ends of the 180 degree fan, one degree apart.
+    np.testing.assert_allclose(np.degrees(batch.angles[[0, 90, 180]]), [-90, 0, 90])
+
+
+def test_robotlaser1(tmp_path: Path) -> None:
+    # type start fov res max_range accuracy remission_mode n ranges m remissions
+    # laser pose, robot pose, tv rv fwd side turn, ipc_ts host logger_ts
+    line = ("ROBOTLASER1 0 -1.0 2.0 1.0 20.0 0.01 0 3 1.5 25.0 2.5 2 0.1 0.2 "
+            "3.0 4.0 0.5 2.9 4.0 0.5 0 0 0 0 0 7.0 host 7.0")
+    batch = read_carmen(_write(tmp_path, [line], "robot.clf"), SENSOR)
+    np.testing.assert_allclose(batch.angles, [-1.0, 0.0, 1.0])
+    np.testing.assert_array_equal(batch.ranges, [[1.5, np.inf, 2.5]])  # 25 >= max range 20
+    np.testing.assert_allclose(batch.poses, [[3.0, 4.0, 0.5]])  # the laser pose
+    assert batch.range_max == 20.0
+
+
+@pytest.mark.parametrize(
+    ("bad", "why"),
+    [
+        ("FLASER 4 1 2 3 0 0 0 0 0 0 1.0 pippo 1.0", "needs 15 tokens"),  # a beam missing
+        ("FLASER 4 1 2 3 x 0 0 0 0 0 0 1.0 pippo 1.0", "non-numeric value 'x'"),
+        ("FLASER four 1 2 3 4 0 0 0 0 0 0 1.0 pippo 1.0", "beam count"),
+        ("FLASER 4 1 2 3 4 nan 0 0 0 0 0 1.0 pippo 1.0", "pose is not finite"),
+    ],
+)
+def test_corrupt_line_names_file_and_line(tmp_path: Path, bad: str, why: str) -> None:
+    lines = [_flaser([1.0] * 4, (0, 0, 0), 0.5), "ODOM 0 0 0 0 0 0 0.6 pippo 0.6", bad]
+    path = _write(tmp_path, lines, "broken.log")
+    with pytest.raises(GpoccError, match=rf"broken\.log: line 3: .*{why}"):
+        read_carmen(path, SENSOR)
+
+
+def test_unusable_files(tmp_path: Path) -> None:
+    cases = {
+        "empty.log": b"",
+        "blank.log": b"\n  \n",
+        "binary.log": bytes(range(256)),
+        "odom_only.log": b"ODOM 0 0 0 0 0 0 0.1 pippo 0.1\n",
+        "mixed.log": (_flaser([1.0] * 4, (0, 0, 0), 1) + "\n"
+                      + _flaser([1.0] * 8, (0, 0, 0), 2) + "\n").encode(),
+    }
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(GpoccError, match=name.replace(".", r"\.")):
+            read_carmen(tmp_path / name, SENSOR)
+
+
+def _endpoint_extent(batch) -> tuple[float, float]:
+    """Spread of the hit endpoints between their 0.5 and 99.5 percentiles, metres.
+
+    The README's extents are of this robust kind: a few stray long readings lie outside.
+    """
+    hit = np.isfinite(batch.ranges)
+    phi = batch.poses[:, 2:3] + batch.angles[None, :]
+    x = batch.poses[:, 0:1] + batch.ranges * np.cos(phi)
+    y = batch.poses[:, 1:2] + batch.ranges * np.sin(phi)
+    lo, hi = np.percentile(np.column_stack([x[hit], y[hit]]), [0.5, 99.5], axis=0)
+    return float(hi[0] - lo[0]), float(hi[1] - lo[1])
+
+
+@pytest.mark.parametrize(
+    ("name", "scans", "beams", "extent"),
+    [
+        ("intel.gfs.log", 910, 180, (28.7, 28.6)),
+        ("freiburg-079-corrected.log", 4791, 360, (37.5, 15.6)),
+    ],
+)
+def test_real_logs(name: str, scans: int, beams: int, extent: tuple[float, float]) -> None:
+    path = DATA / name
+    if not path.is_file():
+        pytest.skip(f"real data absent: {path}")
+    batch = read_carmen(path, SensorConfig(name="real"))
+    assert (batch.n_scans, batch.n_beams) == (scans, beams)
+    assert np.all(np.diff(batch.stamps) > 0)
+    assert np.isfinite(batch.poses).all()
+    # No-return readings became +inf and nothing else is at or above 81.8 m.
+    assert np.isposinf(batch.ranges).any()
+    assert np.nanmax(batch.ranges[np.isfinite(batch.ranges)]) < 81.8
+    # The README's extent of the endpoints (computed independently of this reader); a
+    # wrong bearing convention (clockwise, or a quarter turn off) changes it by metres.
+    np.testing.assert_allclose(_endpoint_extent(batch), extent, atol=0.15)
