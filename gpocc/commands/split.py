@@ -1,0 +1,148 @@
+"""``gpocc split``: hold out every K-th scan as labelled truth, keep the rest as a bag."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import typer
+import yaml
+
+from gpocc.cli import command
+from gpocc.config import config_to_dict, load_config
+from gpocc.errors import GpoccError
+from gpocc.evaluation.split import sensor_for, split_batch, topic_prefix, train_config
+from gpocc.io.atomic import atomic_directory, check_can_write
+from gpocc.io.bags import write_bag
+from gpocc.io.inputs import read_inputs
+from gpocc.io.scans import ScanBatch
+from gpocc.progress import log
+
+
+def merge_by_sensor(batches: list[ScanBatch]) -> list[ScanBatch]:
+    """One batch per sensor, joining same-sensor batches in time order.
+
+    The written bag has one scan topic per sensor, so batches that share a sensor must
+    share their beam layout.
+    """
+    merged: dict[str, ScanBatch] = {}
+    for b in batches:
+        if b.sensor not in merged:
+            merged[b.sensor] = b
+            continue
+        a = merged[b.sensor]
+        if a.angles.shape != b.angles.shape or not np.allclose(a.angles, b.angles):
+            raise GpoccError(
+                f"{b.source}: sensor '{b.sensor}' has a different beam layout than in "
+                f"{a.source}; give them different sensor names in the config"
+            )
+        joined = {
+            f: np.concatenate([getattr(a, f), getattr(b, f)])
+            for f in ("stamps", "ranges", "poses", "pose_covariances")
+        }
+        order = np.argsort(joined["stamps"], kind="stable")
+        merged[b.sensor] = dataclasses.replace(
+            a,
+            **{k: v[order] for k, v in joined.items()},
+            has_pose_covariance=a.has_pose_covariance and b.has_pose_covariance,
+            skipped_scans=a.skipped_scans + b.skipped_scans,
+        )
+    return list(merged.values())
+
+
+@command("split")
+def split(
+    input_path: Path = typer.Argument(
+        ..., metavar="INPUT", help="Log to split: a bag, bag folder, .mcap or CARMEN log."
+    ),
+    every: int = typer.Option(..., "--every", help="Hold out scans with index % K == K - 1."),
+    out: Path = typer.Option(..., "--out", help="Folder for train.mcap, train.yaml, heldout.csv."),
+    config_path: Path | None = typer.Option(None, "--config", help="Job config (YAML)."),
+    keep_every: int = typer.Option(1, "--keep-every", help="Keep every S-th training scan."),
+    beam_every: int = typer.Option(1, "--beam-every", help="Keep every B-th training beam."),
+    seed: int | None = typer.Option(None, "--seed", help="Seed for the free points [config seed]."),
+    free_per_beam: int = typer.Option(3, "--free-per-beam", help="Free points per held-out beam."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing --out folder."),
+) -> None:
+    """Split a log into a training bag and held-out labelled points.
+
+    Scans with index % K == K - 1 (per sensor, 0-based) are held out; their hits become
+    occupied points (label 1) and each beam gives F free points (label 0) at random
+    distances short of the hit. The other scans (thinned by --keep-every / --beam-every)
+    go to DIR/train.mcap with a config DIR/train.yaml that reads it; the labelled points
+    go to DIR/heldout.csv (x,y,label), usable as `gpocc evaluate --ground-truth`.
+    """
+    check_can_write(out, force)
+    config = load_config(config_path)
+    if every < 2:
+        raise GpoccError(f"--every must be at least 2 (every scan would be held out), got {every}")
+    if keep_every < 1 or beam_every < 1:
+        raise GpoccError("--keep-every and --beam-every must be at least 1")
+    if free_per_beam < 0:
+        raise GpoccError(f"--free-per-beam must not be negative, got {free_per_beam}")
+    rng = np.random.default_rng(config.seed if seed is None else seed)
+
+    batches = merge_by_sensor(read_inputs([input_path], config))
+    trains, topics, sensors, points, labels = [], [], [], [], []
+    n_heldout = 0
+    used_prefixes: set[str] = set()
+    for batch in batches:
+        sensor = sensor_for(batch, config)
+        result = split_batch(
+            batch,
+            sensor,
+            every=every,
+            keep_every=keep_every,
+            beam_every=beam_every,
+            free_per_beam=free_per_beam,
+            rng=rng,
+        )
+        if result.train.n_scans == 0:
+            raise GpoccError(
+                f"{batch.source}: sensor '{batch.sensor}' keeps no training scans "
+                f"({batch.n_scans} scans); lower --every or --keep-every"
+            )
+        prefix = topic_prefix(batch.sensor)
+        while prefix in used_prefixes:
+            prefix += "_"
+        used_prefixes.add(prefix)
+        scan_topic, pose_topic = f"/{prefix}/scan", f"/{prefix}/pose"
+        trains.append(result.train)
+        topics.append((scan_topic, pose_topic))
+        sensors.append((sensor, scan_topic, pose_topic))
+        points.append(result.points)
+        labels.append(result.labels)
+        n_heldout += result.n_heldout
+        log(
+            f"{batch.sensor}: {batch.n_scans} scans -> {result.train.n_scans} training "
+            f"({result.train.n_beams} beams), {result.n_heldout} held out"
+        )
+
+    all_points = np.concatenate(points)
+    all_labels = np.concatenate(labels)
+    new_config = train_config(config, sensors)
+    with atomic_directory(out, force=force) as tmp:
+        write_bag(tmp / "train.mcap", trains, topics, "mcap")
+        (tmp / "train.yaml").write_text(
+            "# Written by gpocc split: reads train.mcap beside it.\n"
+            + yaml.safe_dump(config_to_dict(new_config), sort_keys=False, default_flow_style=None)
+        )
+        with (tmp / "heldout.csv").open("w") as fh:
+            fh.write("x,y,label\n")
+            np.savetxt(
+                fh,
+                np.column_stack([all_points, all_labels]),
+                fmt=("%.4f", "%.4f", "%d"),
+                delimiter=",",
+            )
+
+    n_occupied = int(np.count_nonzero(all_labels == 1))
+    typer.echo(f"sensors:          {len(batches)}")
+    typer.echo(f"scans kept:       {sum(t.n_scans for t in trains)}")
+    typer.echo(f"scans held out:   {n_heldout}")
+    typer.echo(
+        f"held-out points:  {all_labels.size} ({n_occupied} occupied, "
+        f"{all_labels.size - n_occupied} free)"
+    )
+    typer.echo(f"wrote {out / 'train.mcap'}, {out / 'train.yaml'}, {out / 'heldout.csv'}")

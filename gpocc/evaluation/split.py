@@ -1,0 +1,196 @@
+"""The held-out-scan protocol: train on some scans, label points from the others.
+
+Of each sensor's scans, the ones whose index ``i`` (0-based, in recorded order) satisfies
+``i % every == every - 1`` are held out (so the first scan always trains, and ``every``
+scans hold out ``n // every`` of ``n``). The remaining scans, optionally thinned (every
+``keep_every``-th scan, every ``beam_every``-th beam: the sparse regime), are the
+training set. The held-out scans become labelled points: each valid hit is an occupied
+point at its endpoint, and each beam adds ``free_per_beam`` free points at uniformly
+random distances along the beam, short of the hit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from gpocc.config import Config, SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.scans import ScanBatch
+
+#: Free points start this far from the laser and stop this far short of a hit, metres.
+FREE_MARGIN_M = 0.1
+
+
+@dataclass(frozen=True)
+class SplitResult:
+    """One sensor's split.
+
+    Attributes:
+        train: the training scans (thinned), with pose covariances filled in.
+        points: (N, 2) metres, labelled points from the held-out scans.
+        labels: (N,) int8, 1 occupied, 0 free.
+        n_heldout: number of held-out scans.
+    """
+
+    train: ScanBatch
+    points: np.ndarray
+    labels: np.ndarray
+    n_heldout: int
+
+
+def heldout_mask(n_scans: int, every: int) -> np.ndarray:
+    """(n_scans,) bool: True for the held-out scans, index % every == every - 1."""
+    if every < 2:
+        raise GpoccError(f"--every must be at least 2 (every scan would be held out), got {every}")
+    return np.arange(n_scans) % every == every - 1
+
+
+def subset_batch(batch: ScanBatch, scans: np.ndarray, beam_every: int = 1) -> ScanBatch:
+    """The scans at integer indices ``scans``, keeping every ``beam_every``-th beam."""
+    return dataclasses.replace(
+        batch,
+        stamps=batch.stamps[scans],
+        angles=batch.angles[::beam_every],
+        ranges=batch.ranges[scans][:, ::beam_every],
+        poses=batch.poses[scans],
+        pose_covariances=batch.pose_covariances[scans],
+    )
+
+
+def with_pose_covariances(batch: ScanBatch, sensor: SensorConfig) -> ScanBatch:
+    """The batch with the config's pose covariance where the input had none (or is overridden).
+
+    Written into a bag, the covariances then travel with the scans, so the bag needs no
+    config to say how uncertain its poses are.
+    """
+    if batch.has_pose_covariance and not sensor.override_pose_covariance:
+        return batch
+    cov = np.broadcast_to(sensor.pose_covariance_matrix, (batch.n_scans, 3, 3)).copy()
+    return dataclasses.replace(batch, pose_covariances=cov, has_pose_covariance=True)
+
+
+def beam_points(
+    poses: np.ndarray, angles: np.ndarray, distances: np.ndarray, sensor: SensorConfig
+) -> np.ndarray:
+    """Points at ``distances`` along beams, in the map frame.
+
+    ``p = (x, y) + R(theta) (mx, my) + d (cos(theta + myaw + b), sin(theta + myaw + b))``
+    with the robot base pose (x, y, theta) and the sensor mount (mx, my, myaw).
+
+    Args:
+        poses: (S, 3) base poses (x m, y m, yaw rad).
+        angles: (B,) beam bearings in the laser frame, radians.
+        distances: (S, B, F) metres along each beam.
+        sensor: gives the mount.
+
+    Returns:
+        (S, B, F, 2) metres.
+    """
+    x, y, th = poses[:, 0], poses[:, 1], poses[:, 2]
+    m = sensor.mount
+    myaw = math.radians(m.yaw_deg)
+    ox = x + np.cos(th) * m.x_m - np.sin(th) * m.y_m
+    oy = y + np.sin(th) * m.x_m + np.cos(th) * m.y_m
+    heading = th[:, None] + myaw + angles[None, :]
+    px = ox[:, None, None] + distances * np.cos(heading)[:, :, None]
+    py = oy[:, None, None] + distances * np.sin(heading)[:, :, None]
+    return np.stack([px, py], axis=-1)
+
+
+def labelled_points(
+    batch: ScanBatch, sensor: SensorConfig, free_per_beam: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Occupied and free points from scans, with the poses as recorded.
+
+    Ranges follow REP 117 (see :class:`ScanBatch`): a finite ``range_min <= r <
+    range_max`` is a hit, labelled 1 at its endpoint, with ``free_per_beam`` free points
+    at distances uniform in ``[0.1, r - 0.1)`` m; ``+inf`` or ``r >= range_max`` (no
+    return) gives free points uniform in ``[0.1, min(no_return_free_m, range_max))``;
+    NaN, ``-inf`` and ``r < range_min`` give nothing. A beam too short for the interval
+    gives no free points.
+
+    Returns:
+        ``(points, labels)``: (N, 2) metres and (N,) int8 (1 occupied, 0 free); hits first.
+    """
+    r = batch.ranges
+    with np.errstate(invalid="ignore"):
+        hit = np.isfinite(r) & (r >= batch.range_min) & (r < batch.range_max)
+        no_return = (r == np.inf) | (np.isfinite(r) & (r >= batch.range_max))
+    hit_r = np.where(hit, r, 0.0)
+    hits = beam_points(batch.poses, batch.angles, hit_r[:, :, None], sensor)[hit]
+
+    no_return_end = min(sensor.no_return_free_m, batch.range_max)
+    end = np.where(hit, hit_r - FREE_MARGIN_M, np.where(no_return, no_return_end, 0.0))
+    ok = end > FREE_MARGIN_M
+    u = rng.random((batch.n_scans, batch.n_beams, free_per_beam))
+    free_d = FREE_MARGIN_M + u * (end - FREE_MARGIN_M)[:, :, None]
+    keep = np.broadcast_to(ok[:, :, None], free_d.shape)
+    free = beam_points(batch.poses, batch.angles, np.where(keep, free_d, 0.0), sensor)[keep]
+
+    points = np.concatenate([hits.reshape(-1, 2), free.reshape(-1, 2)])
+    labels = np.concatenate(
+        [np.ones(len(hits), dtype=np.int8), np.zeros(len(free), dtype=np.int8)]
+    )
+    return points, labels
+
+
+def split_batch(
+    batch: ScanBatch,
+    sensor: SensorConfig,
+    *,
+    every: int,
+    keep_every: int = 1,
+    beam_every: int = 1,
+    free_per_beam: int = 3,
+    rng: np.random.Generator,
+) -> SplitResult:
+    """Split one sensor's scans into training scans and held-out labelled points.
+
+    The held-out scans keep all their beams (the truth stays dense whatever the training
+    regime); ``keep_every`` and ``beam_every`` thin only the training scans.
+    """
+    if keep_every < 1 or beam_every < 1:
+        raise GpoccError("--keep-every and --beam-every must be at least 1")
+    if free_per_beam < 0:
+        raise GpoccError(f"--free-per-beam must not be negative, got {free_per_beam}")
+    held = heldout_mask(batch.n_scans, every)
+    train_idx = np.flatnonzero(~held)[::keep_every]
+    train = with_pose_covariances(subset_batch(batch, train_idx, beam_every), sensor)
+    points, labels = labelled_points(
+        subset_batch(batch, np.flatnonzero(held)), sensor, free_per_beam, rng
+    )
+    return SplitResult(train=train, points=points, labels=labels, n_heldout=int(held.sum()))
+
+
+def sensor_for(batch: ScanBatch, config: Config) -> SensorConfig:
+    """The config entry for the batch's sensor, or the defaults under its name."""
+    for sensor in config.sensors:
+        if sensor.name == batch.sensor:
+            return sensor
+    return SensorConfig(name=batch.sensor)
+
+
+def topic_prefix(sensor_name: str) -> str:
+    """A valid ROS name from a sensor name (``intel.gfs`` -> ``intel_gfs``)."""
+    name = re.sub(r"[^A-Za-z0-9_]", "_", sensor_name) or "sensor"
+    return name if name[0].isalpha() else f"s_{name}"
+
+
+def train_config(config: Config, sensors: list[tuple[SensorConfig, str, str]]) -> Config:
+    """The input config with ``sensors`` pointing at the training bag's topics.
+
+    Args:
+        config: the input job's config; everything but the sensors is kept.
+        sensors: (sensor config, scan topic, pose topic) per written sensor; the noise
+            settings are kept, the input globs dropped (the bag is the only input).
+    """
+    entries = tuple(
+        dataclasses.replace(s, inputs=(), scan_topic=scan, pose_topic=pose)
+        for s, scan, pose in sensors
+    )
+    return dataclasses.replace(config, sensors=entries)

@@ -1,0 +1,178 @@
+"""Ground truth for evaluation: labelled points (1 occupied, 0 free) in the map frame.
+
+Three kinds of file are accepted:
+
+* a GeoTIFF (or a GDAL VRT mosaic of them): 1 occupied, 0 free, the no-data value
+  (or NaN) for unknown; every labelled cell centre becomes a point;
+* a ROS map_server YAML with its image, read with map_server's trinary rules: occupied
+  cells give 1, free cells 0, unknown cells nothing;
+* a labelled point file: CSV with a header naming the columns ``x,y,label`` (other
+  columns ignored), or whitespace-separated text with the columns ``x y label`` (an
+  optional ``x y label`` header line); ``#`` starts a comment. Labels are 1 (occupied)
+  and 0 or -1 (free).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gpocc.errors import GpoccError
+from gpocc.gridspec import GridSpec
+from gpocc.io.mapserver import read_map_server
+from gpocc.io.rasters import read_raster
+
+ACCEPTED = (
+    "accepted ground truth: a GeoTIFF or .vrt (1 occupied, 0 free, no-data unknown), "
+    "a map_server .yaml with its image, or a point file (.csv with header x,y,label, or "
+    "text with columns 'x y label')"
+)
+
+_RASTER_SUFFIXES = {".tif", ".tiff", ".vrt"}
+_YAML_SUFFIXES = {".yaml", ".yml"}
+_POINT_SUFFIXES = {".csv", ".txt", ".xyz", ".dat", ".pts", ".tsv"}
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+
+
+def load_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read ground-truth labelled points from any accepted file (see the module doc).
+
+    Returns:
+        ``(points, labels)``: (N, 2) metres in the map frame and (N,) int8, 1 occupied,
+        0 free.
+
+    Raises:
+        GpoccError: the file is missing, of another kind, malformed, or labels nothing.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise GpoccError(f"{p}: ground-truth file not found; check the --ground-truth path")
+    if p.is_dir():
+        raise GpoccError(f"{p}: is a folder, not a ground-truth file; {ACCEPTED}")
+    suffix = p.suffix.lower()
+    if suffix in _RASTER_SUFFIXES:
+        points, labels = _truth_from_raster(p)
+    elif suffix in _YAML_SUFFIXES:
+        points, labels = _truth_from_map_server(p)
+    elif suffix in _POINT_SUFFIXES:
+        points, labels = _truth_from_points(p)
+    else:
+        with p.open("rb") as fh:
+            head = fh.read(4)
+        if head in _TIFF_MAGIC:
+            points, labels = _truth_from_raster(p)
+        else:
+            points, labels = _truth_from_points(p)
+    if labels.size == 0:
+        raise GpoccError(f"{p}: the ground truth labels no points (all unknown); {ACCEPTED}")
+    return points, labels
+
+
+def labelled_cell_centres(
+    values: np.ndarray, spec: GridSpec, nodata: float | int | None, source: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cell centres (N, 2) metres and labels (N,) of the cells holding 0 or 1.
+
+    Cells equal to ``nodata`` or NaN are unknown and skipped; any other value is an error,
+    since a probability map passed as truth would otherwise be silently misread.
+    """
+    a = np.asarray(values)
+    unknown = np.zeros(a.shape, dtype=bool)
+    if np.issubdtype(a.dtype, np.floating):
+        unknown |= np.isnan(a)
+    if nodata is not None and not (isinstance(nodata, float) and np.isnan(nodata)):
+        unknown |= a == nodata
+    known = ~unknown
+    bad = known & (a != 0) & (a != 1)
+    if np.any(bad):
+        examples = ", ".join(str(v) for v in np.unique(a[bad])[:5])
+        raise GpoccError(
+            f"{source}: a ground-truth raster must hold 1 (occupied), 0 (free) or its no-data "
+            f"value (unknown), found {examples}; threshold it into classes first or set its "
+            f"no-data value"
+        )
+    rows, cols = np.nonzero(known)
+    x = spec.x0 + (cols + 0.5) * spec.resolution
+    y = spec.y0 + (spec.height - rows - 0.5) * spec.resolution
+    return np.column_stack([x, y]), a[rows, cols].astype(np.int8)
+
+
+def _truth_from_raster(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    values, spec, nodata = read_raster(path)
+    return labelled_cell_centres(values, spec, nodata, str(path))
+
+
+def _truth_from_map_server(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    classes, spec = read_map_server(path)
+    # map_server classes: 0 free, 1 occupied, 2 unknown; unknown is our no-data.
+    return labelled_cell_centres(classes, spec, 2, str(path))
+
+
+def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise GpoccError(f"{path}: not a text point file nor a TIFF; {ACCEPTED}") from None
+    rows: list[tuple[int, str]] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if line:
+            rows.append((lineno, line))
+    if not rows:
+        raise GpoccError(f"{path}: the point file holds no points; {ACCEPTED}")
+    comma = "," in rows[0][1]
+    split = (lambda s: [t.strip() for t in s.split(",")]) if comma else str.split
+    tokens = [(n, split(line)) for n, line in rows]
+    columns = (0, 1, 2)
+    first_line, first = tokens[0]
+    if not _is_number(first[0]):
+        names = [t.lower() for t in first]
+        missing = [c for c in ("x", "y", "label") if c not in names]
+        if missing:
+            raise GpoccError(
+                f"{path}: line {first_line}: the header must name the columns x, y and label "
+                f"(missing {', '.join(missing)}); {ACCEPTED}"
+            )
+        columns = (names.index("x"), names.index("y"), names.index("label"))
+        tokens = tokens[1:]
+    elif comma:
+        raise GpoccError(f"{path}: a CSV point file needs the header line x,y,label; {ACCEPTED}")
+    if not tokens:
+        raise GpoccError(f"{path}: the point file holds no points; {ACCEPTED}")
+    width = max(columns) + 1
+    for lineno, row in tokens:
+        if len(row) < width:
+            raise GpoccError(
+                f"{path}: line {lineno}: expected the columns x, y, label, got {len(row)} "
+                f"value(s); {ACCEPTED}"
+            )
+    try:
+        table = np.array([[row[c] for c in columns] for _, row in tokens], dtype=float)
+    except ValueError:
+        for lineno, row in tokens:
+            if not all(_is_number(row[c]) for c in columns):
+                raise GpoccError(
+                    f"{path}: line {lineno}: x, y and label must be numbers, got "
+                    f"{' '.join(row[c] for c in columns)!r}"
+                ) from None
+        raise  # pragma: no cover - every row parsed one by one
+    finite = np.isfinite(table[:, :2]).all(axis=1)
+    raw_labels = table[:, 2]
+    valid = (raw_labels == 1) | (raw_labels == 0) | (raw_labels == -1)
+    bad = np.flatnonzero(~(finite & valid))
+    if bad.size:
+        lineno, row = tokens[int(bad[0])]
+        raise GpoccError(
+            f"{path}: line {lineno}: x and y must be finite and the label 1 (occupied) or "
+            f"0 / -1 (free), got {' '.join(row[c] for c in columns)!r}"
+        )
+    return table[:, :2].copy(), (raw_labels == 1).astype(np.int8)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True

@@ -1,0 +1,293 @@
+"""``gpocc evaluate`` and ground-truth loading, checked with rasterio and scikit-learn."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from sklearn.metrics import roc_auc_score
+from typer.testing import CliRunner
+
+from gpocc.cli import app
+from gpocc.errors import GpoccError
+from gpocc.evaluation.truth import load_truth
+from gpocc.gridspec import GridSpec
+from gpocc.io.rasters import write_geotiff, write_vrt
+
+SPEC = GridSpec(x0=-1.3, y0=2.2, resolution=0.1, width=40, height=30)
+NODATA = -1.0
+
+
+def _probability(seed: int) -> np.ndarray:
+    """(H, W) float32 probabilities rising to the east, with noise and no-data holes."""
+    rng = np.random.default_rng(seed)
+    xs, _ = SPEC.cell_centres()
+    p = 1.0 / (1.0 + np.exp(-(xs - xs.mean()) * 1.5 + rng.normal(0, 0.7, xs.shape)))
+    p[rng.random(p.shape) < 0.08] = NODATA
+    return p.astype(np.float32)
+
+
+def _truth_points(seed: int, n: int = 500) -> tuple[np.ndarray, np.ndarray]:
+    """Points over and around the map (some outside), labelled mostly by their x."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(SPEC.x0 - 0.5, SPEC.x1 + 0.5, n)
+    y = rng.uniform(SPEC.y0 - 0.3, SPEC.y1 + 0.3, n)
+    labels = ((x - (SPEC.x0 + SPEC.x1) / 2 + rng.normal(0, 0.8, n)) > 0).astype(int)
+    return np.column_stack([x, y]), labels
+
+
+def _sampled_with_rasterio(tif: Path, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest-cell probability (0.5 where outside or no data) and covered mask, by rasterio."""
+    with rasterio.open(tif) as ds:
+        band = ds.read(1)
+        rows, cols = rasterio.transform.rowcol(ds.transform, points[:, 0], points[:, 1])
+        nodata = ds.nodata
+    rows, cols = np.asarray(rows), np.asarray(cols)
+    inside = (rows >= 0) & (rows < band.shape[0]) & (cols >= 0) & (cols < band.shape[1])
+    values = np.full(len(points), np.nan)
+    values[inside] = band[rows[inside], cols[inside]]
+    covered = inside & (values != nodata) & np.isfinite(values)
+    return np.where(covered, values, 0.5), covered
+
+
+@pytest.fixture()
+def maps(tmp_path: Path) -> tuple[Path, Path]:
+    folder = tmp_path / "gp_map"
+    folder.mkdir()
+    write_geotiff(folder / "probability.tif", _probability(1), SPEC, nodata=NODATA)
+    bare = tmp_path / "grid_prob.tif"
+    write_geotiff(bare, _probability(2), SPEC, nodata=NODATA)
+    return folder, bare
+
+
+def _write_csv(path: Path, points: np.ndarray, labels: np.ndarray) -> Path:
+    rows = zip(points, labels, strict=True)
+    lines = ["x,y,label"] + [f"{x:.17g},{y:.17g},{lab}" for (x, y), lab in rows]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _error_lines(result) -> list[str]:
+    """The error lines on stderr (progress lines aside)."""
+    return [line for line in result.stderr.splitlines() if line.startswith("gpocc evaluate: ")]
+
+
+def _invoke(*args: str):
+    return CliRunner().invoke(app, ["evaluate", *args])
+
+
+def test_csv_truth_auc_matches_sklearn_and_outputs_are_written(tmp_path, maps):
+    folder, bare = maps
+    points, labels = _truth_points(3)
+    truth = _write_csv(tmp_path / "truth.csv", points, labels)
+    out = tmp_path / "eval"
+    result = _invoke(str(folder), str(bare), "--ground-truth", str(truth), "--out", str(out))
+    assert result.exit_code == 0, result.output
+
+    summary = json.loads((out / "results.json").read_text())
+    by_name = {m["name"]: m for m in summary["maps"]}
+    assert set(by_name) == {"gp_map", "grid_prob"}
+    for name, tif in (("gp_map", folder / "probability.tif"), ("grid_prob", bare)):
+        scores, covered = _sampled_with_rasterio(tif, points)
+        assert by_name[name]["auc"] == pytest.approx(roc_auc_score(labels, scores), abs=1e-9)
+        assert by_name[name]["coverage"] == pytest.approx(covered.mean())
+        assert 0.5 < covered.mean() < 1.0  # the fixture does put points outside / on holes
+        # The table on stdout shows the same numbers.
+        row = next(line for line in result.stdout.splitlines() if line.startswith(name))
+        assert f"{roc_auc_score(labels, scores):.4f}" in row
+    assert summary["n_occupied"] == labels.sum() and summary["n_free"] == (1 - labels).sum()
+
+    assert (out / "roc.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = (out / "roc.csv").read_text().splitlines()
+    assert rows[0] == "map,fpr,tpr"
+    curve = np.array([r.split(",")[1:] for r in rows[1:] if r.startswith("gp_map")], dtype=float)
+    assert curve[0].tolist() == [0.0, 0.0] and curve[-1].tolist() == [1.0, 1.0]
+    assert np.trapezoid(curve[:, 1], curve[:, 0]) == pytest.approx(by_name["gp_map"]["auc"])
+    md = (out / "results.md").read_text()
+    assert "| gp_map |" in md and "| grid_prob |" in md
+
+
+def test_text_truth_with_minus_one_labels_and_comments(tmp_path, maps):
+    folder, _ = maps
+    points, labels = _truth_points(4)
+    csv_truth = _write_csv(tmp_path / "truth.csv", points, labels)
+    txt = tmp_path / "truth.txt"
+    body = [f"{x:.17g}  {y:.17g}\t{1 if lab else -1}  # point" for (x, y), lab in
+            zip(points, labels, strict=True)]
+    txt.write_text("# x y label\n\n" + "\n".join(body) + "\n")
+    p_txt, l_txt = load_truth(txt)
+    p_csv, l_csv = load_truth(csv_truth)
+    np.testing.assert_array_equal(p_txt, p_csv)
+    np.testing.assert_array_equal(l_txt, labels)
+    np.testing.assert_array_equal(l_csv, labels)
+    a = _invoke(str(folder), "--ground-truth", str(txt))
+    b = _invoke(str(folder), "--ground-truth", str(csv_truth))
+    assert a.exit_code == 0 and a.stdout == b.stdout
+
+
+def test_csv_header_order_and_extra_columns(tmp_path):
+    path = tmp_path / "t.csv"
+    path.write_text("label,id,y,x\n1,a,2.5,-1\n0,b,3.5,4\n")
+    points, labels = load_truth(path)
+    np.testing.assert_array_equal(points, [[-1.0, 2.5], [4.0, 3.5]])
+    np.testing.assert_array_equal(labels, [1, 0])
+
+
+def test_geotiff_truth_uses_labelled_cell_centres(tmp_path, maps):
+    folder, _ = maps
+    rng = np.random.default_rng(5)
+    # Offset by a fraction of a map cell, so no truth centre sits on a map cell edge
+    # (where the nearest cell is a tie that rasterio and we may break differently).
+    truth_spec = GridSpec(x0=-1.03, y0=2.02, resolution=0.2, width=15, height=12)
+    xs, _ = truth_spec.cell_centres()
+    classes = (xs + rng.normal(0, 0.5, xs.shape) > 0.7).astype(np.uint8)
+    classes[rng.random(classes.shape) < 0.2] = 255
+    truth = tmp_path / "truth.tif"
+    write_geotiff(truth, classes, truth_spec, nodata=255)
+
+    points, labels = load_truth(truth)
+    with rasterio.open(truth) as ds:
+        band = ds.read(1)
+        rows, cols = np.nonzero(band != 255)
+        x, y = rasterio.transform.xy(ds.transform, rows, cols)
+    expected = np.column_stack([x, y])
+    order = np.lexsort((points[:, 1], points[:, 0]))
+    expected_order = np.lexsort((expected[:, 1], expected[:, 0]))
+    np.testing.assert_allclose(points[order], expected[expected_order], atol=1e-9)
+    np.testing.assert_array_equal(labels[order], band[rows, cols][expected_order])
+
+    result = _invoke(str(folder), "--ground-truth", str(truth), "--out", str(tmp_path / "o"))
+    assert result.exit_code == 0, result.output
+    scores, _ = _sampled_with_rasterio(folder / "probability.tif", expected)
+    auc = json.loads((tmp_path / "o" / "results.json").read_text())["maps"][0]["auc"]
+    assert auc == pytest.approx(roc_auc_score(band[rows, cols], scores), abs=1e-9)
+
+
+def _write_map_server(folder: Path, pgm_values: np.ndarray, spec: GridSpec) -> Path:
+    """A trinary map_server map written directly (P5 PGM + YAML), independent of gpocc."""
+    h, w = pgm_values.shape
+    (folder / "truth.pgm").write_bytes(f"P5\n{w} {h}\n255\n".encode() + pgm_values.tobytes())
+    (folder / "truth.yaml").write_text(
+        f"image: truth.pgm\nmode: trinary\nresolution: {spec.resolution}\n"
+        f"origin: [{spec.x0}, {spec.y0}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\n"
+        f"free_thresh: 0.196\n"
+    )
+    return folder / "truth.yaml"
+
+
+def test_map_server_truth(tmp_path, maps):
+    folder, _ = maps
+    truth_spec = GridSpec(x0=-1.5, y0=2.1, resolution=0.25, width=18, height=13)
+    rng = np.random.default_rng(6)
+    pgm = rng.choice(np.array([0, 254, 205], dtype=np.uint8), size=truth_spec.shape)
+    yaml_path = _write_map_server(tmp_path, pgm, truth_spec)
+    points, labels = load_truth(yaml_path)
+    # map_server: row 0 of the image is the top; the origin is the lower-left corner.
+    rows, cols = np.nonzero(pgm != 205)
+    x = truth_spec.x0 + (cols + 0.5) * truth_spec.resolution
+    y = truth_spec.y0 + (truth_spec.height - rows - 0.5) * truth_spec.resolution
+    np.testing.assert_allclose(points, np.column_stack([x, y]), atol=1e-9)
+    np.testing.assert_array_equal(labels, (pgm[rows, cols] == 0).astype(int))
+
+    result = _invoke(str(folder), "--ground-truth", str(yaml_path), "--out", str(tmp_path / "o"))
+    assert result.exit_code == 0, result.output
+    scores, _ = _sampled_with_rasterio(folder / "probability.tif", points)
+    auc = json.loads((tmp_path / "o" / "results.json").read_text())["maps"][0]["auc"]
+    assert auc == pytest.approx(roc_auc_score(labels, scores), abs=1e-9)
+
+
+def test_tiled_map_folder_with_a_vrt(tmp_path, maps):
+    folder, _ = maps
+    prob = _probability(1)
+    tiled = tmp_path / "tiled_map"
+    (tiled / "tiles").mkdir(parents=True)
+    tiles = []
+    for row0, col0 in ((0, 0), (0, 25), (17, 0), (17, 25)):
+        spec = SPEC.window(row0, col0, 17, 25)
+        tile = tiled / "tiles" / f"probability_{row0}_{col0}.tif"
+        write_geotiff(tile, prob[row0 : row0 + spec.height, col0 : col0 + spec.width], spec,
+                      nodata=NODATA)
+        tiles.append((tile, spec))
+    write_vrt(tiled / "probability.vrt", tiles, SPEC, "float32", NODATA)
+    points, labels = _truth_points(9)
+    truth = _write_csv(tmp_path / "truth.csv", points, labels)
+    result = _invoke(str(tiled), "--ground-truth", str(truth), "--out", str(tmp_path / "o"))
+    assert result.exit_code == 0, result.output
+    scores, covered = _sampled_with_rasterio(folder / "probability.tif", points)
+    (row,) = json.loads((tmp_path / "o" / "results.json").read_text())["maps"]
+    assert row["name"] == "tiled_map"
+    assert row["auc"] == pytest.approx(roc_auc_score(labels, scores), abs=1e-9)
+    assert row["coverage"] == pytest.approx(covered.mean())
+
+
+def test_existing_out_is_refused_without_force(tmp_path, maps):
+    folder, _ = maps
+    truth = _write_csv(tmp_path / "truth.csv", *_truth_points(7))
+    out = tmp_path / "eval"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    refused = _invoke(str(folder), "--ground-truth", str(truth), "--out", str(out))
+    assert refused.exit_code == 2
+    assert "--force" in refused.stderr and "Traceback" not in refused.output
+    assert (out / "keep.txt").read_text() == "mine"
+    forced = _invoke(str(folder), "--ground-truth", str(truth), "--out", str(out), "--force")
+    assert forced.exit_code == 0, forced.output
+    assert sorted(p.name for p in out.iterdir()) == [
+        "results.json", "results.md", "roc.csv", "roc.png",
+    ]
+
+
+@pytest.mark.parametrize(
+    "name, content, message",
+    [
+        ("bad.csv", "x,y,label\n1,2,1\n3,oops,0\n", "line 3"),
+        ("bad.csv", "x,y,label\n1,2,1\n3,4,2\n", "line 3"),
+        ("bad.csv", "a,b,c\n1,2,1\n", "header"),
+        ("short.txt", "1 2 1\n3 4\n", "line 2"),
+        ("empty.csv", "# nothing\n", "no points"),
+        ("one_class.csv", "x,y,label\n1,2,1\n3,4,1\n", "both"),
+        ("blob.bin", b"\x00\xff\xfe\x01binary", "accepted ground truth"),
+    ],
+)
+def test_bad_truth_gives_one_error_line(tmp_path, maps, name, content, message):
+    folder, _ = maps
+    path = tmp_path / name
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content)
+    result = _invoke(str(folder), "--ground-truth", str(path))
+    assert result.exit_code == 2
+    assert "Traceback" not in result.output
+    lines = _error_lines(result)
+    assert len(lines) == 1 and str(path) in lines[0] and message in lines[0], result.stderr
+    assert result.stderr.rstrip().splitlines()[-1] == lines[0]  # nothing after it
+
+
+def test_missing_inputs_and_non_probability_maps(tmp_path, maps):
+    folder, _ = maps
+    truth = _write_csv(tmp_path / "truth.csv", *_truth_points(8))
+    missing = _invoke(str(folder), "--ground-truth", str(tmp_path / "nope.csv"))
+    assert missing.exit_code == 2 and "not found" in missing.stderr
+    no_map = _invoke(str(tmp_path / "absent_map"), "--ground-truth", str(truth))
+    assert no_map.exit_code == 2 and "absent_map" in no_map.stderr
+    empty = tmp_path / "empty_folder"
+    empty.mkdir()
+    no_prob = _invoke(str(empty), "--ground-truth", str(truth))
+    assert no_prob.exit_code == 2 and "probability.tif" in no_prob.stderr
+    variance = tmp_path / "variance.tif"
+    write_geotiff(variance, np.full(SPEC.shape, 3.0, np.float32), SPEC, nodata=NODATA)
+    wrong = _invoke(str(variance), "--ground-truth", str(truth))
+    assert wrong.exit_code == 2 and "[0, 1]" in wrong.stderr
+    for r in (missing, no_map, no_prob, wrong):
+        assert "Traceback" not in r.output and len(_error_lines(r)) == 1
+
+
+def test_probability_raster_value_other_than_classes_is_rejected_as_truth(tmp_path):
+    truth = tmp_path / "prob_as_truth.tif"
+    write_geotiff(truth, np.full(SPEC.shape, 0.3, np.float32), SPEC, nodata=NODATA)
+    with pytest.raises(GpoccError, match="prob_as_truth.tif"):
+        load_truth(truth)

@@ -1,0 +1,377 @@
+"""Expected kernels: quadrature against closed forms, Monte Carlo and brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpocc.gp import expected as ex
+from gpocc.gp.expected import (
+    expected_kernel_cross,
+    expected_kernel_diag,
+    expected_kernel_matrix,
+    expected_se_closed_form,
+    expected_se_closed_form_pairs,
+    gauss_hermite,
+    gaussian_nodes,
+)
+from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
+
+NN = NeuralNetworkKernel(signal_variance=1.0, bias_variance=1.0, weight_variance=(4.0, 4.0))
+SE = SquaredExponentialKernel(signal_variance=1.0, lengthscale=(0.5, 0.5))
+MC_DRAWS = 100_000
+
+
+def _covariances(rng: np.random.Generator, n: int, std: float) -> np.ndarray:
+    """Random full-rank (N, 2, 2) covariances with roughly ``std`` metres per axis."""
+    b = rng.normal(size=(n, 2, 2)) * (std / np.sqrt(2))
+    return b @ b.transpose(0, 2, 1) + (0.2 * std) ** 2 * np.eye(2)
+
+
+def _scan_problem(seed: int, n: int = 12, pose_std: float = 0.15, noise_std: float = 0.05):
+    """Samples of three scans: x_i = u_i + A_i e_scan + B_i n_i, with S_i = A A' + B B'."""
+    rng = np.random.default_rng(seed)
+    means = rng.uniform(-1.0, 1.0, (n, 2))
+    scan_ids = np.arange(n) % 3
+    factors = rng.normal(size=(n, 2, 3)) * pose_std / np.sqrt(3)
+    noise = rng.normal(size=(n, 2, 2)) * noise_std / np.sqrt(2)
+    covs = factors @ factors.transpose(0, 2, 1) + noise @ noise.transpose(0, 2, 1)
+    return means, covs, scan_ids, factors, noise
+
+
+def _mc(values: np.ndarray) -> tuple[float, float]:
+    return float(values.mean()), float(values.std() / np.sqrt(len(values)))
+
+
+def _brute_independent(kernel, means, covs, level):
+    """Product rule written the obvious way: full (N, L2, N, L2) tensor, every point L2 nodes."""
+    nodes, w = gaussian_nodes(means, covs, level)
+    n, l2, _ = nodes.shape
+    flat = nodes.reshape(-1, 2)
+    kk = kernel(flat, flat).reshape(n, l2, n, l2)
+    return np.einsum("iajb,a,b->ij", kk, w, w)
+
+
+# --------------------------------------------------------------------------- rules and nodes
+
+
+@pytest.mark.parametrize("dim", [1, 2, 4])
+def test_gauss_hermite_integrates_normal_moments(dim):
+    nodes, w = gauss_hermite(4, dim)
+    assert nodes.shape == (4**dim, dim) and w.shape == (4**dim,)
+    assert np.all(w > 0)
+    np.testing.assert_allclose(w.sum(), 1.0, rtol=1e-14)
+    np.testing.assert_allclose(w @ nodes, 0.0, atol=1e-14)
+    np.testing.assert_allclose((nodes * w[:, None]).T @ nodes, np.eye(dim), atol=1e-13)
+    # E[x^6] = 15 needs degree 6 <= 2 level - 1 = 7.
+    np.testing.assert_allclose(w @ nodes[:, 0] ** 6, 15.0, rtol=1e-12)
+    with pytest.raises(ValueError):
+        gauss_hermite(0, dim)
+
+
+def test_gaussian_nodes_reproduce_moments_and_handle_singular():
+    rng = np.random.default_rng(0)
+    means = rng.normal(size=(4, 2))
+    covs = _covariances(rng, 4, 0.3)
+    covs[1] = 0.0  # zero: all nodes at the mean
+    v = np.array([0.6, 0.8])
+    covs[2] = 0.09 * np.outer(v, v)  # rank one: nodes on a line through the mean
+    covs[3, 0, 1] = covs[3, 1, 0] = np.sqrt(covs[3, 0, 0] * covs[3, 1, 1])  # singular, rounded
+    nodes, w = gaussian_nodes(means, covs, 5)
+    assert np.all(np.isfinite(nodes))
+    np.testing.assert_allclose(np.einsum("a,nai->ni", w, nodes), means, atol=1e-13)
+    d = nodes - means[:, None, :]
+    np.testing.assert_allclose(np.einsum("a,nai,naj->nij", w, d, d), covs, atol=1e-13)
+    assert np.all(nodes[1] == means[1])
+    cross = d[2, :, 0] * v[1] - d[2, :, 1] * v[0]
+    np.testing.assert_allclose(cross, 0.0, atol=1e-14)
+
+
+# --------------------------------------------------------------------------- SE closed form
+
+
+def test_quadrature_matches_girard_for_small_variances():
+    rng = np.random.default_rng(1)
+    means = rng.uniform(-0.8, 0.8, (10, 2))
+    covs = _covariances(rng, 10, 0.05)
+    quad = expected_kernel_matrix(SE, means, covs, 10)
+    exact = expected_se_closed_form(SE, means, covs, means, covs)
+    off = ~np.eye(10, dtype=bool)
+    assert np.max(np.abs(quad - exact)[off] / exact[off]) < 1e-6
+    # One point: E[k(x, x)] = s exactly for a stationary kernel.
+    np.testing.assert_allclose(np.diag(quad), SE.signal_variance, rtol=1e-14)
+
+
+def test_quadrature_matches_girard_for_moderate_variances():
+    rng = np.random.default_rng(2)
+    means = rng.uniform(-0.8, 0.8, (8, 2))
+    covs = _covariances(rng, 8, 0.25)
+    quad = expected_kernel_matrix(SE, means, covs, 10)
+    exact = expected_se_closed_form(SE, means, covs, means, covs)
+    off = ~np.eye(8, dtype=bool)
+    assert np.max(np.abs(quad - exact)[off]) < 1e-3 * SE.signal_variance
+
+
+def test_girard_closed_forms_match_monte_carlo():
+    # The closed forms are themselves checked against sampling (independent and correlated).
+    rng = np.random.default_rng(3)
+    ua, ub = np.array([0.1, -0.2]), np.array([0.4, 0.3])
+    sa, sb = _covariances(rng, 2, 0.3)
+    lab, lb = np.linalg.cholesky(sa), np.linalg.cholesky(sb)
+    xa = ua + rng.normal(size=(MC_DRAWS, 2)) @ lab.T
+    xb = ub + rng.normal(size=(MC_DRAWS, 2)) @ lb.T
+    mean, err = _mc(SE.pairwise(xa, xb))
+    got = expected_se_closed_form(SE, ua[None], sa[None], ub[None], sb[None])[0, 0]
+    assert abs(got - mean) < 4 * err
+    # Correlated: a shared 3-D error e moves both points.
+    fa, fb = rng.normal(size=(2, 2, 3)) * 0.2
+    e = rng.normal(size=(MC_DRAWS, 3))
+    ya, yb = xa + e @ fa.T, xb + e @ fb.T
+    mean, err = _mc(SE.pairwise(ya, yb))
+    got = expected_se_closed_form_pairs(
+        SE, ua[None], (sa + fa @ fa.T)[None], ub[None], (sb + fb @ fb.T)[None],
+        cross=(fa @ fb.T)[None],
+    )[0]
+    assert abs(got - mean) < 4 * err
+    same = expected_se_closed_form_pairs(SE, ua[None], sa[None], ua[None], sa[None], sa[None])
+    np.testing.assert_allclose(same, SE.signal_variance, rtol=1e-14)
+
+
+def test_correlated_quadrature_matches_girard_pairs():
+    means, covs, scan_ids, factors, _ = _scan_problem(4)
+    i, j = np.triu_indices(len(means), 1)
+    same = scan_ids[i] == scan_ids[j]
+    cross = np.where(same[:, None, None], factors[i] @ factors[j].transpose(0, 2, 1), 0.0)
+    exact = expected_se_closed_form_pairs(SE, means[i], covs[i], means[j], covs[j], cross)
+    ignored = expected_se_closed_form_pairs(SE, means[i], covs[i], means[j], covs[j])
+    effect = np.abs(exact - ignored)[same].max()
+    assert effect > 0.01  # the correlation matters here
+    errors = []
+    for level in (3, 6, 10):
+        k = expected_kernel_matrix(
+            SE, means, covs, level, scan_ids=scan_ids, pose_factors=factors
+        )
+        errors.append(np.abs(k[i, j] - exact)[same].max())
+        if level == 10:
+            np.testing.assert_allclose(k[i, j][~same], exact[~same], rtol=1e-7, atol=1e-9)
+    # The 4-D rule converges more slowly than the 2-D ones, but it does converge.
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 1e-3 * effect
+
+
+# --------------------------------------------------------------------------- Monte Carlo
+
+
+def _quad_tolerance(f, level: int) -> float:
+    """Quadrature error estimate: distance to the rule two levels up."""
+    return float(np.max(np.abs(f(level) - f(level + 2))))
+
+
+@pytest.mark.parametrize("kernel", [NN, SE], ids=["nn", "se"])
+def test_independent_pair_matches_monte_carlo(kernel):
+    rng = np.random.default_rng(5)
+    means = np.array([[0.3, -0.4], [0.9, 0.2]])
+    covs = _covariances(rng, 2, 0.25)
+    x = [means[i] + rng.normal(size=(MC_DRAWS, 2)) @ np.linalg.cholesky(covs[i]).T
+         for i in range(2)]
+    mean, err = _mc(kernel.pairwise(x[0], x[1]))
+    level = 6
+    quad = expected_kernel_matrix(kernel, means, covs, level)[0, 1]
+    tol = 4 * err + _quad_tolerance(
+        lambda lv: expected_kernel_matrix(kernel, means, covs, lv)[0, 1], level
+    )
+    assert abs(quad - mean) < tol
+
+
+@pytest.mark.parametrize("kernel", [NN, SE], ids=["nn", "se"])
+def test_correlated_pair_matches_monte_carlo(kernel):
+    rng = np.random.default_rng(6)
+    means = np.array([[0.2, 0.5], [0.6, 0.3]])
+    factors = np.array([[[0.25, 0.05, -0.3], [0.0, 0.2, 0.25]],
+                        [[0.2, -0.05, -0.25], [0.05, 0.25, 0.3]]])
+    noise = rng.normal(size=(2, 2, 2)) * 0.03
+    covs = factors @ factors.transpose(0, 2, 1) + noise @ noise.transpose(0, 2, 1)
+    e = rng.normal(size=(MC_DRAWS, 3))
+    x = [means[i] + e @ factors[i].T + rng.normal(size=(MC_DRAWS, 2)) @ noise[i].T
+         for i in range(2)]
+    mean, err = _mc(kernel.pairwise(x[0], x[1]))
+
+    def corr(lv):
+        return expected_kernel_matrix(
+            kernel, means, covs, lv, scan_ids=np.array([7, 7]), pose_factors=factors
+        )[0, 1]
+
+    level = 5
+    assert abs(corr(level) - mean) < 4 * err + _quad_tolerance(corr, level)
+    # Ignoring the shared error would be visibly wrong (so the test above has teeth) ...
+    independent = expected_kernel_matrix(kernel, means, covs, level)[0, 1]
+    assert abs(independent - mean) > 10 * err
+    # ... and different scans are independent.
+    other = expected_kernel_matrix(
+        kernel, means, covs, level, scan_ids=np.array([7, 8]), pose_factors=factors
+    )[0, 1]
+    assert other == pytest.approx(independent, rel=1e-12)
+
+
+def test_diagonal_is_one_point_expectation():
+    rng = np.random.default_rng(7)
+    means = np.array([[0.8, -0.6]])
+    covs = _covariances(rng, 1, 0.35)
+    x = means[0] + rng.normal(size=(MC_DRAWS, 2)) @ np.linalg.cholesky(covs[0]).T
+    x2 = means[0] + rng.normal(size=(MC_DRAWS, 2)) @ np.linalg.cholesky(covs[0]).T
+    one, err1 = _mc(NN.diag(x))
+    two, err2 = _mc(NN.pairwise(x, x2))
+    level = 6
+
+    def diag(lv):
+        return expected_kernel_matrix(NN, means, covs, lv)[0, 0]
+
+    assert abs(diag(level) - one) < 4 * err1 + _quad_tolerance(diag, level)
+    # The two-point expectation is clearly different: the diagonal is not that.
+    assert abs(diag(level) - two) > 10 * err2 + 10 * err1
+    np.testing.assert_allclose(expected_kernel_diag(NN, means, covs, level), diag(level))
+
+
+def test_cross_matches_monte_carlo_and_closed_form():
+    rng = np.random.default_rng(8)
+    queries = np.array([[0.0, 0.0], [0.5, -0.3], [1.2, 0.9]])
+    means = np.array([[0.3, -0.2], [-0.4, 0.6]])
+    covs = _covariances(rng, 2, 0.3)
+    level = 6
+    kx = expected_kernel_cross(NN, queries, means, covs, level)
+    kx_hi = expected_kernel_cross(NN, queries, means, covs, level + 2)
+    assert kx.shape == (3, 2)
+    for i in range(2):
+        x = means[i] + rng.normal(size=(MC_DRAWS, 2)) @ np.linalg.cholesky(covs[i]).T
+        for q in range(3):
+            mean, err = _mc(NN(queries[q : q + 1], x)[0])
+            assert abs(kx[q, i] - mean) < 4 * err + abs(kx[q, i] - kx_hi[q, i])
+    zero = np.zeros((3, 2, 2))
+    small = covs / 9.0  # 0.1 m: level 10 is then exact to ~1e-7
+    exact = expected_se_closed_form(SE, queries, zero, means, small)
+    np.testing.assert_allclose(
+        expected_kernel_cross(SE, queries, means, small, 10), exact, rtol=1e-6
+    )
+
+
+# --------------------------------------------------------------------------- structure
+
+
+def test_error_falls_with_level():
+    # Strongly nonlinear: std ~0.2 m against a 0.3 m length scale (SE, exact reference) and
+    # weight variance 16 /m^2 (NN, level-14 reference).
+    rng = np.random.default_rng(0)
+    means = rng.uniform(-0.5, 0.5, (6, 2))
+    b = rng.normal(size=(6, 2, 2)) * 0.15
+    covs = b @ b.transpose(0, 2, 1) + 0.01 * np.eye(2)
+    off = ~np.eye(6, dtype=bool)
+    se = SquaredExponentialKernel(1.0, (0.3, 0.3))
+    exact = expected_se_closed_form(se, means, covs, means, covs)
+    nn = NeuralNetworkKernel(1.0, 1.0, (16.0, 16.0))
+    ref = expected_kernel_matrix(nn, means, covs, 14)
+    for kernel, oracle in ((se, exact), (nn, ref)):
+        errors = [
+            np.abs(expected_kernel_matrix(kernel, means, covs, lv) - oracle)[off].max()
+            for lv in (1, 2, 3, 5)
+        ]
+        assert errors[0] > errors[1] > errors[2] > errors[3]
+        assert errors[3] < errors[0] / 10
+
+
+def test_zero_covariance_is_plain_kernel():
+    rng = np.random.default_rng(9)
+    means = rng.uniform(-2, 2, (30, 2))
+    zero = np.zeros((30, 2, 2))
+    factors = rng.normal(size=(30, 2, 3))
+    for kernel in (NN, SE):
+        k = expected_kernel_matrix(
+            kernel, means, zero, 5, scan_ids=np.zeros(30, int), pose_factors=factors
+        )
+        plain = kernel(means, means)
+        np.testing.assert_allclose(k, plain, rtol=1e-15, atol=1e-15)
+        np.testing.assert_allclose(np.diag(k), kernel.diag(means), rtol=1e-15)
+        np.testing.assert_allclose(
+            expected_kernel_cross(kernel, means[:4], means, zero, 5), plain[:4], rtol=1e-15
+        )
+
+
+@pytest.mark.parametrize("kernel", [NN, SE], ids=["nn", "se"])
+def test_matches_brute_force_with_mixed_node_counts_and_small_blocks(kernel, monkeypatch):
+    rng = np.random.default_rng(10)
+    means = rng.uniform(-1, 1, (25, 2))
+    covs = _covariances(rng, 25, 0.2)
+    covs[::4] = 0.0  # single-node points among full ones
+    brute = _brute_independent(kernel, means, covs, 3)
+    np.fill_diagonal(brute, expected_kernel_diag(kernel, means, covs, 3))
+    default = expected_kernel_matrix(kernel, means, covs, 3)
+    np.testing.assert_allclose(default, brute, rtol=1e-12, atol=1e-14)
+    cross_brute = np.einsum(
+        "qia,a->qi",
+        kernel(means[:5], gaussian_nodes(means, covs, 3)[0].reshape(-1, 2)).reshape(5, 25, 9),
+        gauss_hermite(3, 2)[1],
+    )
+    # Tiny blocks and chunks exercise the blocked paths (many blocks, ragged edges).
+    monkeypatch.setattr(ex, "_BLOCK_NODES", 7)
+    monkeypatch.setattr(ex, "_PAIR_CHUNK", 100)
+    np.testing.assert_allclose(
+        expected_kernel_matrix(kernel, means, covs, 3), brute, rtol=1e-12, atol=1e-14
+    )
+    np.testing.assert_allclose(
+        expected_kernel_cross(kernel, means[:5], means, covs, 3), cross_brute, rtol=1e-12
+    )
+
+
+def test_blocking_does_not_change_correlated_results(monkeypatch):
+    means, covs, scan_ids, factors, _ = _scan_problem(11, n=20)
+    kw = dict(scan_ids=scan_ids, pose_factors=factors, with_gradient=True)
+    k, dk = expected_kernel_matrix(NN, means, covs, 3, **kw)
+    monkeypatch.setattr(ex, "_BLOCK_NODES", 10)
+    monkeypatch.setattr(ex, "_PAIR_CHUNK", 200)
+    k2, dk2 = expected_kernel_matrix(NN, means, covs, 3, **kw)
+    np.testing.assert_allclose(k2, k, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(dk2, dk, rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("kernel", [NN, SE], ids=["nn", "se"])
+def test_symmetric_and_positive_semidefinite(kernel):
+    means, covs, scan_ids, factors, _ = _scan_problem(12, n=60, pose_std=0.2)
+    k = expected_kernel_matrix(kernel, means, covs, 3, scan_ids=scan_ids, pose_factors=factors)
+    np.testing.assert_array_equal(k, k.T)
+    lam = np.linalg.eigvalsh(k)
+    assert lam.min() >= -1e-10 * lam.max()
+
+
+@pytest.mark.parametrize("kernel", [NN, SE], ids=["nn", "se"])
+def test_gradients_match_finite_differences(kernel):
+    means, covs, scan_ids, factors, _ = _scan_problem(13, n=9)
+    covs[4] = 0.0
+    kw = dict(scan_ids=scan_ids, pose_factors=factors)
+    k, dk = expected_kernel_matrix(kernel, means, covs, 3, with_gradient=True, **kw)
+    queries = np.array([[0.1, 0.2], [-0.5, 0.7]])
+    kx, dkx = expected_kernel_cross(kernel, queries, means, covs, 3, with_gradient=True)
+    kd, dkd = expected_kernel_diag(kernel, means, covs, 3, with_gradient=True)
+    np.testing.assert_allclose(k, expected_kernel_matrix(kernel, means, covs, 3, **kw))
+    np.testing.assert_allclose(np.diag(k), kd)
+    theta, h = kernel.theta, 1e-6
+    assert dk.shape == (len(theta), 9, 9) and dkx.shape == (len(theta), 2, 9)
+    for p in range(len(theta)):
+        step = np.zeros_like(theta)
+        step[p] = h
+        up, down = kernel.with_theta(theta + step), kernel.with_theta(theta - step)
+        fd = (expected_kernel_matrix(up, means, covs, 3, **kw)
+              - expected_kernel_matrix(down, means, covs, 3, **kw)) / (2 * h)
+        np.testing.assert_allclose(dk[p], fd, rtol=1e-6, atol=1e-9)
+        fdx = (expected_kernel_cross(up, queries, means, covs, 3)
+               - expected_kernel_cross(down, queries, means, covs, 3)) / (2 * h)
+        np.testing.assert_allclose(dkx[p], fdx, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(dkd[p], np.diag(fd), rtol=1e-6, atol=1e-9)
+
+
+def test_bad_shapes_are_rejected():
+    with pytest.raises(ValueError, match="covariances"):
+        expected_kernel_matrix(NN, np.zeros((3, 2)), np.zeros((2, 2, 2)), 3)
+    with pytest.raises(ValueError, match="pose_factors"):
+        expected_kernel_matrix(
+            NN, np.zeros((3, 2)), np.zeros((3, 2, 2)), 3,
+            scan_ids=np.zeros(3), pose_factors=np.zeros((3, 2, 2)),
+        )
