@@ -50,5 +50,12 @@ def main() -> None:
 
 
 # Command modules register themselves on import; they come last to avoid a cycle.
-from gpocc.commands import info, map, train  # noqa: E402,F401
-from gpocc.commands import evaluate, split  # noqa: E402,F401
+from gpocc.commands import (  # noqa: E402,F401
+    evaluate,
+    grid,
+    info,
+    map,
+    simulate,
+    split,
+    train,
+)

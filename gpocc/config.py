@@ -158,10 +158,17 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class ClassifyConfig:
-    """Thresholds on p(occupied): above ``occupied`` is occupied, below ``free`` is free."""
+    """Thresholds on p(occupied): above ``occupied`` is occupied, below ``free`` is free.
+
+    A cell whose latent predictive variance is above ``max_variance_ratio`` times its
+    prior variance is unsure whatever its probability: the data there explain too little
+    of the prior for a decision (far from any sample the neural-network kernel's mean
+    extrapolates, and its probability says little).
+    """
 
     occupied: float = 0.65
     free: float = 0.35
+    max_variance_ratio: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -209,6 +216,7 @@ _POSITIVE_KEYS = {
     "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",
     "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
+    "max_variance_ratio",
     "weight_variance", "bias_variance",
 }
 
@@ -236,7 +244,8 @@ def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
             return tuple(_convert(v, args[0], f"{key}[{i}]", source) for i, v in enumerate(value))
         if len(value) != len(args):
             raise GpoccError(f"{source}: key '{key}' must have {len(args)} entries, got {value!r}")
-        return tuple(_convert(v, a, f"{key}[{i}]", source) for i, (v, a) in enumerate(zip(value, args)))
+        pairs = enumerate(zip(value, args, strict=True))
+        return tuple(_convert(v, a, f"{key}[{i}]", source) for i, (v, a) in pairs)
     if tp is bool:
         if not isinstance(value, bool):
             raise GpoccError(f"{source}: key '{key}' must be true or false, got {value!r}")

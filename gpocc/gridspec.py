@@ -28,7 +28,9 @@ class GridSpec:
 
     def __post_init__(self) -> None:
         if not (self.resolution > 0 and math.isfinite(self.resolution)):
-            raise GpoccError(f"resolution must be a positive number of metres, got {self.resolution}")
+            raise GpoccError(
+                f"resolution must be a positive number of metres, got {self.resolution}"
+            )
         if self.width <= 0 or self.height <= 0:
             raise GpoccError(f"the map area is empty ({self.width} x {self.height} cells)")
 

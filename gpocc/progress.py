@@ -20,8 +20,8 @@ def log(message: str) -> None:
 
 def track(items: Iterable[T], total: int | None, description: str) -> Iterator[T]:
     """Iterate ``items`` with a progress bar on stderr."""
-    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-               TimeElapsedColumn())
+    columns = (TextColumn("{task.description}"), BarColumn(),
+               TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn())
     with Progress(*columns, console=_console, transient=False) as progress:
         task = progress.add_task(description, total=total)
         for item in items:

@@ -83,7 +83,8 @@ def test_classifier_maximises_loo_log_probability():
     fitted = fit_classifier(kernel, 0.1, patches, 3)
     mu, var, y = [], [], []
     for p in patches:
-        m, v = leave_one_out(training_covariance(kernel, 0.1, p.samples, 3), p.samples.labels)
+        chol = np.linalg.cholesky(training_covariance(kernel, 0.1, p.samples, 3))
+        m, v = leave_one_out(chol, p.samples.labels)
         mu.append(m)
         var.append(v)
         y.append(p.samples.labels)

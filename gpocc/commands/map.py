@@ -26,7 +26,9 @@ def map_command(
     bounds: tuple[float, float, float, float] | None = typer.Option(
         None, "--bounds", help="XMIN YMIN XMAX YMAX metres; default: samples' extent + margin."
     ),
-    workers: int | None = typer.Option(None, "--workers", help="Local processes (default: all cores)."),
+    workers: int | None = typer.Option(
+        None, "--workers", help="Local processes (default: all cores)."
+    ),
     scheduler: str | None = typer.Option(
         None, "--scheduler", help="Dask scheduler address tcp://HOST:PORT."
     ),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 
 import typer
@@ -18,7 +18,7 @@ from gpocc.progress import log
 from gpocc.samples.beams import build_samples
 
 
-class Switch(str, Enum):
+class Switch(StrEnum):
     on = "on"
     off = "off"
 

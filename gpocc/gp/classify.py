@@ -14,7 +14,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
 
-from gpocc.gp.local import LocalProblem, leave_one_out, training_covariance
+from gpocc.gp.local import LocalProblem, factor_training_covariance, leave_one_out
 
 OCCUPIED, FREE, UNSURE, NO_DATA = 1, 0, 2, 255
 
@@ -43,8 +43,8 @@ def fit_classifier(kernel, noise_variance: float, patches: list[LocalProblem],
     """Fit a and b by maximising the LOO predictive log probability over ``patches``."""
     means, variances, labels = [], [], []
     for patch in patches:
-        k_train = training_covariance(kernel, noise_variance, patch.samples, level)
-        mu, var = leave_one_out(k_train, patch.samples.labels)
+        chol = factor_training_covariance(kernel, noise_variance, patch.samples, level)
+        mu, var = leave_one_out(chol, patch.samples.labels)
         means.append(mu)
         variances.append(var)
         labels.append(patch.samples.labels)
@@ -58,10 +58,17 @@ def fit_classifier(kernel, noise_variance: float, patches: list[LocalProblem],
     return PlattClassifier(a=float(result.x[0]), b=float(result.x[1]))
 
 
-def classify(probability: np.ndarray, occupied: float, free: float) -> np.ndarray:
-    """uint8 classes: 1 occupied (p > occupied), 0 free (p < free), 2 unsure, 255 no data."""
+def classify(probability: np.ndarray, occupied: float, free: float,
+             unsure: np.ndarray | None = None) -> np.ndarray:
+    """uint8 classes: 1 occupied (p > occupied), 0 free (p < free), 2 unsure, 255 no data.
+
+    ``unsure`` (bool, same shape) forces cells to unsure, e.g. where the predictive
+    variance is too close to the prior variance for a decision.
+    """
     classes = np.full(probability.shape, UNSURE, dtype=np.uint8)
     classes[probability > occupied] = OCCUPIED
     classes[probability < free] = FREE
+    if unsure is not None:
+        classes[unsure] = UNSURE
     classes[~np.isfinite(probability)] = NO_DATA
     return classes

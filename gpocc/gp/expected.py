@@ -29,6 +29,10 @@ from numpy.polynomial.hermite_e import hermegauss
 
 from gpocc.gp.kernels import Kernel, SquaredExponentialKernel
 
+#: Smallest share of a point's covariance trace due to the shared pose error for its
+#: same-scan pairs to get the correlated 4-D rule.
+POSE_SHARE_MIN = 0.01
+
 #: A covariance whose entries are all below this (m^2; std 1e-12 m) is treated as exactly
 #: zero: its point gets one node at the mean.
 ZERO_VARIANCE_M2 = 1e-24
@@ -228,7 +232,12 @@ def _correlated_pairs(
             f"scan_ids must have shape ({n},) and pose_factors ({n}, 2, 3), got "
             f"{scan_ids.shape} and {pose_factors.shape}"
         )
-    live = np.any(pose_factors != 0.0, axis=(1, 2))
+    # A pair is treated as correlated only when the shared pose error is a noticeable
+    # part (POSE_SHARE_MIN) of both points' covariances: below that the cross-covariance
+    # is negligible and the product rule is both cheaper and exactly positive definite.
+    pose_part = np.einsum("nij,nij->n", pose_factors, pose_factors)
+    trace = covariances[:, 0, 0] + covariances[:, 1, 1]
+    live = pose_part > POSE_SHARE_MIN * trace
     live &= np.abs(covariances).reshape(n, 4).max(axis=1) > ZERO_VARIANCE_M2
     mask = scan_ids[:, None] == scan_ids[None, :]
     mask &= live[:, None]

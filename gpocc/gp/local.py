@@ -11,9 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.linalg import cho_solve, solve_triangular
 from scipy.spatial import cKDTree
 
+from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_cross, expected_kernel_matrix
 from gpocc.samples.sampleset import SampleSet
 
@@ -39,10 +40,11 @@ class LocalProblem:
 
 @dataclass(frozen=True)
 class Prediction:
-    """Latent GP prediction at queries: mean (Q,) and variance (Q,) of f(x*)."""
+    """Latent GP prediction at queries: mean, variance and prior variance (Q,) of f(x*)."""
 
     mean: np.ndarray
     variance: np.ndarray
+    prior_variance: np.ndarray
 
 
 class NeighbourIndex:
@@ -74,18 +76,69 @@ def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -
     return LocalProblem(centre=centre, samples=local, index=index)
 
 
-def training_covariance(kernel, noise_variance: float, samples: SampleSet, level: int) -> np.ndarray:
-    """(M, M) covariance of the training labels: expected kernel plus label noise."""
+def robust_cholesky(matrix: np.ndarray) -> np.ndarray | None:
+    """Lower Cholesky factor, adding diagonal jitter (1e-10 .. 1e-4 of the mean diagonal)
+    only when the matrix is numerically indefinite.
+
+    Correlated same-scan entries come from a 4-D quadrature and are not guaranteed to
+    keep the expected-kernel matrix exactly positive definite when the learned label
+    noise is tiny; a relative jitter of at most 1e-4 is far below any label noise.
+    """
+    try:
+        return np.linalg.cholesky(matrix)
+    except np.linalg.LinAlgError:
+        pass
+    scale = float(np.mean(np.diag(matrix)))
+    eye = np.eye(matrix.shape[0])
+    for exponent in range(-10, -3):
+        try:
+            return np.linalg.cholesky(matrix + (scale * 10.0**exponent) * eye)
+        except np.linalg.LinAlgError:
+            continue
+    return None
+
+
+def training_covariance(
+    kernel, noise_variance: float, samples: SampleSet, level: int, correlated: bool = True
+) -> np.ndarray:
+    """(M, M) covariance of the training labels: expected kernel plus label noise.
+
+    ``correlated=False`` treats every pair as independent (no 4-D same-scan rule).
+    """
     k = expected_kernel_matrix(
         kernel,
         samples.means,
         samples.covariances,
         level,
-        scan_ids=samples.scan_ids,
-        pose_factors=samples.pose_factors,
+        scan_ids=samples.scan_ids if correlated else None,
+        pose_factors=samples.pose_factors if correlated else None,
     )
     k[np.diag_indices_from(k)] += noise_variance + _JITTER
     return k
+
+
+def factor_training_covariance(
+    kernel, noise_variance: float, samples: SampleSet, level: int
+) -> np.ndarray:
+    """Lower Cholesky factor of the label covariance of ``samples``.
+
+    The product rule over independent inputs always gives a positive semi-definite
+    matrix (a Gram matrix of expected features) but the 4-D rule of correlated pairs
+    need not, when inputs are broad compared with the kernel's scale and the quadrature
+    level is low. If even jitter cannot save it, the problem falls back to independent
+    inputs, which is exactly positive definite.
+    """
+    chol = robust_cholesky(training_covariance(kernel, noise_variance, samples, level))
+    if chol is None:
+        chol = robust_cholesky(
+            training_covariance(kernel, noise_variance, samples, level, correlated=False)
+        )
+    if chol is None:
+        raise GpoccError(
+            "the training covariance of a local problem is not positive definite; raise "
+            "model.hyperparameters.noise_variance or model.quadrature_level"
+        )
+    return chol
 
 
 def predict_local(
@@ -96,17 +149,17 @@ def predict_local(
     samples = problem.samples
     if len(samples) == 0:
         prior = kernel.diag(local_queries)
-        return Prediction(mean=np.zeros(len(local_queries)), variance=prior)
-    k_train = training_covariance(kernel, noise_variance, samples, level)
-    chol = np.linalg.cholesky(k_train)
+        return Prediction(mean=np.zeros(len(local_queries)), variance=prior, prior_variance=prior)
+    chol = factor_training_covariance(kernel, noise_variance, samples, level)
     k_cross = expected_kernel_cross(
         kernel, local_queries, samples.means, samples.covariances, level
     )
     alpha = cho_solve((chol, True), samples.labels)
     mean = k_cross @ alpha
     v = solve_triangular(chol, k_cross.T, lower=True, check_finite=False)
-    variance = kernel.diag(local_queries) - np.einsum("ij,ij->j", v, v)
-    return Prediction(mean=mean, variance=np.maximum(variance, 0.0))
+    prior = kernel.diag(local_queries)
+    variance = prior - np.einsum("ij,ij->j", v, v)
+    return Prediction(mean=mean, variance=np.maximum(variance, 0.0), prior_variance=prior)
 
 
 def predict_full(kernel, noise_variance: float, samples: SampleSet, queries: np.ndarray,
@@ -116,14 +169,14 @@ def predict_full(kernel, noise_variance: float, samples: SampleSet, queries: np.
     return predict_local(kernel, noise_variance, problem, queries, level)
 
 
-def leave_one_out(k_train: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def leave_one_out(chol: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form leave-one-out predictive mean and variance (M,) of a GP.
 
     ``mu_i = y_i - [K^-1 y]_i / [K^-1]_ii`` and ``var_i = 1 / [K^-1]_ii`` (Rasmussen and
-    Williams, eq. 5.12), with ``k_train`` the label covariance including noise.
+    Williams, eq. 5.12), with ``chol`` the lower Cholesky factor of the label covariance
+    including noise.
     """
-    factor = cho_factor(k_train, lower=True)
-    inverse = cho_solve(factor, np.eye(len(labels)))
+    inverse = cho_solve((chol, True), np.eye(len(labels)))
     alpha = inverse @ labels
     diag = np.diag(inverse)
     return labels - alpha / diag, 1.0 / diag

@@ -20,6 +20,7 @@ import numpy as np
 import scipy
 
 import gpocc
+from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_from_dict, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier, fit_classifier
@@ -75,13 +76,14 @@ def build_model(samples: SampleSet, config: Config, inputs: tuple[str, ...] = ()
     if not model_cfg.input_noise:
         samples = samples.without_input_noise()
     kernel = make_kernel(model_cfg.kernel, model_cfg.hyperparameters)
-    result: TrainingResult = learn_hyperparameters(
-        kernel, model_cfg.hyperparameters.noise_variance, samples,
-        model_cfg.quadrature_level, model_cfg.training, config.seed,
-    )
-    patches = make_patches(samples, model_cfg.training, config.seed + 1)
-    classifier = fit_classifier(result.kernel, result.noise_variance, patches,
-                                model_cfg.quadrature_level)
+    with single_threaded_blas():
+        result: TrainingResult = learn_hyperparameters(
+            kernel, model_cfg.hyperparameters.noise_variance, samples,
+            model_cfg.quadrature_level, model_cfg.training, config.seed,
+        )
+        patches = make_patches(samples, model_cfg.training, config.seed + 1)
+        classifier = fit_classifier(result.kernel, result.noise_variance, patches,
+                                    model_cfg.quadrature_level)
     training = {
         "log_marginal_likelihood": result.log_marginal_likelihood,
         "initial_log_marginal_likelihood": result.initial_log_marginal_likelihood,

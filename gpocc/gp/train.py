@@ -20,7 +20,7 @@ from scipy.optimize import dual_annealing, minimize
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_matrix
-from gpocc.gp.local import NeighbourIndex, LocalProblem
+from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.samples.sampleset import SampleSet
 
 _JITTER = 1e-8

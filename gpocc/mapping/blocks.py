@@ -23,11 +23,12 @@ class Block:
 
 @dataclass(frozen=True)
 class BlockResult:
-    """Latent mean, latent variance and p(occupied), each (rows, cols), of one block."""
+    """Latent mean, variance, prior variance and p(occupied), each (rows, cols), of a block."""
 
     block: Block
     mean: np.ndarray
     variance: np.ndarray
+    prior_variance: np.ndarray
     probability: np.ndarray
 
 
@@ -56,4 +57,4 @@ def predict_block(model, index: NeighbourIndex, spec: GridSpec, block: Block) ->
     probability = model.classifier.probability(pred.mean, pred.variance)
     shape = (block.rows, block.cols)
     return BlockResult(block, pred.mean.reshape(shape), pred.variance.reshape(shape),
-                       probability.reshape(shape))
+                       pred.prior_variance.reshape(shape), probability.reshape(shape))

@@ -11,6 +11,7 @@ import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 
+from gpocc.blas import single_threaded_blas
 from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex
 from gpocc.gridspec import GridSpec
@@ -34,7 +35,8 @@ def _index_for(model) -> NeighbourIndex:
 def compute_chunk(model, spec: GridSpec, chunk: list[Block]) -> list[BlockResult]:
     """Predict a list of blocks of ``spec`` with ``model``."""
     index = _index_for(model)
-    return [predict_block(model, index, spec, block) for block in chunk]
+    with single_threaded_blas():
+        return [predict_block(model, index, spec, block) for block in chunk]
 
 
 def _init_worker(model) -> None:
@@ -80,8 +82,8 @@ def run_blocks(
         return
     with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
                              initargs=(model,)) as pool:
-        for chunk, results in zip(chunks, pool.map(_compute_in_worker,
-                                                   [spec] * len(chunks), chunks)):
+        results_per_chunk = pool.map(_compute_in_worker, [spec] * len(chunks), chunks)
+        for chunk, results in zip(chunks, results_per_chunk, strict=True):
             yield from results
             if on_done:
                 on_done(len(chunk))
@@ -100,7 +102,7 @@ def _run_dask(model, spec, chunks, scheduler, on_done) -> Iterator[BlockResult]:
         model_future = client.scatter(model, broadcast=True)
         futures = [client.submit(compute_chunk, model_future, spec, chunk, pure=False)
                    for chunk in chunks]
-        for chunk, future in zip(chunks, futures):
+        for chunk, future in zip(chunks, futures, strict=True):
             yield from future.result()
             if on_done:
                 on_done(len(chunk))

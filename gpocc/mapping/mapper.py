@@ -66,6 +66,7 @@ def make_map(
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
+    ratio = config.classify.max_variance_ratio
     cells = block_cells(config.model.block_size_m, spec.resolution)
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
@@ -76,6 +77,7 @@ def make_map(
                             math.ceil(spec.width / stride), math.ceil(spec.height / stride))
     preview_p = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     preview_v = np.full(preview_spec.shape, np.nan, dtype=np.float32)
+    preview_decided = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     tile_files: dict[str, list[tuple[Path, GridSpec]]] = {name: [] for name in LAYERS}
     counts = {"free": 0, "occupied": 0, "unsure": 0}
     n_blocks = 0
@@ -86,11 +88,14 @@ def make_map(
         n_blocks += len(blocks)
         probability = np.full(window.shape, np.nan, dtype=np.float32)
         variance = np.full(window.shape, np.nan, dtype=np.float32)
+        unsure = np.zeros(window.shape, dtype=bool)
         for result in run_blocks(model, window, blocks, workers, scheduler, on_done=progress):
             b = result.block
-            probability[b.row0:b.row0 + b.rows, b.col0:b.col0 + b.cols] = result.probability
-            variance[b.row0:b.row0 + b.rows, b.col0:b.col0 + b.cols] = result.variance
-        classes = classify(probability, occupied, free)
+            cells_of_block = (slice(b.row0, b.row0 + b.rows), slice(b.col0, b.col0 + b.cols))
+            probability[cells_of_block] = result.probability
+            variance[cells_of_block] = result.variance
+            unsure[cells_of_block] = result.variance > ratio * result.prior_variance
+        classes = classify(probability, occupied, free, unsure)
         for key, value in (("free", 0), ("occupied", 1), ("unsure", 2)):
             counts[key] += int(np.count_nonzero(classes == value))
         layers = {"probability": (probability, np.nan), "variance": (variance, np.nan),
@@ -103,21 +108,24 @@ def make_map(
                 tile_files[name].append((path, window))
             else:
                 write_geotiff(out_dir / f"{name}.tif", array, window, nodata=nodata, epsg=epsg)
-        # Decimated copy for the preview: the first cell of every stride x stride group.
+        # Decimated copies for the preview and map_server: the first cell of every
+        # stride x stride group (stride 1 unless the map is very large).
         r_off = (-row0) % stride
         c_off = (-col0) % stride
-        sub_p = probability[r_off::stride, c_off::stride]
-        sub_v = variance[r_off::stride, c_off::stride]
         pr, pc = (row0 + r_off) // stride, (col0 + c_off) // stride
-        preview_p[pr:pr + sub_p.shape[0], pc:pc + sub_p.shape[1]] = sub_p
-        preview_v[pr:pr + sub_v.shape[0], pc:pc + sub_v.shape[1]] = sub_v
+        # map_server has no "unsure by variance": such cells are exported as unknown.
+        decided = np.where(unsure, np.nan, probability)
+        for target, source in ((preview_p, probability), (preview_v, variance),
+                               (preview_decided, decided)):
+            part = source[r_off::stride, c_off::stride]
+            target[pr:pr + part.shape[0], pc:pc + part.shape[1]] = part
 
     if tiled:
         for name in LAYERS:
             dtype = "uint8" if name == "class" else "float32"
             nodata = NO_DATA if name == "class" else float("nan")
             write_vrt(out_dir / f"{name}.vrt", tile_files[name], spec, dtype, nodata, epsg)
-    write_map_server(out_dir / "map.yaml", preview_p, preview_spec, occupied, free)
+    write_map_server(out_dir / "map.yaml", preview_decided, preview_spec, occupied, free)
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     render_preview(out_dir / "preview.png", preview_p, preview_v, preview_spec, title=title)
     return MapSummary(spec=spec, tiles=len(windows), blocks=n_blocks,
