@@ -87,13 +87,16 @@ class SamplesConfig:
     """How beams become training samples.
 
     Free samples lie along each beam every ``free_spacing_m`` from the sensor, stopping
-    ``hit_gap_m`` short of the hit. ``thin_cell_m`` keeps at most one sample of each label
+    short of the hit by ``hit_gap_m`` or ``hit_gap_sigmas`` range standard deviations,
+    whichever is larger (the true surface may be that much nearer than the reading).
+    ``thin_cell_m`` keeps at most one sample of each label
     per square cell of that side (the most certain one), which bounds the training set by
     the mapped area instead of the log length; 0 disables thinning.
     """
 
     free_spacing_m: float = 0.4
     hit_gap_m: float = 0.25
+    hit_gap_sigmas: float = 2.0
     beam_stride: int = 1
     scan_stride: int = 1
     thin_cell_m: float = 0.15
@@ -110,9 +113,9 @@ class HyperparametersConfig:
     label-noise variance added to the diagonal.
     """
 
-    signal_variance: float = 1.0
-    bias_variance: float = 1.0
-    weight_variance: tuple[float, float] = (4.0, 4.0)
+    signal_variance: float = 4.0
+    bias_variance: float = 10.0
+    weight_variance: tuple[float, float] = (30.0, 30.0)
     lengthscale_m: tuple[float, float] = (0.5, 0.5)
     noise_variance: float = 0.1
 
@@ -124,16 +127,21 @@ class TrainingConfig:
     ``patches`` neighbourhoods of ``patch_size`` samples each, centred on randomly chosen
     samples (spatially stratified), each centred at the origin as at inference. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations;
-    then L-BFGS-B for at most ``lbfgs_maxiter`` iterations. ``learn: false`` keeps the
-    initial values.
+    then L-BFGS-B for at most ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
+    (natural log) of the initial values. The label-noise variance is kept at or above
+    ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
+    input-induced noise, and without a floor the likelihood of a few patches can drive
+    the label noise to zero and interpolate the accurate samples' labels exactly.
+    ``learn: false`` keeps the initial values.
     """
 
     learn: bool = True
-    patches: int = 6
-    patch_size: int = 160
+    patches: int = 10
+    patch_size: int = 128
     anneal_maxfun: int = 60
     lbfgs_maxiter: int = 40
     log_bounds_width: float = 4.0
+    min_noise_variance: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -149,7 +157,7 @@ class ModelConfig:
 
     kernel: str = "nn"
     input_noise: bool = True
-    quadrature_level: int = 3
+    quadrature_level: int = 2
     neighbours: int = 160
     block_size_m: float = 1.0
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
@@ -210,7 +218,8 @@ class Config:
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width",
+    "min_noise_variance",
+    "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }
 _POSITIVE_KEYS = {
     "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",

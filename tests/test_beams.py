@@ -59,7 +59,8 @@ def _oracle(batch: ScanBatch, sensor: SensorConfig, cfg: SamplesConfig, scan_off
             if r >= batch.range_max:
                 hit, limit = False, min(sensor.no_return_free_m, batch.range_max)
             else:
-                hit, limit = True, r - cfg.hit_gap_m
+                gap = max(cfg.hit_gap_m, cfg.hit_gap_sigmas * math.sqrt(sensor.range_variance_m2))
+                hit, limit = True, r - gap
             points = []
             if hit:
                 points.append((1.0, r))
@@ -260,13 +261,29 @@ def test_hits_carry_range_variance_free_samples_do_not():
     """Only the range is noisy: a hit's covariance is var_r along the beam, a free one's zero."""
     sensor = replace(NOISELESS, range_variance_m2=0.09)
     batch = _batch([[2.0]], [0.0], [[0.0, 0.0, 0.0]])
-    samples = build_samples([batch], _config(sensor, free_spacing_m=0.5, hit_gap_m=0.0))
+    samples = build_samples(
+        [batch], _config(sensor, free_spacing_m=0.5, hit_gap_m=0.0, hit_gap_sigmas=0.0)
+    )
     direction = np.array([math.cos(math.pi / 6), math.sin(math.pi / 6)])  # mount yaw 30 deg
     hit = samples.covariances[samples.labels > 0]
     np.testing.assert_allclose(hit, [0.09 * np.outer(direction, direction)], atol=1e-12)
     free = samples.covariances[samples.labels < 0]
     assert len(free) == 4  # 0.5 .. 2.0 m, hit_gap 0
     np.testing.assert_allclose(free, 0.0, atol=1e-15)
+
+
+def test_free_samples_stop_a_few_range_sigmas_before_a_noisy_hit():
+    """With range std 0.3 m, free samples stop 2 sigma = 0.6 m before the reading."""
+    sensor = replace(NOISELESS, range_variance_m2=0.09)
+    batch = _batch([[3.0]], [0.0], [[0.0, 0.0, 0.0]])
+    cfg = _config(sensor, free_spacing_m=0.25, hit_gap_m=0.1, hit_gap_sigmas=2.0)
+    samples = build_samples([batch], cfg)
+    free = samples.means[samples.labels < 0]
+    distances = np.linalg.norm(free - samples.means[samples.labels > 0][0]
+                               + 3.0 * np.array([math.cos(math.pi / 6), math.sin(math.pi / 6)]),
+                               axis=1)
+    np.testing.assert_allclose(np.sort(distances), 0.25 * np.arange(1, 10), atol=1e-9)
+    _assert_same_rows(_rows(samples), _oracle(batch, sensor, cfg.samples))
 
 
 def test_no_valid_beam_is_a_clear_error():

@@ -123,6 +123,9 @@ def learn_hyperparameters(
                               (len(patches), len(patches[0].samples)))
     width = config.log_bounds_width
     bounds = [(v - width, v + width) for v in x0]
+    floor = math.log(config.min_noise_variance)
+    bounds[-1] = (max(bounds[-1][0], floor), max(bounds[-1][1], floor + 1.0))
+    x0[-1] = min(max(x0[-1], bounds[-1][0]), bounds[-1][1])
 
     def value_only(p: np.ndarray) -> float:
         return negative_log_likelihood(p, kernel, patches, level)[0]

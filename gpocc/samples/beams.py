@@ -37,7 +37,8 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
 
     * NaN (invalid), ``-inf`` (too close) or ``r < range_min``: nothing.
     * finite ``range_min <= r < range_max``: a hit (+1) at ``r`` and free samples (-1) at
-      ``d = k * free_spacing_m`` (k = 1, 2, ...) while ``d <= r - hit_gap_m``.
+      ``d = k * free_spacing_m`` (k = 1, 2, ...) while ``d <= r - gap``, with
+      ``gap = max(hit_gap_m, hit_gap_sigmas * sqrt(range_variance_m2))``.
     * ``+inf`` or ``r >= range_max`` (no return): no hit; free samples at the same spacing
       up to ``min(no_return_free_m, range_max)``.
 
@@ -47,8 +48,10 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     covariance ``blockdiag(diag(var_r, var_b), P)``, ``P`` the scan's pose covariance.
     Hits have ``var_r = range_variance_m2`` (the range is measured). Free samples have
     ``var_r = 0``: their distance along the beam is chosen by us, not measured, so it
-    carries no error; a noisy range only moves where free space ends, which ``hit_gap_m``
-    absorbs. Their position error comes from the bearing and the pose alone. ``var_b`` is
+    carries no error; a noisy range only moves where free space ends, which the gap
+    absorbs: with a noisy range the true surface may lie up to a few standard deviations
+    before the measured hit, and a "free" sample there would be a wrong label. Their position
+    error comes from the bearing and the pose alone. ``var_b`` is
     ``bearing_variance_rad2`` for both.
 
     Pose covariance: the batch's per-scan covariances when it has them and the sensor's
@@ -180,9 +183,8 @@ def _batch_samples(
         is_hit = np.isfinite(ranges) & (ranges >= r_min) & (ranges < r_max)
         no_return = (ranges >= r_max) | (ranges == np.inf)
     no_return_limit = min(float(sensor.no_return_free_m), r_max)
-    limit = np.where(
-        is_hit, ranges - cfg.hit_gap_m, np.where(no_return, no_return_limit, 0.0)
-    )
+    gap = max(cfg.hit_gap_m, cfg.hit_gap_sigmas * float(np.sqrt(sensor.range_variance_m2)))
+    limit = np.where(is_hit, ranges - gap, np.where(no_return, no_return_limit, 0.0))
     limit = np.where(np.isfinite(limit), limit, 0.0)
     n_free = np.floor(np.maximum(limit, 0.0) / cfg.free_spacing_m + _COUNT_SLACK).astype(np.int64)
 

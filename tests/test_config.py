@@ -1,0 +1,75 @@
+"""Config validation: every mistake names the key and the file; the CLI prints one line."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from typer.testing import CliRunner
+
+from gpocc.cli import app
+from gpocc.config import Config, config_from_dict, config_to_dict, load_config
+from gpocc.errors import GpoccError
+
+runner = CliRunner()
+
+
+def test_defaults_and_round_trip():
+    config = load_config(None)
+    assert config == Config()
+    assert config_from_dict(config_to_dict(config)) == config
+    nested = config_from_dict({"sensors": [{"name": "a", "bearing_variance_deg2": 0.5}],
+                               "model": {"hyperparameters": {"weight_variance": [2, 3]}}})
+    assert nested.sensors[0].bearing_variance_rad2 == pytest.approx(0.5 * (math.pi / 180) ** 2)
+    assert nested.model.hyperparameters.weight_variance == (2.0, 3.0)
+    assert config_from_dict(config_to_dict(nested)) == nested
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        ("seed: 0\nsensorz: []\n", "unknown key 'sensorz'"),
+        ("model:\n  neighbours: many\n", "'model.neighbours' must be an integer"),
+        ("model:\n  input_noise: 1\n", "'model.input_noise' must be true or false"),
+        ("sensors:\n  - range_variance_m2: -0.1\n", "'sensors[0].range_variance_m2' must not"),
+        ("sensors:\n  - bearing_variance_deg2: -1\n", "'sensors[0].bearing_variance_deg2'"),
+        ("sensors:\n  - pose_covariance: [[1, 2, 0], [2, 1, 0], [0, 0, 1]]\n",
+         "not positive semi-definite"),
+        ("sensors:\n  - pose_covariance: [[1, 0.5, 0], [0, 1, 0], [0, 0, 1]]\n",
+         "must be symmetric"),
+        ("sensors:\n  - pose_covariance: [[1, 0], [0, 1]]\n", "must be a 3x3 matrix"),
+        ("sensors:\n  - name: a\n  - name: a\n", "sensor names must be unique"),
+        ("classify:\n  occupied: 0.3\n  free: 0.6\n", "free <= occupied"),
+        ("model:\n  kernel: matern\n", "'model.kernel' must be 'nn' or 'se'"),
+        ("map:\n  resolution_m: 0\n", "'map.resolution_m' must be positive"),
+        ("samples:\n  free_spacing_m: .nan\n", "must be finite"),
+        ("samples: [1, 2]\n", "'samples' must be a mapping"),
+        ("- just\n- a list\n", "must be a YAML mapping"),
+        ("model: {kernel: nn\n", "not valid YAML at line"),
+    ],
+)
+def test_bad_config_names_key_and_file(tmp_path, text, words):
+    path = tmp_path / "job.yaml"
+    path.write_text(text)
+    with pytest.raises(GpoccError) as err:
+        load_config(path)
+    message = str(err.value)
+    assert str(path) in message
+    assert words in message
+
+
+def test_cli_reports_bad_config_in_one_line(tmp_path):
+    path = tmp_path / "job.yaml"
+    path.write_text("sensors:\n  - range_variance_m2: -1\n")
+    result = runner.invoke(app, ["train", "in.bag", "--config", str(path), "--out",
+                                 str(tmp_path / "m.npz")])
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and str(path) in lines[0]
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(GpoccError, match="config file not found"):
+        load_config(tmp_path / "nope.yaml")
