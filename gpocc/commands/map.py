@@ -15,7 +15,7 @@ from gpocc.io.atomic import atomic_directory, check_can_write
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import default_workers
 from gpocc.mapping.mapper import default_spec, make_map, write_metadata
-from gpocc.progress import log
+from gpocc.progress import log, progress_bar
 
 
 @command("map")
@@ -51,15 +51,8 @@ def map_command(
     log(f"mapping {spec.width} x {spec.height} cells at {resolution} m in {total} blocks "
         f"({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
     started = time.perf_counter()
-    done = [0]
-
-    def progress(n: int) -> None:
-        done[0] += n
-        if done[0] == total or done[0] % max(1, total // 10) < n:
-            log(f"  {done[0]}/{total} blocks")
-
-    with atomic_directory(out, force=force) as tmp:
-        summary = make_map(model, spec, tmp, n_workers, scheduler, progress)
+    with atomic_directory(out, force=force) as tmp, progress_bar(total, "blocks") as advance:
+        summary = make_map(model, spec, tmp, n_workers, scheduler, advance)
         write_metadata(tmp / "metadata.json", str(model_path), model, summary,
                        {"workers": n_workers, "scheduler": scheduler})
     seconds = time.perf_counter() - started
