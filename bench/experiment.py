@@ -21,8 +21,6 @@ import sys
 import time
 from pathlib import Path
 
-import yaml
-
 ROOT = Path(__file__).resolve().parents[1]
 CARMEN = ROOT.parent / "shared" / "data" / "carmen"
 GPOCC = [sys.executable, "-m", "gpocc"]
