@@ -14,7 +14,7 @@ from gpocc.config import load_config
 from gpocc.gp.model import build_model, kernel_parameters, save_model
 from gpocc.io.atomic import check_can_write
 from gpocc.io.inputs import read_inputs
-from gpocc.progress import log
+from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
 
 
@@ -50,7 +50,10 @@ def train(
     samples = build_samples(batches, cfg)
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
-    model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs))
+    budget = 2 + cfg.model.training.anneal_maxfun + 2 * cfg.model.training.lbfgs_maxiter
+    with progress_bar(budget, "likelihood evaluations (at most)") as advance:
+        model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs),
+                            on_evaluation=advance)
     learn_s = time.perf_counter() - started - read_s - samples_s
     save_model(model, out)
     seconds = time.perf_counter() - started

@@ -20,6 +20,7 @@ import numpy as np
 
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
+from gpocc.io.carmen import is_number
 from gpocc.io.mapserver import read_map_server
 from gpocc.io.rasters import read_raster
 
@@ -126,7 +127,7 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     tokens = [(n, split(line)) for n, line in rows]
     columns = (0, 1, 2)
     first_line, first = tokens[0]
-    if not _is_number(first[0]):
+    if not is_number(first[0]):
         names = [t.lower() for t in first]
         missing = [c for c in ("x", "y", "label") if c not in names]
         if missing:
@@ -151,7 +152,7 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
         table = np.array([[row[c] for c in columns] for _, row in tokens], dtype=float)
     except ValueError:
         for lineno, row in tokens:
-            if not all(_is_number(row[c]) for c in columns):
+            if not all(is_number(row[c]) for c in columns):
                 raise GpoccError(
                     f"{path}: line {lineno}: x, y and label must be numbers, got "
                     f"{' '.join(row[c] for c in columns)!r}"
@@ -168,11 +169,3 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
             f"0 / -1 (free), got {' '.join(row[c] for c in columns)!r}"
         )
     return table[:, :2].copy(), (raw_labels == 1).astype(np.int8)
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True

@@ -12,6 +12,7 @@ import dataclasses
 import json
 import platform
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -70,8 +71,14 @@ def kernel_parameters(kernel: Any) -> dict[str, Any]:
     return {"class": type(kernel).__name__, **values}
 
 
-def build_model(samples: SampleSet, config: Config, inputs: tuple[str, ...] = ()) -> GPModel:
-    """Learn hyperparameters and the classifier from ``samples`` under ``config``."""
+def build_model(
+    samples: SampleSet, config: Config, inputs: tuple[str, ...] = (),
+    on_evaluation: Callable[[int], None] | None = None,
+) -> GPModel:
+    """Learn hyperparameters and the classifier from ``samples`` under ``config``.
+
+    ``on_evaluation(1)`` is called after each likelihood evaluation (progress display).
+    """
     model_cfg = config.model
     if not model_cfg.input_noise:
         samples = samples.without_input_noise()
@@ -79,7 +86,7 @@ def build_model(samples: SampleSet, config: Config, inputs: tuple[str, ...] = ()
     with single_threaded_blas():
         result: TrainingResult = learn_hyperparameters(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
-            model_cfg.quadrature_level, model_cfg.training, config.seed,
+            model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
         )
         patches = make_patches(samples, model_cfg.training, config.seed + 1)
         classifier = fit_classifier(result.kernel, result.noise_variance, patches,

@@ -11,6 +11,7 @@ seeded) and then L-BFGS-B from its best point.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -111,12 +112,24 @@ def negative_log_likelihood(
 
 def learn_hyperparameters(
     kernel, noise_variance: float, samples: SampleSet, level: int, config: TrainingConfig,
-    seed: int,
+    seed: int, on_evaluation: Callable[[int], None] | None = None,
 ) -> TrainingResult:
-    """Maximise the patch log marginal likelihood; see the module docstring."""
+    """Maximise the patch log marginal likelihood; see the module docstring.
+
+    ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
+    """
     patches = make_patches(samples, config, seed)
+
+    def negative_log_likelihood_counted(
+        params: np.ndarray, *args: object
+    ) -> tuple[float, np.ndarray]:
+        result = negative_log_likelihood(params, *args)
+        if on_evaluation is not None:
+            on_evaluation(1)
+        return result
+
     x0 = np.append(kernel.theta, math.log(noise_variance))
-    initial, _ = negative_log_likelihood(x0, kernel, patches, level)
+    initial, _ = negative_log_likelihood_counted(x0, kernel, patches, level)
     evaluations = 1
     if not config.learn:
         return TrainingResult(kernel, noise_variance, -initial, -initial, evaluations,
@@ -128,7 +141,7 @@ def learn_hyperparameters(
     x0[-1] = min(max(x0[-1], bounds[-1][0]), bounds[-1][1])
 
     def value_only(p: np.ndarray) -> float:
-        return negative_log_likelihood(p, kernel, patches, level)[0]
+        return negative_log_likelihood_counted(p, kernel, patches, level)[0]
 
     best = x0
     if config.anneal_maxfun > 0:
@@ -140,12 +153,12 @@ def learn_hyperparameters(
         if annealed.fun < initial:
             best = annealed.x
     refined = minimize(
-        negative_log_likelihood, best, args=(kernel, patches, level), jac=True,
+        negative_log_likelihood_counted, best, args=(kernel, patches, level), jac=True,
         method="L-BFGS-B", bounds=bounds, options={"maxiter": config.lbfgs_maxiter},
     )
     evaluations += int(refined.nfev)
     final = refined.x if refined.fun <= value_only(best) else best
-    final_value, _ = negative_log_likelihood(final, kernel, patches, level)
+    final_value, _ = negative_log_likelihood_counted(final, kernel, patches, level)
     return TrainingResult(
         kernel=kernel.with_theta(final[:-1]),
         noise_variance=float(math.exp(final[-1])),

@@ -111,14 +111,15 @@ def _parse_numbers(path: Path, lineno: int, tokens: list[str], expected: str) ->
     try:
         return np.asarray(tokens, dtype=float)
     except ValueError:
-        bad = next(t for t in tokens if not _is_number(t))
+        bad = next(t for t in tokens if not is_number(t))
         raise GpoccError(
             f"{path}: line {lineno}: non-numeric value {bad!r} in a {expected} line; "
             "fix or delete that line"
         ) from None
 
 
-def _is_number(token: str) -> bool:
+def is_number(token: str) -> bool:
+    """Whether ``token`` parses as a float."""
     try:
         float(token)
     except ValueError:

@@ -27,7 +27,8 @@ class ScanBatch:
         range_min: metres; ranges below are not hits.
         range_max: metres; ranges above are not hits.
         has_pose_covariance: whether the covariances came from the input (False: the
-            reader filled zeros and the config's covariance must be used).
+            input had none, or the config overrides them, and the reader filled in the
+            sensor config's ``pose_covariance``).
         skipped_scans: scans dropped for want of a pose within the allowed gap.
     """
 
