@@ -191,3 +191,19 @@ def test_bounds_and_grid_geometry(model_path, tmp_path):
         assert (ds.width, ds.height) == (expected.width, expected.height)
         assert ds.bounds.left == pytest.approx(-1) and ds.bounds.top == pytest.approx(0.5)
         assert np.all(ds.read(1) >= 0)
+
+
+def test_cells_far_from_every_sample_are_unsure_and_unknown_to_map_server(model_path, tmp_path):
+    # The room's samples span about 4 x 3 m around the origin; 6 m away there is no data,
+    # so the predictive variance stays near the prior there whatever the mean does.
+    out = run_map(model_path, tmp_path / "far", "--resolution", "0.2",
+                  "--bounds", "-2.2", "-1.8", "9.8", "1.8")
+    with rasterio.open(out / "class.tif") as ds:
+        classes = ds.read(1)
+        transform = ds.transform
+    xs = np.array([(transform @ (c + 0.5, 0.5))[0] for c in range(classes.shape[1])])
+    far = xs > 7.0
+    assert np.all(classes[:, far] == 2)
+    assert np.any(classes[:, xs < 1.5] == 0) and np.any(classes[:, xs < 2.5] == 1)
+    server_classes, _ = read_map_server(out / "map.yaml")
+    assert np.all(server_classes[:, far] == 2)

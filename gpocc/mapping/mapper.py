@@ -127,7 +127,10 @@ def make_map(
             write_vrt(out_dir / f"{name}.vrt", tile_files[name], spec, dtype, nodata, epsg)
     write_map_server(out_dir / "map.yaml", preview_decided, preview_spec, occupied, free)
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
-    render_preview(out_dir / "preview.png", preview_p, preview_v, preview_spec, title=title)
+    # The preview shows what a user may rely on: cells too uncertain to classify (and so
+    # exported as unknown) are drawn as no data; probability.tif keeps the model's value.
+    render_preview(out_dir / "preview.png", preview_decided, preview_v, preview_spec,
+                   title=title, no_data_label="no data or too uncertain (class: unsure)")
     return MapSummary(spec=spec, tiles=len(windows), blocks=n_blocks,
                       seconds=time.perf_counter() - started, class_counts=counts)
 

@@ -54,6 +54,7 @@ def render_preview(
     variance: np.ndarray,
     spec: GridSpec,
     title: str = "",
+    no_data_label: str = "no data",
 ) -> None:
     """Write a PNG: p(occupied) and predictive variance side by side, atomically.
 
@@ -63,6 +64,7 @@ def render_preview(
         variance: (H, W) variance on ``spec`` (units of the latent GP), NaN = no data.
         spec: the grid; axes are labelled in metres over its extent.
         title: figure title.
+        no_data_label: what NaN cells of ``probability`` mean, for the figure's key.
 
     Maps larger than :data:`MAX_PREVIEW_PIXELS` a side are block-averaged first.
     Probability is grey (free white, occupied black); variance uses ``viridis``; cells
@@ -100,7 +102,7 @@ def render_preview(
         ax.set_title(label)
         fig.colorbar(image, ax=ax, shrink=0.85, label=label)
     if np.isnan(p).any():
-        fig.text(0.01, 0.01, "no data", color=NO_DATA_COLOUR, fontsize=9,
+        fig.text(0.01, 0.01, no_data_label, color=NO_DATA_COLOUR, fontsize=9,
                  bbox=dict(facecolor="white", edgecolor=NO_DATA_COLOUR))
     if title:
         fig.suptitle(title)
