@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+import yaml
+
 ROOT = Path(__file__).resolve().parents[1]
 CARMEN = ROOT.parent / "shared" / "data" / "carmen"
 GPOCC = [sys.executable, "-m", "gpocc"]
@@ -67,13 +69,18 @@ def truth_bounds(truth_tif: Path) -> list[str]:
     return [f"{v:.3f}" for v in spec.bounds]
 
 
-def run_sim(work: Path, seeds: tuple[int, ...]) -> str:
+def run_sim(work: Path, seeds: tuple[int, ...], label_share: float | None = None) -> str:
     rows = []
     for seed in seeds:
         sim = work / f"sim{seed}"
         gpocc("simulate", "--out", sim, "--seed", str(seed), "--force")
         truth = sim / "truth.tif"
         config = sim / "sim.yaml"
+        if label_share is not None:
+            data = yaml.safe_load(config.read_text())
+            data.setdefault("samples", {})["min_label_share"] = label_share
+            config = sim / "sim-label-share.yaml"
+            config.write_text(yaml.safe_dump(data))
         bounds = truth_bounds(truth)
         res = "0.1"
         gpocc("grid", sim / "sim.mcap", "--config", config, "--resolution", res,
@@ -125,11 +132,13 @@ def main() -> None:
     parser.add_argument("what", nargs="*", default=["sim", "real"], choices=["sim", "real"])
     parser.add_argument("--work", type=Path, default=ROOT / "out" / "experiment")
     parser.add_argument("--seeds", type=int, nargs="*", default=list(SEEDS))
+    parser.add_argument("--label-share", type=float, default=None,
+                        help="samples.min_label_share for the simulation's GP rows")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     if "sim" in args.what:
         print("\n## Two-robot simulation (paper Table I platforms)\n")
-        print(run_sim(args.work, tuple(args.seeds)), flush=True)
+        print(run_sim(args.work, tuple(args.seeds), args.label_share), flush=True)
     if "real" in args.what:
         configs = {"intel.gfs.log": ROOT / "configs" / "carmen_intel.yaml",
                    "freiburg-079-corrected.log": ROOT / "configs" / "carmen_freiburg.yaml"}

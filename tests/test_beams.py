@@ -298,3 +298,30 @@ def test_non_finite_poses_are_a_clear_error():
     batch = _batch([[2.0, 2.0, 2.0, 2.0]], ANGLES, [[np.nan, 0.0, 0.0]])
     with pytest.raises(GpoccError, match="r1.log.*non-finite poses"):
         build_samples([batch], _config())
+
+
+def test_min_label_share_drops_labels_a_cell_rarely_saw():
+    """Brute force: count every sample's label per cell over the whole log, then keep a
+    thinned sample only if its label is at least the given share of its cell's samples."""
+    rng = np.random.default_rng(4)
+    n_scans, n_beams = 40, 24
+    angles = np.linspace(-1.4, 1.4, n_beams)
+    ranges = rng.uniform(1.0, 4.0, size=(n_scans, n_beams))
+    ranges[rng.random(ranges.shape) < 0.1] *= 0.5  # "people": short, rare readings
+    poses = np.column_stack([rng.uniform(-0.5, 0.5, n_scans), rng.uniform(-0.5, 0.5, n_scans),
+                             rng.uniform(-0.3, 0.3, n_scans)])
+    batch = _batch(ranges, angles, poses)
+    cell = 0.3
+    everything = build_samples([batch], _config(thin_cell_m=0.0))
+    thinned = build_samples([batch], _config(thin_cell_m=cell))
+    filtered = build_samples([batch], _config(thin_cell_m=cell, min_label_share=0.25))
+    counts: dict[tuple[int, int], list[int]] = {}
+    for mean, label in zip(everything.means, everything.labels, strict=True):
+        key = tuple(np.floor(mean / cell).astype(int))
+        counts.setdefault(key, [0, 0])[int(label > 0)] += 1
+    share = np.array([counts[tuple(np.floor(m / cell).astype(int))][int(lab > 0)]
+                      / sum(counts[tuple(np.floor(m / cell).astype(int))])
+                      for m, lab in zip(thinned.means, thinned.labels, strict=True)])
+    expected = thinned.subset(share >= 0.25)
+    assert 0 < len(expected) < len(thinned)
+    _assert_same_rows(_rows(filtered), _rows(expected))

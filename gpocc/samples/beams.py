@@ -89,8 +89,10 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     sensors = {s.name: s for s in config.sensors}
     sensor_index: dict[str, int] = {}
     thin_cell = float(config.samples.thin_cell_m)
+    min_share = float(config.samples.min_label_share)
     kept: SampleSet | None = None
     parts: list[SampleSet] = []
+    votes = LabelVotes(thin_cell) if thin_cell > 0 and min_share > 0 else None
     offset = 0
     for batch in batches:
         sensor = sensors.get(batch.sensor, SensorConfig(name=batch.sensor))
@@ -98,6 +100,8 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
         n_batch = 0
         for part in _batch_samples(batch, sensor, config.samples, offset, sensor_id):
             n_batch += len(part)
+            if votes is not None:
+                votes.add(part)
             if thin_cell > 0:
                 # A per-cell minimum: thinning as chunks arrive equals thinning at the end.
                 merged = part if kept is None else SampleSet.concatenate([kept, part])
@@ -114,8 +118,46 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
             )
         offset += batch.n_scans
     if kept is not None:
+        if votes is not None:
+            kept = kept.subset(votes.share(kept) >= min_share)
         return kept
     return SampleSet.concatenate(parts)
+
+
+class LabelVotes:
+    """Running counts of occupied and free samples per square cell of side ``cell_m``.
+
+    Thinning keeps one sample per label and cell, which forgets how often a cell was seen
+    free or occupied; these counts remember it, so that a label seen in only a small share
+    of a cell's samples (a person walking through a corridor, a beam grazing a wall
+    through pose error) can be dropped.
+    """
+
+    def __init__(self, cell_m: float) -> None:
+        self.cell_m = cell_m
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.counts = np.zeros((0, 2), dtype=np.int64)  # columns: free, occupied
+
+    def _keys(self, samples: SampleSet) -> np.ndarray:
+        cells = np.floor(samples.means / self.cell_m).astype(np.int64)
+        return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
+
+    def add(self, samples: SampleSet) -> None:
+        """Count a chunk of samples."""
+        keys = np.concatenate((self.keys, self._keys(samples)))
+        unique, inverse = np.unique(keys, return_inverse=True)
+        counts = np.zeros((len(unique), 2), dtype=np.int64)
+        np.add.at(counts, inverse[: len(self.keys)], self.counts)
+        occupied = (samples.labels > 0).astype(np.intp)
+        np.add.at(counts, (inverse[len(self.keys):], occupied), 1)
+        self.keys, self.counts = unique, counts
+
+    def share(self, samples: SampleSet) -> np.ndarray:
+        """(N,) fraction of its cell's counted samples that carry each sample's label."""
+        index = np.searchsorted(self.keys, self._keys(samples))
+        counts = self.counts[index]
+        own = counts[np.arange(len(samples)), (samples.labels > 0).astype(np.intp)]
+        return own / counts.sum(axis=1)
 
 
 def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
