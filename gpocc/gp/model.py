@@ -88,6 +88,8 @@ def build_model(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
         )
+        # Fresh patches (another seed) for the classifier: a and b fitted on the very
+        # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
         patches = make_patches(samples, model_cfg.training, config.seed + 1)
         classifier = fit_classifier(result.kernel, result.noise_variance, patches,
                                     model_cfg.quadrature_level)
