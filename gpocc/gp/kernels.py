@@ -72,6 +72,17 @@ def _positive(value: float, key: str) -> float:
     return value
 
 
+def _positive_pair(values: tuple[float, float], key: str) -> tuple[float, float]:
+    """Per-axis (x, y) hyperparameters, each checked by :func:`_positive`."""
+    pair = tuple(values)
+    if len(pair) != 2:
+        raise GpoccError(
+            f"kernel hyperparameter 'model.hyperparameters.{key}' needs two entries (x, y), "
+            f"got {values!r}"
+        )
+    return tuple(_positive(v, f"{key}[{i}]") for i, v in enumerate(pair))
+
+
 def _theta(theta: np.ndarray, size: int) -> np.ndarray:
     theta = np.asarray(theta, dtype=np.float64).reshape(-1)
     if theta.shape != (size,):
@@ -105,16 +116,8 @@ class NeuralNetworkKernel:
             self, "signal_variance", _positive(self.signal_variance, "signal_variance")
         )
         object.__setattr__(self, "bias_variance", _positive(self.bias_variance, "bias_variance"))
-        wv = tuple(self.weight_variance)
-        if len(wv) != 2:
-            raise GpoccError(
-                "kernel hyperparameter 'model.hyperparameters.weight_variance' needs two "
-                f"entries (x, y), got {self.weight_variance!r}"
-            )
         object.__setattr__(
-            self,
-            "weight_variance",
-            tuple(_positive(w, f"weight_variance[{i}]") for i, w in enumerate(wv)),
+            self, "weight_variance", _positive_pair(self.weight_variance, "weight_variance")
         )
 
     @property
@@ -237,16 +240,8 @@ class SquaredExponentialKernel:
         object.__setattr__(
             self, "signal_variance", _positive(self.signal_variance, "signal_variance")
         )
-        ls = tuple(self.lengthscale)
-        if len(ls) != 2:
-            raise GpoccError(
-                "kernel hyperparameter 'model.hyperparameters.lengthscale_m' needs two "
-                f"entries (x, y), got {self.lengthscale!r}"
-            )
         object.__setattr__(
-            self,
-            "lengthscale",
-            tuple(_positive(v, f"lengthscale_m[{i}]") for i, v in enumerate(ls)),
+            self, "lengthscale", _positive_pair(self.lengthscale, "lengthscale_m")
         )
 
     @property
