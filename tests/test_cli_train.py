@@ -104,3 +104,34 @@ def test_intel_end_to_end_gp_beats_grid_on_held_out_scans(tmp_path):
     assert gp["auc"] >= grid["auc"] - 0.005
     assert gp["auc"] > 0.95
     assert gp["fpr_at_tpr97"] < grid["fpr_at_tpr97"]
+
+
+def test_two_robot_simulation_end_to_end(tmp_path):
+    """simulate -> train (two sensors of different quality in one job) -> map -> evaluate."""
+    import yaml
+
+    from gpocc.io.rasters import read_raster
+
+    sim = tmp_path / "sim"
+    invoke("simulate", "--out", sim, "--seed", "5")
+    config = yaml.safe_load((sim / "sim.yaml").read_text())
+    config["model"] = {"training": {"anneal_maxfun": 10, "lbfgs_maxiter": 10, "patches": 4}}
+    (tmp_path / "fast.yaml").write_text(yaml.safe_dump(config))
+    bounds = [f"{v}" for v in read_raster(sim / "truth.tif")[1].bounds]
+    invoke("train", sim / "sim.mcap", "--config", tmp_path / "fast.yaml", "--out",
+           tmp_path / "gp.npz")
+    model = load_model(tmp_path / "gp.npz")
+    assert set(model.samples.sensor_ids.tolist()) == {0, 1}
+    # Platform II's samples are far less certain than platform I's.
+    size = np.sqrt(np.trace(model.samples.covariances, axis1=1, axis2=2))
+    assert np.median(size[model.samples.sensor_ids == 1]) > 10 * np.median(
+        size[model.samples.sensor_ids == 0])
+    invoke("map", tmp_path / "gp.npz", "--resolution", "0.25", "--bounds", *bounds,
+           "--out", tmp_path / "gp")
+    invoke("grid", sim / "sim.mcap", "--config", sim / "sim.yaml", "--resolution", "0.25",
+           "--bounds", *bounds, "--out", tmp_path / "grid")
+    invoke("evaluate", tmp_path / "gp", tmp_path / "grid", "--ground-truth",
+           sim / "truth.tif", "--out", tmp_path / "eval")
+    rows = {r["name"]: r for r in json.loads((tmp_path / "eval" / "results.json").read_text())
+            ["maps"]}
+    assert rows["gp"]["auc"] > rows["grid"]["auc"]
