@@ -207,3 +207,22 @@ def test_cells_far_from_every_sample_are_unsure_and_unknown_to_map_server(model_
     assert np.any(classes[:, xs < 1.5] == 0) and np.any(classes[:, xs < 2.5] == 1)
     server_classes, _ = read_map_server(out / "map.yaml")
     assert np.all(server_classes[:, far] == 2)
+
+
+def test_decimated_preview_and_map_server_of_a_large_map_stay_aligned(model_path, tmp_path,
+                                                                       monkeypatch):
+    # Force decimation (stride 3) on a small map whose height is not a multiple of 3:
+    # map.pgm's cells must still sit on the full-resolution cells they were taken from.
+    import gpocc.mapping.mapper as mapper
+
+    monkeypatch.setattr(mapper, "_PREVIEW_PIXELS", 20)
+    out = run_map(model_path, tmp_path / "dec", "--resolution", "0.1", "--workers", "1",
+                  "--bounds", "-2.4", "-1.7", "2.4", "1.8")
+    with rasterio.open(out / "class.tif") as ds:
+        classes = ds.read(1)
+        full_top = ds.bounds.top
+    server, spec = read_map_server(out / "map.yaml")
+    assert spec.resolution == pytest.approx(0.3)
+    assert spec.y1 == pytest.approx(full_top)
+    np.testing.assert_array_equal(server == 1, classes[::3, ::3] == 1)
+    np.testing.assert_array_equal(server == 0, classes[::3, ::3] == 0)

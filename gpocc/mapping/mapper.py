@@ -73,8 +73,10 @@ def make_map(
     windows = _tile_windows(spec, tile)
     tiled = len(windows) > 1
     stride = max(1, math.ceil(max(spec.shape) / _PREVIEW_PIXELS))
-    preview_spec = GridSpec(spec.x0, spec.y0, spec.resolution * stride,
-                            math.ceil(spec.width / stride), math.ceil(spec.height / stride))
+    rows, cols = math.ceil(spec.height / stride), math.ceil(spec.width / stride)
+    # Decimation keeps row 0, so the decimated grid is anchored at the map's north edge.
+    preview_spec = GridSpec(spec.x0, spec.y1 - rows * spec.resolution * stride,
+                            spec.resolution * stride, cols, rows)
     preview_p = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     preview_v = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     preview_decided = np.full(preview_spec.shape, np.nan, dtype=np.float32)
