@@ -7,56 +7,21 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
 import typer
 
 import gpocc
 from gpocc.cli import command
-from gpocc.config import Config, config_to_dict, load_config
+from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
-from gpocc.evaluation.grid import LogOddsGrid, default_grid_spec, occupancy_grid
-from gpocc.gp.classify import NO_DATA, classify
-from gpocc.gridspec import GridSpec
+from gpocc.evaluation.grid import default_grid_spec, occupancy_grid
+from gpocc.evaluation.grid_folder import write_grid_folder
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
 from gpocc.io.inputs import read_inputs
-from gpocc.io.mapserver import write_map_server
-from gpocc.io.rasters import write_geotiff
-from gpocc.mapping.render import render_preview
 from gpocc.progress import log
 
 #: Refuse grids above this many cells (about 17 bytes each in memory); the GP map
 #: (``gpocc map``) is tiled, the baseline grid is not.
 MAX_CELLS = 100_000_000
-_PREVIEW_PIXELS = 2000
-
-
-def write_grid_folder(out_dir: Path, grid: LogOddsGrid, config: Config) -> dict[str, int]:
-    """Write the map-folder layers of ``grid`` into ``out_dir``; return the class counts.
-
-    Files: ``probability.tif`` and ``variance.tif`` (float32, NaN no data; the variance
-    is the Bernoulli ``p (1 - p)``), ``class.tif`` (uint8 0 free, 1 occupied, 2 unsure,
-    255 no data), ``map.yaml`` + ``map.pgm`` and ``preview.png``.
-    """
-    spec = grid.spec
-    epsg = config.map.epsg
-    occupied, free = config.classify.occupied, config.classify.free
-    probability = grid.probability.astype(np.float32)
-    variance = grid.variance.astype(np.float32)
-    classes = classify(probability, occupied, free)
-    write_geotiff(out_dir / "probability.tif", probability, spec, nodata=np.nan, epsg=epsg)
-    write_geotiff(out_dir / "variance.tif", variance, spec, nodata=np.nan, epsg=epsg)
-    write_geotiff(out_dir / "class.tif", classes, spec, nodata=NO_DATA, epsg=epsg)
-    write_map_server(out_dir / "map.yaml", probability, spec, occupied, free)
-    stride = max(1, math.ceil(max(spec.shape) / _PREVIEW_PIXELS))
-    # Decimation keeps row 0, so the preview grid is anchored at the map's north edge.
-    rows, cols = math.ceil(spec.height / stride), math.ceil(spec.width / stride)
-    preview = GridSpec(spec.x0, spec.y1 - rows * spec.resolution * stride,
-                       spec.resolution * stride, cols, rows)
-    render_preview(out_dir / "preview.png", probability[::stride, ::stride],
-                   variance[::stride, ::stride], preview, title="log-odds occupancy grid")
-    return {"free": int(np.count_nonzero(classes == 0)),
-            "occupied": int(np.count_nonzero(classes == 1)),
-            "unsure": int(np.count_nonzero(classes == 2))}
 
 
 @command("grid")

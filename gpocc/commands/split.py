@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -12,43 +11,17 @@ import yaml
 from gpocc.cli import command
 from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
-from gpocc.evaluation.split import sensor_for, split_batch, topic_prefix, train_config
+from gpocc.evaluation.split import (
+    merge_by_sensor,
+    sensor_for,
+    split_batch,
+    topic_prefix,
+    train_config,
+)
 from gpocc.io.atomic import atomic_directory, check_can_write
 from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
-from gpocc.io.scans import ScanBatch
 from gpocc.progress import log
-
-
-def merge_by_sensor(batches: list[ScanBatch]) -> list[ScanBatch]:
-    """One batch per sensor, joining same-sensor batches in time order.
-
-    The written bag has one scan topic per sensor, so batches that share a sensor must
-    share their beam layout.
-    """
-    merged: dict[str, ScanBatch] = {}
-    for b in batches:
-        if b.sensor not in merged:
-            merged[b.sensor] = b
-            continue
-        a = merged[b.sensor]
-        if a.angles.shape != b.angles.shape or not np.allclose(a.angles, b.angles):
-            raise GpoccError(
-                f"{b.source}: sensor '{b.sensor}' has a different beam layout than in "
-                f"{a.source}; give them different sensor names in the config"
-            )
-        joined = {
-            f: np.concatenate([getattr(a, f), getattr(b, f)])
-            for f in ("stamps", "ranges", "poses", "pose_covariances")
-        }
-        order = np.argsort(joined["stamps"], kind="stable")
-        merged[b.sensor] = dataclasses.replace(
-            a,
-            **{k: v[order] for k, v in joined.items()},
-            has_pose_covariance=a.has_pose_covariance and b.has_pose_covariance,
-            skipped_scans=a.skipped_scans + b.skipped_scans,
-        )
-    return list(merged.values())
 
 
 @command("split")

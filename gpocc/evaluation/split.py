@@ -194,3 +194,34 @@ def train_config(config: Config, sensors: list[tuple[SensorConfig, str, str]]) -
         for s, scan, pose in sensors
     )
     return dataclasses.replace(config, sensors=entries)
+
+
+def merge_by_sensor(batches: list[ScanBatch]) -> list[ScanBatch]:
+    """One batch per sensor, joining same-sensor batches in time order.
+
+    The written bag has one scan topic per sensor, so batches that share a sensor must
+    share their beam layout.
+    """
+    merged: dict[str, ScanBatch] = {}
+    for b in batches:
+        if b.sensor not in merged:
+            merged[b.sensor] = b
+            continue
+        a = merged[b.sensor]
+        if a.angles.shape != b.angles.shape or not np.allclose(a.angles, b.angles):
+            raise GpoccError(
+                f"{b.source}: sensor '{b.sensor}' has a different beam layout than in "
+                f"{a.source}; give them different sensor names in the config"
+            )
+        joined = {
+            f: np.concatenate([getattr(a, f), getattr(b, f)])
+            for f in ("stamps", "ranges", "poses", "pose_covariances")
+        }
+        order = np.argsort(joined["stamps"], kind="stable")
+        merged[b.sensor] = dataclasses.replace(
+            a,
+            **{k: v[order] for k, v in joined.items()},
+            has_pose_covariance=a.has_pose_covariance and b.has_pose_covariance,
+            skipped_scans=a.skipped_scans + b.skipped_scans,
+        )
+    return list(merged.values())
