@@ -88,6 +88,16 @@ class GridSpec:
             height=rows,
         )
 
+    def decimated(self, stride: int) -> GridSpec:
+        """The grid of every ``stride``-th row and column, as ``array[::stride, ::stride]``.
+
+        Decimation keeps row 0 (north), so the coarser grid is anchored at the north edge;
+        its south edge may lie below this grid's when the height is not a multiple.
+        """
+        rows, cols = math.ceil(self.height / stride), math.ceil(self.width / stride)
+        return GridSpec(self.x0, self.y1 - rows * self.resolution * stride,
+                        self.resolution * stride, cols, rows)
+
     def index_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Row and column of each (N, 2) point, and a mask of points inside the grid."""
         pts = np.asarray(points, dtype=float)

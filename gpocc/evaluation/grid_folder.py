@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
 from gpocc.config import Config
 from gpocc.evaluation.grid import LogOddsGrid
-from gpocc.gp.classify import NO_DATA, classify
-from gpocc.gridspec import GridSpec
+from gpocc.gp.classify import NO_DATA, class_counts, classify
 from gpocc.io.mapserver import write_map_server
 from gpocc.io.rasters import write_geotiff
-from gpocc.mapping.render import render_preview
-
-_PREVIEW_PIXELS = 2000
+from gpocc.mapping.render import preview_factor, render_preview
 
 
 def write_grid_folder(out_dir: Path, grid: LogOddsGrid, config: Config) -> dict[str, int]:
@@ -35,13 +31,8 @@ def write_grid_folder(out_dir: Path, grid: LogOddsGrid, config: Config) -> dict[
     write_geotiff(out_dir / "variance.tif", variance, spec, nodata=np.nan, epsg=epsg)
     write_geotiff(out_dir / "class.tif", classes, spec, nodata=NO_DATA, epsg=epsg)
     write_map_server(out_dir / "map.yaml", probability, spec, occupied, free)
-    stride = max(1, math.ceil(max(spec.shape) / _PREVIEW_PIXELS))
-    # Decimation keeps row 0, so the preview grid is anchored at the map's north edge.
-    rows, cols = math.ceil(spec.height / stride), math.ceil(spec.width / stride)
-    preview = GridSpec(spec.x0, spec.y1 - rows * spec.resolution * stride,
-                       spec.resolution * stride, cols, rows)
+    stride = preview_factor(spec.shape)
     render_preview(out_dir / "preview.png", probability[::stride, ::stride],
-                   variance[::stride, ::stride], preview, title="log-odds occupancy grid")
-    return {"free": int(np.count_nonzero(classes == 0)),
-            "occupied": int(np.count_nonzero(classes == 1)),
-            "unsure": int(np.count_nonzero(classes == 2))}
+                   variance[::stride, ::stride], spec.decimated(stride),
+                   title="log-odds occupancy grid")
+    return class_counts(classes)

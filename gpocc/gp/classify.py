@@ -58,6 +58,13 @@ def fit_classifier(kernel, noise_variance: float, patches: list[LocalProblem],
     return PlattClassifier(a=float(result.x[0]), b=float(result.x[1]))
 
 
+def class_counts(classes: np.ndarray) -> dict[str, int]:
+    """Cells per class of a ``classify`` result (no-data cells are not counted)."""
+    return {"free": int(np.count_nonzero(classes == FREE)),
+            "occupied": int(np.count_nonzero(classes == OCCUPIED)),
+            "unsure": int(np.count_nonzero(classes == UNSURE))}
+
+
 def classify(probability: np.ndarray, occupied: float, free: float,
              unsure: np.ndarray | None = None) -> np.ndarray:
     """uint8 classes: 1 occupied (p > occupied), 0 free (p < free), 2 unsure, 255 no data.

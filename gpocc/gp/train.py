@@ -138,11 +138,17 @@ def learn_hyperparameters(
     bounds = [(v - width, v + width) for v in x0]
     floor = math.log(config.min_noise_variance)
     bounds[-1] = (max(bounds[-1][0], floor), max(bounds[-1][1], floor + 1.0))
-    x0[-1] = min(max(x0[-1], bounds[-1][0]), bounds[-1][1])
+    start = min(max(x0[-1], bounds[-1][0]), bounds[-1][1])
 
     def value_only(p: np.ndarray) -> float:
         return negative_log_likelihood_counted(p, kernel, patches, level)[0]
 
+    # Only a start below the noise floor moves; otherwise its value is already known.
+    best_value = initial if start == x0[-1] else None
+    x0[-1] = start
+    if best_value is None:
+        best_value = value_only(x0)
+        evaluations += 1
     best = x0
     if config.anneal_maxfun > 0:
         annealed = dual_annealing(
@@ -151,19 +157,21 @@ def learn_hyperparameters(
         )
         evaluations += int(annealed.nfev)
         if annealed.fun < initial:
-            best = annealed.x
+            best, best_value = annealed.x, float(annealed.fun)
     refined = minimize(
         negative_log_likelihood_counted, best, args=(kernel, patches, level), jac=True,
         method="L-BFGS-B", bounds=bounds, options={"maxiter": config.lbfgs_maxiter},
     )
     evaluations += int(refined.nfev)
-    final = refined.x if refined.fun <= value_only(best) else best
-    final_value, _ = negative_log_likelihood_counted(final, kernel, patches, level)
+    if refined.fun <= best_value:
+        final, final_value = refined.x, float(refined.fun)
+    else:
+        final, final_value = best, best_value
     return TrainingResult(
         kernel=kernel.with_theta(final[:-1]),
         noise_variance=float(math.exp(final[-1])),
         log_marginal_likelihood=-final_value,
         initial_log_marginal_likelihood=-initial,
-        evaluations=evaluations + 1,
+        evaluations=evaluations,
         patches=(len(patches), len(patches[0].samples)),
     )

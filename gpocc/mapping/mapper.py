@@ -10,7 +10,6 @@ made from the whole map when it is one tile, and from a decimated copy otherwise
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,14 +18,14 @@ from pathlib import Path
 import numpy as np
 
 import gpocc
-from gpocc.gp.classify import NO_DATA, classify
+from gpocc.gp.classify import NO_DATA, class_counts, classify
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_path
 from gpocc.io.mapserver import write_map_server
 from gpocc.io.rasters import write_geotiff, write_vrt
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import run_blocks
-from gpocc.mapping.render import render_preview
+from gpocc.mapping.render import preview_factor, render_preview
 
 LAYERS = ("probability", "variance", "class")
 _PREVIEW_PIXELS = 2000
@@ -72,11 +71,8 @@ def make_map(
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
     windows = _tile_windows(spec, tile)
     tiled = len(windows) > 1
-    stride = max(1, math.ceil(max(spec.shape) / _PREVIEW_PIXELS))
-    rows, cols = math.ceil(spec.height / stride), math.ceil(spec.width / stride)
-    # Decimation keeps row 0, so the decimated grid is anchored at the map's north edge.
-    preview_spec = GridSpec(spec.x0, spec.y1 - rows * spec.resolution * stride,
-                            spec.resolution * stride, cols, rows)
+    stride = preview_factor(spec.shape, _PREVIEW_PIXELS)
+    preview_spec = spec.decimated(stride)
     preview_p = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     preview_v = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     preview_decided = np.full(preview_spec.shape, np.nan, dtype=np.float32)
@@ -98,8 +94,8 @@ def make_map(
             variance[cells_of_block] = result.variance
             unsure[cells_of_block] = result.variance > ratio * result.prior_variance
         classes = classify(probability, occupied, free, unsure)
-        for key, value in (("free", 0), ("occupied", 1), ("unsure", 2)):
-            counts[key] += int(np.count_nonzero(classes == value))
+        for key, value in class_counts(classes).items():
+            counts[key] += value
         layers = {"probability": (probability, np.nan), "variance": (variance, np.nan),
                   "class": (classes, NO_DATA)}
         for name, (array, nodata) in layers.items():
