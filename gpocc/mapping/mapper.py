@@ -73,7 +73,6 @@ def make_map(
     tiled = len(windows) > 1
     stride = preview_factor(spec.shape, _PREVIEW_PIXELS)
     preview_spec = spec.decimated(stride)
-    preview_p = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     preview_v = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     preview_decided = np.full(preview_spec.shape, np.nan, dtype=np.float32)
     tile_files: dict[str, list[tuple[Path, GridSpec]]] = {name: [] for name in LAYERS}
@@ -113,8 +112,7 @@ def make_map(
         pr, pc = (row0 + r_off) // stride, (col0 + c_off) // stride
         # map_server has no "unsure by variance": such cells are exported as unknown.
         decided = np.where(unsure, np.nan, probability)
-        for target, source in ((preview_p, probability), (preview_v, variance),
-                               (preview_decided, decided)):
+        for target, source in ((preview_v, variance), (preview_decided, decided)):
             part = source[r_off::stride, c_off::stride]
             target[pr:pr + part.shape[0], pc:pc + part.shape[1]] = part
 
