@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gpocc.cli import app
-from gpocc.config import Config, GridConfig, MountConfig, SensorConfig
-from gpocc.evaluation import grid as grid_mod
-from gpocc.evaluation.grid import (
+from gpocc.baselines import grid as grid_mod
+from gpocc.baselines.grid import (
     default_grid_spec,
     occupancy_grid,
     ray_cells,
     spread_weights,
 )
+from gpocc.cli import app
+from gpocc.config import Config, GridConfig, MountConfig, SensorConfig
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
 

@@ -17,11 +17,11 @@ from gpocc.io.inputs import (
     default_sensor,
     describe_input,
     detect_format,
-    find_sensor,
     read_inputs,
     sensors_for_input,
 )
 from gpocc.io.scans import ScanBatch
+from gpocc.samples.beam import sensor_config
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "carmen"
@@ -93,7 +93,9 @@ def test_default_sensor_for_plain_bag_and_carmen(tmp_path: Path, bags: dict[str,
     assert batch.sensor == "scan" and batch.n_scans == 5
     sensor = default_sensor(describe_input(bags["plain"]))
     assert (sensor.scan_topic, sensor.pose_topic) == ("/scan", "/amcl_pose")
-    assert find_sensor(Config(), "scan") == SensorConfig(name="scan")
+    # The reader attaches the entry it resolved; a batch made elsewhere gets the defaults.
+    assert batch.sensor_config == sensor
+    assert sensor_config(_batch("scan"), Config()) == SensorConfig(name="scan")
 
     log = tmp_path / "lab.gfs.log"
     log.write_text("FLASER 3 1 1 1 0 0 0 0 0 0 1.0 host 1.0\n")

@@ -10,9 +10,9 @@ import pytest
 
 from gpocc.config import Config, MountConfig, SamplesConfig, SensorConfig, UnscentedConfig
 from gpocc.io.scans import ScanBatch
+from gpocc.samples.beam import beam_endpoint
 from gpocc.samples.beams import build_samples
 from gpocc.samples.unscented import (
-    beam_endpoint,
     matrix_sqrt,
     sigma_points,
     unscented_transform,

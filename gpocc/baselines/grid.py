@@ -9,10 +9,11 @@ its mind after a long run of one kind of evidence. Unlike OctoMap, which updates
 most once per scan, two beams of one scan may both update a cell before that scan's
 clamp, as in the per-beam formulation of *Probabilistic Robotics*.
 
-Beam classes follow REP 117 and :func:`gpocc.samples.beams.build_samples`: NaN, ``-inf``
-and ranges below ``range_min`` are ignored; a finite ``range_min <= r < range_max`` is a
-hit; ``+inf`` or ``r >= range_max`` (no return) marks free space up to
-``min(no_return_free_m, range_max)`` and no hit.
+Beams follow the same rules as the GP's samples (:mod:`gpocc.samples.beam`): REP 117
+classes (NaN, ``-inf`` and ranges below ``range_min`` are ignored; a finite
+``range_min <= r < range_max`` is a hit; ``+inf`` or ``r >= range_max`` (no return) marks
+free space up to ``min(no_return_free_m, range_max)`` and no hit), the laser pose from
+the base pose and mount, and the pose covariance that applies.
 
 Rays are traversed exactly (every cell the segment crosses with positive length, like
 Amanatides and Woo's walk) but without a per-beam loop: see :func:`ray_cells`.
@@ -31,7 +32,8 @@ from gpocc.config import Config, GridConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
-from gpocc.samples.unscented import beam_endpoint, unscented_transform
+from gpocc.samples import beam as beam_rules
+from gpocc.samples.unscented import unscented_transform
 
 #: Upper bound on the ray columns (see :func:`ray_cells`) handled in one vectorised step;
 #: keeps peak memory near a few hundred MB whatever the log length.
@@ -196,31 +198,6 @@ def ray_cells(spec: GridSpec, starts: np.ndarray, ends: np.ndarray) -> RayCells:
 # --------------------------------------------------------------------------- beams
 
 
-def sensor_for(batch: ScanBatch, config: Config) -> SensorConfig:
-    """The config's sensor entry for ``batch`` (defaults when it has none)."""
-    for sensor in config.sensors:
-        if sensor.name == batch.sensor:
-            return sensor
-    return SensorConfig(name=batch.sensor)
-
-
-def laser_poses(batch: ScanBatch, sensor: SensorConfig) -> np.ndarray:
-    """(S, 3) laser pose (x m, y m, yaw rad): the base pose composed with the mount."""
-    poses = np.asarray(batch.poses, dtype=float)
-    if not np.isfinite(poses).all():
-        raise GpoccError(
-            f"{batch.source}: sensor '{batch.sensor}' has non-finite poses; check the pose "
-            f"source of this input"
-        )
-    x, y, th = poses[:, 0], poses[:, 1], poses[:, 2]
-    m = sensor.mount
-    c, s = np.cos(th), np.sin(th)
-    return np.stack(
-        (x + c * m.x_m - s * m.y_m, y + s * m.x_m + c * m.y_m, th + math.radians(m.yaw_deg)),
-        axis=1,
-    )
-
-
 @dataclass(frozen=True, eq=False)
 class _Beams:
     """Usable beams of a batch: free length (m) and class, per (scan, beam)."""
@@ -233,15 +210,15 @@ class _Beams:
 
 def _classify_beams(batch: ScanBatch, sensor: SensorConfig) -> _Beams:
     ranges = np.asarray(batch.ranges, dtype=float)
-    r_min, r_max = float(batch.range_min), float(batch.range_max)
-    with np.errstate(invalid="ignore"):
-        is_hit = np.isfinite(ranges) & (ranges >= r_min) & (ranges < r_max)
-        no_return = (ranges >= r_max) | (ranges == np.inf)
-    limit = min(float(sensor.no_return_free_m), r_max)
+    classes = beam_rules.classify_beams(ranges, float(batch.range_min), float(batch.range_max))
+    is_hit, no_return = classes.hit, classes.no_return
+    limit = beam_rules.no_return_free_m(sensor, batch.range_max)
     length = np.where(is_hit, ranges, np.where(no_return, limit, 0.0))
     length = np.where(np.isfinite(length), length, 0.0)
     valid = is_hit | (no_return & (length > 0.0))
-    return _Beams(length=length, is_hit=is_hit, valid=valid, laser=laser_poses(batch, sensor))
+    laser = beam_rules.laser_poses(beam_rules.checked_poses(batch),
+                                   beam_rules.mount_vector(sensor))
+    return _Beams(length=length, is_hit=is_hit, valid=valid, laser=laser)
 
 
 def _beam_segments(
@@ -256,10 +233,9 @@ def _beam_segments(
     pos, beam = np.nonzero(beams.valid[scans])
     scan = scans[pos]
     laser = beams.laser[scan]
-    phi = laser[:, 2] + np.asarray(batch.angles, dtype=float)[beam]
-    length = beams.length[scan, beam]
     start = laser[:, :2]
-    end = start + length[:, None] * np.stack((np.cos(phi), np.sin(phi)), axis=1)
+    end = beam_rules.beam_points(laser, np.asarray(batch.angles, dtype=float)[beam],
+                                 beams.length[scan, beam])
     return pos, beam, start, end, beams.is_hit[scan, beam]
 
 
@@ -275,16 +251,7 @@ def _hit_gaussians(
     occupied samples their input covariance.
     """
     n = scan.size
-    if batch.has_pose_covariance and not sensor.override_pose_covariance:
-        pose_cov = np.asarray(batch.pose_covariances, dtype=float)[scan]
-        pose_cov = 0.5 * (pose_cov + np.swapaxes(pose_cov, -1, -2))
-    else:
-        pose_cov = np.broadcast_to(sensor.pose_covariance_matrix, (n, 3, 3))
-    if not np.isfinite(pose_cov).all():
-        raise GpoccError(
-            f"{batch.source}: sensor '{batch.sensor}' has non-finite pose covariances; set "
-            f"override_pose_covariance: true and pose_covariance for it in the config"
-        )
+    pose_cov = beam_rules.pose_covariances(batch, sensor, scan)
     mean = np.empty((n, 5))
     mean[:, 0] = np.asarray(batch.ranges, dtype=float)[scan, beam]
     mean[:, 1] = np.asarray(batch.angles, dtype=float)[beam]
@@ -293,10 +260,10 @@ def _hit_gaussians(
     cov[:, 0, 0] = sensor.range_variance_m2
     cov[:, 1, 1] = sensor.bearing_variance_rad2
     cov[:, 2:, 2:] = pose_cov
-    mount = np.array([sensor.mount.x_m, sensor.mount.y_m, math.radians(sensor.mount.yaw_deg)])
+    mount = beam_rules.mount_vector(sensor)
     ut = config.samples.unscented
     y_mean, y_cov, _ = unscented_transform(
-        lambda x: beam_endpoint(x, mount), mean, cov, ut.alpha, ut.beta, ut.kappa
+        lambda x: beam_rules.beam_endpoint(x, mount), mean, cov, ut.alpha, ut.beta, ut.kappa
     )
     return y_mean, y_cov
 
@@ -495,7 +462,7 @@ def occupancy_grid(batches: list[ScanBatch], config: Config, spec: GridSpec) -> 
         )
     if not batches or sum(b.n_scans for b in batches) == 0:
         raise GpoccError("no scans to build a grid from; check the input files")
-    sensors = [sensor_for(b, config) for b in batches]
+    sensors = [beam_rules.sensor_config(b, config) for b in batches]
     beams = [_classify_beams(b, s) for b, s in zip(batches, sensors, strict=True)]
     n_cells = spec.width * spec.height
     log_odds = np.zeros(n_cells)
@@ -548,7 +515,7 @@ def observed_extent(batches: list[ScanBatch], config: Config) -> tuple[float, fl
     lo = np.full(2, np.inf)
     hi = np.full(2, -np.inf)
     for batch in batches:
-        beams = _classify_beams(batch, sensor_for(batch, config))
+        beams = _classify_beams(batch, beam_rules.sensor_config(batch, config))
         scans = np.flatnonzero(beams.valid.any(axis=1))
         if scans.size == 0:
             continue

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from gpocc.cli import command
 from gpocc.errors import GpoccError
 from gpocc.evaluation.report import (
     evaluate_map,
@@ -21,7 +20,6 @@ from gpocc.io.atomic import check_can_write
 from gpocc.progress import log
 
 
-@command("evaluate")
 def evaluate(
     maps: list[Path] = typer.Argument(
         ..., help="Map folders (with probability.tif) or probability GeoTIFFs."

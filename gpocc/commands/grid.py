@@ -10,13 +10,12 @@ from pathlib import Path
 import typer
 
 import gpocc
-from gpocc.cli import command
+from gpocc.baselines.grid import default_grid_spec, occupancy_grid
 from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
-from gpocc.evaluation.grid import default_grid_spec, occupancy_grid
-from gpocc.evaluation.grid_folder import write_grid_folder
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
 from gpocc.io.inputs import read_inputs
+from gpocc.mapping.folder import write_grid_folder
 from gpocc.progress import log
 
 #: Refuse grids above this many cells (about 17 bytes each in memory); the GP map
@@ -24,7 +23,6 @@ from gpocc.progress import log
 MAX_CELLS = 100_000_000
 
 
-@command("grid")
 def grid_command(
     inputs: list[Path] = typer.Argument(
         ..., metavar="INPUT", help="Bags, bag folders, .mcap files or CARMEN logs."

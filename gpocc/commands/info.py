@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from gpocc.cli import command
 from gpocc.config import Config, load_config
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
@@ -81,7 +80,6 @@ def format_samples(batches: list[ScanBatch], config: Config) -> list[str]:
     ]
 
 
-@command("info")
 def info(
     inputs: list[Path] = typer.Argument(..., help="Bags, bag folders, .mcap files or CARMEN logs."),
     config: Path | None = typer.Option(None, "--config", help="YAML job config."),

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import typer
 
-from gpocc.cli import command
 from gpocc.errors import GpoccError
 from gpocc.gp.model import load_model
 from gpocc.gridspec import GridSpec
@@ -18,7 +17,6 @@ from gpocc.mapping.mapper import default_spec, make_map, write_metadata
 from gpocc.progress import log, progress_bar
 
 
-@command("map")
 def map_command(
     model_path: Path = typer.Argument(..., metavar="MODEL", help="Model file from `gpocc train`."),
     resolution: float = typer.Option(..., "--resolution", help="Cell size, metres."),

@@ -11,7 +11,6 @@ import typer
 import yaml
 
 import gpocc
-from gpocc.cli import command
 from gpocc.errors import GpoccError
 from gpocc.evaluation.simulate import (
     PoseNoise,
@@ -72,7 +71,6 @@ def _metadata(sim: Simulation, truth_spec: GridSpec, truth_counts: dict[str, int
     }
 
 
-@command("simulate")
 def simulate_command(
     out: Path = typer.Option(
         ..., "--out", help="Folder to write: sim.mcap (topics /robot1/scan, /robot1/pose, "

@@ -8,12 +8,10 @@ import numpy as np
 import typer
 import yaml
 
-from gpocc.cli import command
 from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
 from gpocc.evaluation.split import (
     merge_by_sensor,
-    sensor_for,
     split_batch,
     topic_prefix,
     train_config,
@@ -22,9 +20,9 @@ from gpocc.io.atomic import atomic_directory, check_can_write
 from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
 from gpocc.progress import log
+from gpocc.samples import beam
 
 
-@command("split")
 def split(
     input_path: Path = typer.Argument(
         ..., metavar="INPUT", help="Log to split: a bag, bag folder, .mcap or CARMEN log."
@@ -61,7 +59,7 @@ def split(
     n_heldout = 0
     used_prefixes: set[str] = set()
     for batch in batches:
-        sensor = sensor_for(batch, config)
+        sensor = beam.sensor_config(batch, config)
         result = split_batch(
             batch,
             sensor,

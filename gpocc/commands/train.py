@@ -9,7 +9,6 @@ from pathlib import Path
 
 import typer
 
-from gpocc.cli import command
 from gpocc.config import load_config
 from gpocc.gp.model import build_model, kernel_parameters, save_model
 from gpocc.io.atomic import check_can_write
@@ -23,7 +22,6 @@ class Switch(StrEnum):
     off = "off"
 
 
-@command("train")
 def train(
     inputs: list[Path] = typer.Argument(..., help="Bags, bag folders, .mcap files or CARMEN logs."),
     out: Path = typer.Option(..., "--out", help="Model file to write (.npz)."),

@@ -12,7 +12,6 @@ random distances along the beam, short of the hit.
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 from dataclasses import dataclass
 
@@ -21,6 +20,7 @@ import numpy as np
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
+from gpocc.samples import beam
 
 #: Free points start this far from the laser and stop this far short of a hit, metres.
 FREE_MARGIN_M = 0.1
@@ -63,12 +63,12 @@ def subset_batch(batch: ScanBatch, scans: np.ndarray, beam_every: int = 1) -> Sc
 
 
 def with_pose_covariances(batch: ScanBatch, sensor: SensorConfig) -> ScanBatch:
-    """The batch with the config's pose covariance where the input had none (or is overridden).
+    """The batch with the pose covariances that apply to it (:mod:`gpocc.samples.beam`).
 
     Written into a bag, the covariances then travel with the scans, so the bag needs no
     config to say how uncertain its poses are.
     """
-    if batch.has_pose_covariance and not sensor.override_pose_covariance:
+    if beam.uses_input_covariance(batch, sensor):
         return batch
     cov = np.broadcast_to(sensor.pose_covariance_matrix, (batch.n_scans, 3, 3)).copy()
     return dataclasses.replace(batch, pose_covariances=cov, has_pose_covariance=True)
@@ -77,10 +77,7 @@ def with_pose_covariances(batch: ScanBatch, sensor: SensorConfig) -> ScanBatch:
 def beam_points(
     poses: np.ndarray, angles: np.ndarray, distances: np.ndarray, sensor: SensorConfig
 ) -> np.ndarray:
-    """Points at ``distances`` along beams, in the map frame.
-
-    ``p = (x, y) + R(theta) (mx, my) + d (cos(theta + myaw + b), sin(theta + myaw + b))``
-    with the robot base pose (x, y, theta) and the sensor mount (mx, my, myaw).
+    """Points at ``distances`` along beams, in the map frame (:mod:`gpocc.samples.beam`).
 
     Args:
         poses: (S, 3) base poses (x m, y m, yaw rad).
@@ -91,15 +88,9 @@ def beam_points(
     Returns:
         (S, B, F, 2) metres.
     """
-    x, y, th = poses[:, 0], poses[:, 1], poses[:, 2]
-    m = sensor.mount
-    myaw = math.radians(m.yaw_deg)
-    ox = x + np.cos(th) * m.x_m - np.sin(th) * m.y_m
-    oy = y + np.sin(th) * m.x_m + np.cos(th) * m.y_m
-    heading = th[:, None] + myaw + angles[None, :]
-    px = ox[:, None, None] + distances * np.cos(heading)[:, :, None]
-    py = oy[:, None, None] + distances * np.sin(heading)[:, :, None]
-    return np.stack([px, py], axis=-1)
+    lasers = beam.laser_poses(poses, beam.mount_vector(sensor))
+    return beam.beam_points(lasers[:, None, None, :], np.asarray(angles)[None, :, None],
+                            distances)
 
 
 def labelled_points(
@@ -118,13 +109,12 @@ def labelled_points(
         ``(points, labels)``: (N, 2) metres and (N,) int8 (1 occupied, 0 free); hits first.
     """
     r = batch.ranges
-    with np.errstate(invalid="ignore"):
-        hit = np.isfinite(r) & (r >= batch.range_min) & (r < batch.range_max)
-        no_return = (r == np.inf) | (np.isfinite(r) & (r >= batch.range_max))
+    classes = beam.classify_beams(r, batch.range_min, batch.range_max)
+    hit, no_return = classes.hit, classes.no_return
     hit_r = np.where(hit, r, 0.0)
     hits = beam_points(batch.poses, batch.angles, hit_r[:, :, None], sensor)[hit]
 
-    no_return_end = min(sensor.no_return_free_m, batch.range_max)
+    no_return_end = beam.no_return_free_m(sensor, batch.range_max)
     end = np.where(hit, hit_r - FREE_MARGIN_M, np.where(no_return, no_return_end, 0.0))
     ok = end > FREE_MARGIN_M
     u = rng.random((batch.n_scans, batch.n_beams, free_per_beam))
@@ -165,14 +155,6 @@ def split_batch(
         subset_batch(batch, np.flatnonzero(held)), sensor, free_per_beam, rng
     )
     return SplitResult(train=train, points=points, labels=labels, n_heldout=int(held.sum()))
-
-
-def sensor_for(batch: ScanBatch, config: Config) -> SensorConfig:
-    """The config entry for the batch's sensor, or the defaults under its name."""
-    for sensor in config.sensors:
-        if sensor.name == batch.sensor:
-            return sensor
-    return SensorConfig(name=batch.sensor)
 
 
 def topic_prefix(sensor_name: str) -> str:

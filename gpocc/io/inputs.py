@@ -214,20 +214,21 @@ def sensors_for_input(summary: InputSummary, config: Config) -> list[SensorConfi
     return resolved
 
 
-def find_sensor(config: Config, name: str) -> SensorConfig:
-    """The config entry named ``name``, or the defaults under that name."""
-    return next((s for s in config.sensors if s.name == name), SensorConfig(name=name))
-
-
 def read_input(path: str | Path, config: Config,
                summary: InputSummary | None = None) -> list[ScanBatch]:
-    """The scans of one input: one batch per sensor that applies to it."""
+    """The scans of one input: one batch per sensor that applies to it.
+
+    Each batch carries the sensor config entry resolved for it (``sensor_config``), so
+    later stages never look a sensor up by name again.
+    """
     path = Path(path)
     summary = summary or describe_input(path)
     sensors = sensors_for_input(summary, config)
     if summary.format == "carmen":
-        return [carmen.read_carmen(path, sensors[0])]
-    return bags.read_bag(path, sensors)
+        batches = [carmen.read_carmen(path, sensors[0])]
+    else:
+        batches = bags.read_bag(path, sensors)
+    return [replace(b, sensor_config=s) for b, s in zip(batches, sensors, strict=True)]
 
 
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gpocc.config import SensorConfig
+
 
 @dataclass(frozen=True)
 class ScanBatch:
@@ -30,6 +32,9 @@ class ScanBatch:
             input had none, or the config overrides them, and the reader filled in the
             sensor config's ``pose_covariance``).
         skipped_scans: scans dropped for want of a pose within the allowed gap.
+        sensor_config: the config entry the reader resolved for this sensor (topics
+            filled in); None for a batch not made by a reader, which
+            :func:`gpocc.samples.beam.sensor_config` then matches by name.
     """
 
     sensor: str
@@ -43,6 +48,7 @@ class ScanBatch:
     range_max: float
     has_pose_covariance: bool = True
     skipped_scans: int = 0
+    sensor_config: SensorConfig | None = None
 
     @property
     def n_scans(self) -> int:

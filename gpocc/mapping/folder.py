@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpocc.baselines.grid import LogOddsGrid
 from gpocc.config import Config
-from gpocc.evaluation.grid import LogOddsGrid
 from gpocc.gp.classify import NO_DATA, class_counts, classify
 from gpocc.io.mapserver import write_map_server
 from gpocc.io.rasters import write_geotiff

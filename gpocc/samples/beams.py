@@ -1,7 +1,7 @@
 """Laser beams to uncertain training samples: hits (+1) and free space along beams (-1).
 
 Each sample is a point at a distance along one beam of one scan. Its position is a
-nonlinear function (:func:`gpocc.samples.unscented.beam_endpoint`) of five uncertain
+nonlinear function (:func:`gpocc.samples.beam.beam_endpoint`) of five uncertain
 inputs: the range or distance, the beam bearing and the robot pose (x, y, yaw). The
 unscented transform turns the Gaussian of those inputs into the Gaussian of the position,
 and its cross-covariance gives each sample's sensitivity to its scan's pose, so that samples
@@ -10,6 +10,7 @@ of one scan keep their shared pose error (see :class:`~gpocc.samples.sampleset.S
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 
 import numpy as np
@@ -17,8 +18,9 @@ import numpy as np
 from gpocc.config import Config, SamplesConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
+from gpocc.samples import beam
 from gpocc.samples.sampleset import SampleSet
-from gpocc.samples.unscented import beam_endpoint, matrix_sqrt, unscented_transform
+from gpocc.samples.unscented import matrix_sqrt, unscented_transform
 
 #: Upper bound (approximately: whole scans are never split) on the samples pushed through
 #: one unscented-transform call; bounds peak memory to a few hundred MB.
@@ -54,10 +56,10 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     error comes from the bearing and the pose alone. ``var_b`` is
     ``bearing_variance_rad2`` for both.
 
-    Pose covariance: the batch's per-scan covariances when it has them and the sensor's
-    ``override_pose_covariance`` is off; the sensor's ``pose_covariance`` otherwise. A
-    batch whose sensor has no entry in ``config.sensors`` uses :class:`SensorConfig`
-    defaults.
+    Sensor settings and pose covariance: :func:`gpocc.samples.beam.sensor_config` and
+    :func:`gpocc.samples.beam.pose_covariances` (the batch's per-scan covariances when it
+    has them and the sensor's ``override_pose_covariance`` is off; the sensor's
+    ``pose_covariance`` otherwise).
 
     Pose factors: ``A_i = G_i L`` with ``G_i = C_i^T pinv(P)`` (2x3), ``C_i`` the (3, 2)
     pose block of the unscented cross-covariance (statistical linear regression of the
@@ -78,7 +80,7 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
         hits come first, then free samples, each in (scan, beam, distance) order.
         ``scan_ids`` are the scan's index in its batch plus the number of scans of all
         earlier batches (unique across batches); ``sensor_ids`` index the sensors in the
-        order their names first appear in ``batches``.
+        order their names first appear in ``batches``, and ``sensor_names`` names them.
 
     Raises:
         GpoccError: no batches, non-finite poses or pose covariances, or a batch that
@@ -86,7 +88,6 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     """
     if not batches:
         raise GpoccError("no scans to build training samples from; check the input files")
-    sensors = {s.name: s for s in config.sensors}
     sensor_index: dict[str, int] = {}
     thin_cell = float(config.samples.thin_cell_m)
     min_share = float(config.samples.min_label_share)
@@ -95,7 +96,7 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     votes = LabelVotes(thin_cell) if thin_cell > 0 and min_share > 0 else None
     offset = 0
     for batch in batches:
-        sensor = sensors.get(batch.sensor, SensorConfig(name=batch.sensor))
+        sensor = beam.sensor_config(batch, config)
         sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
         n_batch = 0
         for part in _batch_samples(batch, sensor, config.samples, offset, sensor_id):
@@ -120,8 +121,10 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     if kept is not None:
         if votes is not None:
             kept = kept.subset(votes.share(kept) >= min_share)
-        return kept
-    return SampleSet.concatenate(parts)
+        result = kept
+    else:
+        result = SampleSet.concatenate(parts)
+    return dataclasses.replace(result, sensor_names=tuple(sensor_index))
 
 
 class LabelVotes:
@@ -184,19 +187,6 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     return samples.subset(np.sort(order[first]))
 
 
-def _pose_covariances(batch: ScanBatch, sensor: SensorConfig, scans: np.ndarray) -> np.ndarray:
-    """(S', 3, 3) pose covariance of the kept scans, from the batch or the config."""
-    if batch.has_pose_covariance and not sensor.override_pose_covariance:
-        cov = np.asarray(batch.pose_covariances, dtype=float)[scans]
-        if not np.isfinite(cov).all():
-            raise GpoccError(
-                f"{batch.source}: sensor '{batch.sensor}' has non-finite pose covariances; "
-                f"set override_pose_covariance: true and pose_covariance for it in the config"
-            )
-        return 0.5 * (cov + np.swapaxes(cov, -1, -2))
-    return np.broadcast_to(sensor.pose_covariance_matrix, (len(scans), 3, 3)).copy()
-
-
 def _batch_samples(
     batch: ScanBatch,
     sensor: SensorConfig,
@@ -209,22 +199,15 @@ def _batch_samples(
     beams = np.arange(0, batch.n_beams, cfg.beam_stride)
     ranges = np.asarray(batch.ranges, dtype=float)[np.ix_(scans, beams)]
     angles = np.asarray(batch.angles, dtype=float)[beams]
-    poses = np.asarray(batch.poses, dtype=float)[scans]
-    if not np.isfinite(poses).all():
-        raise GpoccError(
-            f"{batch.source}: sensor '{batch.sensor}' has non-finite poses; check the pose "
-            f"source of this input"
-        )
-    pose_cov = _pose_covariances(batch, sensor, scans)
+    poses = beam.checked_poses(batch, scans)
+    pose_cov = beam.pose_covariances(batch, sensor, scans)
     pose_root = matrix_sqrt(pose_cov) if len(scans) else np.zeros((0, 3, 3))
     # A_i = C_i^T pinv(P) L: the scan-level factor pinv(P) L is shared by all its samples.
     pose_map = np.linalg.pinv(pose_cov, hermitian=True) @ pose_root if len(scans) else pose_root
 
-    r_min, r_max = float(batch.range_min), float(batch.range_max)
-    with np.errstate(invalid="ignore"):
-        is_hit = np.isfinite(ranges) & (ranges >= r_min) & (ranges < r_max)
-        no_return = (ranges >= r_max) | (ranges == np.inf)
-    no_return_limit = min(float(sensor.no_return_free_m), r_max)
+    classes = beam.classify_beams(ranges, float(batch.range_min), float(batch.range_max))
+    is_hit, no_return = classes.hit, classes.no_return
+    no_return_limit = beam.no_return_free_m(sensor, batch.range_max)
     gap = max(cfg.hit_gap_m, cfg.hit_gap_sigmas * float(np.sqrt(sensor.range_variance_m2)))
     limit = np.where(is_hit, ranges - gap, np.where(no_return, no_return_limit, 0.0))
     limit = np.where(np.isfinite(limit), limit, 0.0)
@@ -236,13 +219,13 @@ def _batch_samples(
     chunk_of_scan = (np.cumsum(per_scan) - per_scan) // CHUNK_SAMPLES
     bounds = np.concatenate(([0], np.flatnonzero(np.diff(chunk_of_scan)) + 1, [len(scans)]))
 
-    mount = np.array([sensor.mount.x_m, sensor.mount.y_m, np.deg2rad(sensor.mount.yaw_deg)])
+    mount = beam.mount_vector(sensor)
     var_r_hit = float(sensor.range_variance_m2)
     sd_b = float(np.sqrt(sensor.bearing_variance_rad2))
     ut = cfg.unscented
 
     def endpoint(inputs: np.ndarray) -> np.ndarray:
-        return beam_endpoint(inputs, mount)
+        return beam.beam_endpoint(inputs, mount)
 
     for s0, s1 in zip(bounds[:-1], bounds[1:], strict=True):
         hit_scan, hit_beam = np.nonzero(is_hit[s0:s1])

@@ -23,7 +23,9 @@ class SampleSet:
         labels: (N,) +1.0 occupied, -1.0 free.
         scan_ids: (N,) int64, unique per scan across all sensors of a job.
         pose_factors: (N, 2, 3) metres.
-        sensor_ids: (N,) int16 index into the job's sensor list.
+        sensor_ids: (N,) int16 index into ``sensor_names``.
+        sensor_names: the job's sensor names, in ``sensor_ids`` order (empty when not
+            known, e.g. a local problem's copy).
     """
 
     means: np.ndarray
@@ -32,6 +34,7 @@ class SampleSet:
     scan_ids: np.ndarray
     pose_factors: np.ndarray
     sensor_ids: np.ndarray
+    sensor_names: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -45,6 +48,7 @@ class SampleSet:
             scan_ids=self.scan_ids[index],
             pose_factors=self.pose_factors[index],
             sensor_ids=self.sensor_ids[index],
+            sensor_names=self.sensor_names,
         )
 
     def without_input_noise(self) -> SampleSet:
@@ -56,10 +60,13 @@ class SampleSet:
             scan_ids=self.scan_ids,
             pose_factors=np.zeros_like(self.pose_factors),
             sensor_ids=self.sensor_ids,
+            sensor_names=self.sensor_names,
         )
 
     @staticmethod
     def concatenate(parts: list[SampleSet]) -> SampleSet:
+        """The parts one after the other; they index one sensor list, whose longest
+        ``sensor_names`` is kept."""
         if not parts:
             return SampleSet(
                 means=np.zeros((0, 2)),
@@ -76,4 +83,5 @@ class SampleSet:
             scan_ids=np.concatenate([p.scan_ids for p in parts]),
             pose_factors=np.concatenate([p.pose_factors for p in parts]),
             sensor_ids=np.concatenate([p.sensor_ids for p in parts]),
+            sensor_names=max((p.sensor_names for p in parts), key=len),
         )

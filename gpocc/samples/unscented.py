@@ -150,28 +150,3 @@ def unscented_transform(
     y_cov = 0.5 * (y_cov + np.swapaxes(y_cov, -1, -2))
     cross = np.swapaxes(dx * wc[:, None], -1, -2) @ dy
     return y_mean, y_cov, cross
-
-
-def beam_endpoint(inputs: np.ndarray, mount: np.ndarray) -> np.ndarray:
-    """Map-frame position of a point at range r along a beam, vectorised.
-
-    The laser pose is the robot base pose composed with the static mount
-    ``(mx m, my m, myaw rad)``: ``p = (x, y) + R(theta) (mx, my) + r (cos(theta + myaw + b),
-    sin(theta + myaw + b))``.
-
-    Args:
-        inputs: (..., 5) of (range r m, bearing b rad, base x m, base y m, base yaw
-            theta rad).
-        mount: (3,) laser offset and yaw on the base.
-
-    Returns:
-        (..., 2) metres.
-    """
-    r, b, x, y, theta = np.moveaxis(np.asarray(inputs, dtype=float), -1, 0)
-    mx, my, myaw = (float(v) for v in np.asarray(mount, dtype=float))
-    c, s = np.cos(theta), np.sin(theta)
-    phi = theta + myaw + b
-    out = np.empty(np.shape(r) + (2,))
-    out[..., 0] = x + c * mx - s * my + r * np.cos(phi)
-    out[..., 1] = y + s * mx + c * my + r * np.sin(phi)
-    return out

@@ -1,0 +1,42 @@
+"""Options shared by several commands, declared once so they read the same everywhere.
+
+Each is an ``Annotated`` type for a command's signature; the checks that go with them
+(:func:`check_resolution`, :func:`check_at_least`) are the only place an error message
+names a flag.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from gpocc.errors import GpoccError
+
+Force = Annotated[bool, typer.Option(
+    "--force", help="Replace an existing output (the --out file or folder).")]
+ConfigFile = Annotated[Path | None, typer.Option(
+    "--config", help="YAML job config (see `gpocc config`); default: built-in defaults.")]
+OutFolder = Annotated[Path, typer.Option("--out", help="Folder to write.")]
+Bounds = Annotated[tuple[float, float, float, float] | None, typer.Option(
+    "--bounds", metavar="XMIN YMIN XMAX YMAX",
+    help="Map area in the map frame, metres; default: the data's extent plus "
+         "map.margin_m.")]
+Inputs = Annotated[list[Path], typer.Argument(
+    metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
+
+
+def check_resolution(resolution: float) -> float:
+    """``resolution`` if it is a positive, finite number of metres (--resolution)."""
+    if not (resolution > 0 and math.isfinite(resolution)):
+        raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
+    return resolution
+
+
+def check_at_least(flag: str, value: int, minimum: int, why: str = "") -> int:
+    """``value`` if it is at least ``minimum``; else an error naming ``flag``."""
+    if value < minimum:
+        raise GpoccError(f"{flag} must be at least {minimum}{why}, got {value}")
+    return value
