@@ -369,7 +369,7 @@ def load_config(path: str | Path | None) -> Config:
         return Config()
     p = Path(path)
     if not p.is_file():
-        raise GpoccError(f"{p}: config file not found; check the --config path")
+        raise GpoccError(f"{p}: config file not found; check the path")
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as exc:

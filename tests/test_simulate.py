@@ -200,7 +200,7 @@ def test_pose_noise_is_drawn_from_the_recorded_covariance():
     np.testing.assert_allclose(err.var(axis=0), expected, rtol=4 * math.sqrt(2 / n))
     for run in sim.runs:
         np.testing.assert_allclose(run.pose_covariance, np.diag(expected))
-    with pytest.raises(GpoccError, match="pose-noise"):
+    with pytest.raises(GpoccError, match="pose noise"):
         PoseNoise(-1.0, 0.0)
 
 

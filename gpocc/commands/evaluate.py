@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from gpocc.commands.options import Force
 from gpocc.errors import GpoccError
 from gpocc.evaluation.report import (
     evaluate_map,
@@ -30,7 +31,7 @@ def evaluate(
     out: Path | None = typer.Option(
         None, "--out", help="Folder for roc.png, roc.csv, results.json and results.md."
     ),
-    force: bool = typer.Option(False, "--force", help="Replace an existing --out folder."),
+    force: Force = False,
 ) -> None:
     """Score maps against a ground truth: AUC, FPR at TPR 0.97, coverage.
 

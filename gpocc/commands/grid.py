@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import math
 import time
-from pathlib import Path
 
 import typer
 
 import gpocc
 from gpocc.baselines.grid import default_grid_spec, occupancy_grid
+from gpocc.commands.options import Bounds, ConfigFile, Force, Inputs, OutFolder, check_resolution
 from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
@@ -24,26 +23,19 @@ MAX_CELLS = 100_000_000
 
 
 def grid_command(
-    inputs: list[Path] = typer.Argument(
-        ..., metavar="INPUT", help="Bags, bag folders, .mcap files or CARMEN logs."
-    ),
-    config: Path | None = typer.Option(None, "--config", help="YAML job config."),
+    inputs: Inputs,
+    config: ConfigFile = None,
     resolution: float | None = typer.Option(
         None, "--resolution", help="Cell size, metres (default: the config's map.resolution_m)."
     ),
-    out: Path = typer.Option(..., "--out", help="Map folder to write."),
-    bounds: tuple[float, float, float, float] | None = typer.Option(
-        None, "--bounds", metavar="XMIN YMIN XMAX YMAX",
-        help="Map area, metres; default: the observed extent plus map.margin_m.",
-    ),
-    force: bool = typer.Option(False, "--force", help="Replace an existing map folder."),
+    out: OutFolder = ...,
+    bounds: Bounds = None,
+    force: Force = False,
 ) -> None:
     """Build the classic log-odds occupancy grid (the baseline) and write a map folder."""
     check_can_write(out, force)
     cfg = load_config(config)
-    res = cfg.map.resolution_m if resolution is None else resolution
-    if not (res > 0 and math.isfinite(res)):
-        raise GpoccError(f"--resolution must be a positive number of metres, got {res}")
+    res = cfg.map.resolution_m if resolution is None else check_resolution(resolution)
     started = time.perf_counter()
     batches = read_inputs(inputs, cfg)
     read_s = time.perf_counter() - started

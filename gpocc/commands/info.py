@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import typer
 
+from gpocc.commands.options import ConfigFile, Inputs
 from gpocc.config import Config, load_config
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
@@ -81,8 +81,8 @@ def format_samples(batches: list[ScanBatch], config: Config) -> list[str]:
 
 
 def info(
-    inputs: list[Path] = typer.Argument(..., help="Bags, bag folders, .mcap files or CARMEN logs."),
-    config: Path | None = typer.Option(None, "--config", help="YAML job config."),
+    inputs: Inputs,
+    config: ConfigFile = None,
 ) -> None:
     """Show what the inputs hold: topics, time span, scans per sensor, training samples."""
     cfg = load_config(config)

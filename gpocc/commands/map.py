@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from gpocc.errors import GpoccError
+from gpocc.commands.options import Bounds, Force, OutFolder, check_at_least, check_resolution
 from gpocc.gp.model import load_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, check_can_write
@@ -20,24 +20,21 @@ from gpocc.progress import log, progress_bar
 def map_command(
     model_path: Path = typer.Argument(..., metavar="MODEL", help="Model file from `gpocc train`."),
     resolution: float = typer.Option(..., "--resolution", help="Cell size, metres."),
-    out: Path = typer.Option(..., "--out", help="Map folder to write."),
-    bounds: tuple[float, float, float, float] | None = typer.Option(
-        None, "--bounds", help="XMIN YMIN XMAX YMAX metres; default: samples' extent + margin."
-    ),
+    out: OutFolder = ...,
+    bounds: Bounds = None,
     workers: int | None = typer.Option(
         None, "--workers", help="Local processes (default: all cores)."
     ),
     scheduler: str | None = typer.Option(
         None, "--scheduler", help="Dask scheduler address tcp://HOST:PORT."
     ),
-    force: bool = typer.Option(False, "--force", help="Replace an existing map folder."),
+    force: Force = False,
 ) -> None:
     """Sample a trained model at any resolution and write the map folder."""
     check_can_write(out, force)
-    if not resolution > 0:
-        raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
-    if workers is not None and workers < 1:
-        raise GpoccError(f"--workers must be at least 1, got {workers}")
+    check_resolution(resolution)
+    if workers is not None:
+        check_at_least("--workers", workers, 1)
     model = load_model(model_path)
     if bounds is not None:
         spec = GridSpec.from_bounds(*bounds, resolution)

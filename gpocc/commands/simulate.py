@@ -11,6 +11,7 @@ import typer
 import yaml
 
 import gpocc
+from gpocc.commands.options import Force, check_resolution
 from gpocc.errors import GpoccError
 from gpocc.evaluation.simulate import (
     PoseNoise,
@@ -86,15 +87,17 @@ def simulate_command(
         help="Localisation error: x/y standard deviation (m) and yaw (deg); default none.",
     ),
     resolution: float = typer.Option(0.1, "--resolution", help="Truth raster cell size, m."),
-    force: bool = typer.Option(False, "--force", help="Replace an existing folder."),
+    force: Force = False,
 ) -> None:
     """Simulate the two-robot experiment: a slow accurate and a fast noisy robot."""
     check_can_write(out, force)
     if world not in WORLD_NAMES:
         raise GpoccError(f"--world: unknown world {world!r}; choose one of: "
                          f"{', '.join(WORLD_NAMES)}")
-    if not (resolution > 0 and math.isfinite(resolution)):
-        raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
+    check_resolution(resolution)
+    if pose_noise is not None and not all(v >= 0 and math.isfinite(v) for v in pose_noise):
+        raise GpoccError(f"--pose-noise needs two non-negative numbers (SIGMA_XY metres, "
+                         f"SIGMA_YAW degrees), got {pose_noise[0]} {pose_noise[1]}")
     noise = PoseNoise(*pose_noise) if pose_noise is not None else PoseNoise()
     started = time.perf_counter()
     sim = simulate(world, seed=seed, pose_noise=noise)

@@ -8,6 +8,7 @@ import numpy as np
 import typer
 import yaml
 
+from gpocc.commands.options import ConfigFile, Force, check_at_least
 from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
 from gpocc.evaluation.split import (
@@ -29,12 +30,12 @@ def split(
     ),
     every: int = typer.Option(..., "--every", help="Hold out scans with index % K == K - 1."),
     out: Path = typer.Option(..., "--out", help="Folder for train.mcap, train.yaml, heldout.csv."),
-    config_path: Path | None = typer.Option(None, "--config", help="Job config (YAML)."),
+    config_path: ConfigFile = None,
     keep_every: int = typer.Option(1, "--keep-every", help="Keep every S-th training scan."),
     beam_every: int = typer.Option(1, "--beam-every", help="Keep every B-th training beam."),
     seed: int | None = typer.Option(None, "--seed", help="Seed for the free points [config seed]."),
     free_per_beam: int = typer.Option(3, "--free-per-beam", help="Free points per held-out beam."),
-    force: bool = typer.Option(False, "--force", help="Replace an existing --out folder."),
+    force: Force = False,
 ) -> None:
     """Split a log into a training bag and held-out labelled points.
 
@@ -46,12 +47,10 @@ def split(
     """
     check_can_write(out, force)
     config = load_config(config_path)
-    if every < 2:
-        raise GpoccError(f"--every must be at least 2 (every scan would be held out), got {every}")
-    if keep_every < 1 or beam_every < 1:
-        raise GpoccError("--keep-every and --beam-every must be at least 1")
-    if free_per_beam < 0:
-        raise GpoccError(f"--free-per-beam must not be negative, got {free_per_beam}")
+    check_at_least("--every", every, 2, " (every scan would be held out)")
+    check_at_least("--keep-every", keep_every, 1)
+    check_at_least("--beam-every", beam_every, 1)
+    check_at_least("--free-per-beam", free_per_beam, 0)
     rng = np.random.default_rng(config.seed if seed is None else seed)
 
     batches = merge_by_sensor(read_inputs([input_path], config))

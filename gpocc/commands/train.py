@@ -9,6 +9,7 @@ from pathlib import Path
 
 import typer
 
+from gpocc.commands.options import ConfigFile, Force, Inputs
 from gpocc.config import load_config
 from gpocc.gp.model import build_model, kernel_parameters, save_model
 from gpocc.io.atomic import check_can_write
@@ -23,14 +24,14 @@ class Switch(StrEnum):
 
 
 def train(
-    inputs: list[Path] = typer.Argument(..., help="Bags, bag folders, .mcap files or CARMEN logs."),
+    inputs: Inputs,
     out: Path = typer.Option(..., "--out", help="Model file to write (.npz)."),
-    config: Path | None = typer.Option(None, "--config", help="YAML job config."),
+    config: ConfigFile = None,
     input_noise: Switch | None = typer.Option(
         None, "--input-noise", help="on: use sample covariances (default); off: the baseline."
     ),
     seed: int | None = typer.Option(None, "--seed", help="Overrides the config's seed."),
-    force: bool = typer.Option(False, "--force", help="Overwrite an existing model file."),
+    force: Force = False,
 ) -> None:
     """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
     check_can_write(out, force)

@@ -114,7 +114,7 @@ class PoseNoise:
         if not (self.sigma_xy_m >= 0 and self.sigma_yaw_deg >= 0
                 and math.isfinite(self.sigma_xy_m) and math.isfinite(self.sigma_yaw_deg)):
             raise GpoccError(
-                f"--pose-noise needs two non-negative numbers (SIGMA_XY metres, SIGMA_YAW "
+                f"pose noise needs two non-negative numbers (SIGMA_XY metres, SIGMA_YAW "
                 f"degrees), got {self.sigma_xy_m} {self.sigma_yaw_deg}"
             )
 

@@ -46,7 +46,8 @@ class SplitResult:
 def heldout_mask(n_scans: int, every: int) -> np.ndarray:
     """(n_scans,) bool: True for the held-out scans, index % every == every - 1."""
     if every < 2:
-        raise GpoccError(f"--every must be at least 2 (every scan would be held out), got {every}")
+        raise GpoccError(f"the hold-out period must be at least 2 (every scan would be held "
+                         f"out), got {every}")
     return np.arange(n_scans) % every == every - 1
 
 
@@ -145,9 +146,10 @@ def split_batch(
     regime); ``keep_every`` and ``beam_every`` thin only the training scans.
     """
     if keep_every < 1 or beam_every < 1:
-        raise GpoccError("--keep-every and --beam-every must be at least 1")
+        raise GpoccError(f"the training scan and beam steps must be at least 1, got "
+                         f"{keep_every} and {beam_every}")
     if free_per_beam < 0:
-        raise GpoccError(f"--free-per-beam must not be negative, got {free_per_beam}")
+        raise GpoccError(f"the free points per beam must not be negative, got {free_per_beam}")
     held = heldout_mask(batch.n_scans, every)
     train_idx = np.flatnonzero(~held)[::keep_every]
     train = with_pose_covariances(subset_batch(batch, train_idx, beam_every), sensor)

@@ -48,7 +48,7 @@ def load_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """
     p = Path(path)
     if not p.exists():
-        raise GpoccError(f"{p}: ground-truth file not found; check the --ground-truth path")
+        raise GpoccError(f"{p}: ground-truth file not found; check the path")
     if p.is_dir():
         raise GpoccError(f"{p}: is a folder, not a ground-truth file; {ACCEPTED}")
     suffix = p.suffix.lower()

@@ -96,7 +96,7 @@ def _run_dask(model, spec, chunks, scheduler, on_done) -> Iterator[BlockResult]:
         client = Client(scheduler, timeout="10s")
     except (OSError, TimeoutError) as exc:
         raise GpoccError(
-            f"cannot reach the Dask scheduler at {scheduler} ({exc}); check --scheduler"
+            f"cannot reach the Dask scheduler at {scheduler} ({exc}); check the address"
         ) from None
     try:
         model_future = client.scatter(model, broadcast=True)
