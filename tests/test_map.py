@@ -213,9 +213,9 @@ def test_decimated_preview_and_map_server_of_a_large_map_stay_aligned(model_path
                                                                        monkeypatch):
     # Force decimation (stride 3) on a small map whose height is not a multiple of 3:
     # map.pgm's cells must still sit on the full-resolution cells they were taken from.
-    import gpocc.mapping.mapper as mapper
+    import gpocc.mapping.folder as folder
 
-    monkeypatch.setattr(mapper, "_PREVIEW_PIXELS", 20)
+    monkeypatch.setattr(folder, "MAX_PREVIEW_PIXELS", 20)
     out = run_map(model_path, tmp_path / "dec", "--resolution", "0.1", "--workers", "1",
                   "--bounds", "-2.4", "-1.7", "2.4", "1.8")
     with rasterio.open(out / "class.tif") as ds:

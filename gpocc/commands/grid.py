@@ -2,19 +2,19 @@
 
 from __future__ import annotations
 
-import json
 import time
 
+import numpy as np
 import typer
 
-import gpocc
 from gpocc.baselines.grid import default_grid_spec, occupancy_grid
 from gpocc.commands.options import Bounds, ConfigFile, Force, Inputs, OutFolder, check_resolution
 from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
-from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.gp.classify import classify
+from gpocc.io.atomic import atomic_directory, check_can_write
 from gpocc.io.inputs import read_inputs
-from gpocc.mapping.folder import write_grid_folder
+from gpocc.mapping.folder import MapFolder, folder_metadata, write_metadata
 from gpocc.progress import log
 
 #: Refuse grids above this many cells (about 17 bytes each in memory); the GP map
@@ -51,32 +51,26 @@ def grid_command(
     t0 = time.perf_counter()
     grid = occupancy_grid(batches, cfg, spec)
     grid_s = time.perf_counter() - t0
+    probability = grid.probability.astype(np.float32)
+    variance = grid.variance.astype(np.float32)
+    classes = classify(probability, cfg.classify.occupied, cfg.classify.free)
     t0 = time.perf_counter()
     with atomic_directory(out, force=force) as tmp:
-        counts = write_grid_folder(tmp, grid, cfg)
+        folder = MapFolder(tmp, spec, cfg)
+        folder.add(0, 0, spec, probability, variance, classes)
+        counts = folder.finish("log-odds occupancy grid")
         write_s = time.perf_counter() - t0
-        meta = {
-            "gpocc_version": gpocc.__version__,
-            "method": "grid",
-            "inputs": [str(p) for p in inputs],
-            "sensors": [{"name": b.sensor, "source": b.source, "scans": b.n_scans,
-                         "beams": b.n_beams} for b in batches],
-            "resolution_m": spec.resolution,
-            "bounds_m": list(spec.bounds),
-            "size_cells": [spec.width, spec.height],
-            "epsg": cfg.map.epsg,
-            "thresholds": {"occupied": cfg.classify.occupied, "free": cfg.classify.free},
-            "grid": config_to_dict(cfg)["grid"],
-            "class_counts": counts,
-            "observed_cells": int(grid.observed.sum()),
-            "timings_s": {"read": round(read_s, 3), "grid": round(grid_s, 3),
-                          "write": round(write_s, 3)},
-            "layers": {"probability": "p(occupied) = 1 - 1/(1 + exp(log-odds)), float32",
-                       "variance": "Bernoulli variance p (1 - p), float32",
-                       "class": "uint8: 0 free, 1 occupied, 2 unsure, 255 no data"},
-        }
-        with atomic_path(tmp / "metadata.json") as path:
-            path.write_text(json.dumps(meta, indent=2) + "\n")
+        write_metadata(tmp, folder_metadata(
+            "grid", spec, cfg, counts,
+            {"probability": "p(occupied) = 1 - 1/(1 + exp(log-odds)), float32",
+             "variance": "Bernoulli variance p (1 - p), float32"},
+            {"read": read_s, "grid": grid_s, "write": write_s},
+            inputs=[str(p) for p in inputs],
+            sensors=[{"name": b.sensor, "source": b.source, "scans": b.n_scans,
+                      "beams": b.n_beams} for b in batches],
+            grid=config_to_dict(cfg)["grid"],
+            observed_cells=int(grid.observed.sum()),
+        ))
     typer.echo(f"grid: {out}")
     typer.echo(f"cells: {spec.width} x {spec.height} at {spec.resolution} m, bounds {spec.bounds}")
     typer.echo(f"classes: {counts['occupied']} occupied, {counts['free']} free, "

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import typer
 
-from gpocc.commands.options import ConfigFile, Inputs
+from gpocc.commands.options import ConfigFile
 from gpocc.config import Config, load_config
+from gpocc.errors import GpoccError
+from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
 
@@ -80,11 +84,57 @@ def format_samples(batches: list[ScanBatch], config: Config) -> list[str]:
     ]
 
 
+def format_model(path: Path, model: GPModel) -> list[str]:
+    """Lines describing a model file: versions, hyperparameters, samples, sensors, training."""
+    samples = model.samples
+    occupied = int(np.count_nonzero(samples.labels > 0))
+    names = samples.sensor_names or tuple(f"sensor {i}" for i in np.unique(samples.sensor_ids))
+    per_sensor = np.bincount(samples.sensor_ids.astype(np.int64), minlength=len(names))
+    training = model.training
+    timings = training.get("timings_s", {})
+    params = ", ".join(f"{k}={v}" for k, v in kernel_parameters(model.kernel).items())
+    lines = [
+        f"model {path}",
+        "  versions: " + (", ".join(f"{k} {v}" for k, v in model.versions.items())
+                          or "(not recorded)"),
+        f"  kernel: {params}",
+        f"  noise_variance: {model.noise_variance:.6g}",
+        f"  input noise: {'on' if model.input_noise else 'off'}",
+        f"  classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g}, thresholds "
+        f"occupied {model.config.classify.occupied:g}, free {model.config.classify.free:g}",
+        f"  samples: {len(samples)} ({occupied} occupied, {len(samples) - occupied} free) "
+        f"from {len(np.unique(samples.scan_ids))} scans",
+        "  sensors: " + ", ".join(f"{n} ({c} samples)" for n, c in
+                                  zip(names, per_sensor, strict=False)),
+        "  inputs: " + (", ".join(model.inputs) or "(not recorded)"),
+    ]
+    if "log_marginal_likelihood" in training:
+        lines.append(f"  log marginal likelihood: {training['log_marginal_likelihood']:.3f} "
+                     f"({training.get('evaluations', '?')} evaluations)")
+    lines.append("  training time: " + (
+        ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
+        + f" (total {sum(timings.values()):.1f} s)" if timings else "(not recorded)"))
+    return lines
+
+
+def _is_model_file(path: Path) -> bool:
+    return path.suffix.lower() == ".npz"
+
+
 def info(
-    inputs: Inputs,
+    inputs: Annotated[list[Path], typer.Argument(
+        metavar="INPUT...", help="Bags, bag folders, .mcap files, CARMEN logs, or model "
+        "files (.npz from `gpocc train`).")],
     config: ConfigFile = None,
 ) -> None:
-    """Show what the inputs hold: topics, time span, scans per sensor, training samples."""
+    """Show what the inputs hold: topics, time span, scans per sensor, training samples;
+    for a model file: hyperparameters, samples, sensors, versions and training time."""
+    models = [p for p in inputs if _is_model_file(p)]
+    if models:
+        if len(models) != len(inputs):
+            raise GpoccError("pass either model files (.npz) or logs, not both")
+        typer.echo("\n".join(line for p in models for line in format_model(p, load_model(p))))
+        return
     cfg = load_config(config)
     batches: list[ScanBatch] = []
     for path in inputs:

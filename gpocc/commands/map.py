@@ -13,7 +13,8 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, check_can_write
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import default_workers
-from gpocc.mapping.mapper import default_spec, make_map, write_metadata
+from gpocc.mapping.folder import write_metadata
+from gpocc.mapping.mapper import default_spec, make_map, map_metadata
 from gpocc.progress import log, progress_bar
 
 
@@ -48,8 +49,8 @@ def map_command(
     started = time.perf_counter()
     with atomic_directory(out, force=force) as tmp, progress_bar(total, "blocks") as advance:
         summary = make_map(model, spec, tmp, n_workers, scheduler, advance)
-        write_metadata(tmp / "metadata.json", str(model_path), model, summary,
-                       {"workers": n_workers, "scheduler": scheduler})
+        write_metadata(tmp, map_metadata(str(model_path), model, summary,
+                                         workers=n_workers, scheduler=scheduler))
     seconds = time.perf_counter() - started
     typer.echo(f"map: {out}")
     typer.echo(f"cells: {spec.width} x {spec.height} at {resolution} m, bounds {spec.bounds}")

@@ -54,6 +54,9 @@ def train(
         model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs),
                             on_evaluation=advance)
     learn_s = time.perf_counter() - started - read_s - samples_s
+    timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
+               "learn": round(learn_s, 3)}
+    model = dataclasses.replace(model, training={**model.training, "timings_s": timings})
     save_model(model, out)
     seconds = time.perf_counter() - started
     occupied = int((model.samples.labels > 0).sum())

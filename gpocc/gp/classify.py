@@ -14,6 +14,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
 
+from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, factor_training_covariance, leave_one_out
 
 OCCUPIED, FREE, UNSURE, NO_DATA = 1, 0, 2, 255
@@ -38,7 +39,7 @@ def loo_log_probability(a: float, b: float, mean: np.ndarray, variance: np.ndarr
     return float(log_ndtr(z).sum())
 
 
-def fit_classifier(kernel, noise_variance: float, patches: list[LocalProblem],
+def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
                    level: int) -> PlattClassifier:
     """Fit a and b by maximising the LOO predictive log probability over ``patches``."""
     means, variances, labels = [], [], []

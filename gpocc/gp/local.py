@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_cross, expected_kernel_matrix
+from gpocc.gp.kernels import Kernel
 from gpocc.samples.sampleset import SampleSet
 
 # Added to the diagonal on top of the label-noise variance; keeps Cholesky stable when two
@@ -99,7 +100,8 @@ def robust_cholesky(matrix: np.ndarray) -> np.ndarray | None:
 
 
 def training_covariance(
-    kernel, noise_variance: float, samples: SampleSet, level: int, correlated: bool = True
+    kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
+    correlated: bool = True
 ) -> np.ndarray:
     """(M, M) covariance of the training labels: expected kernel plus label noise.
 
@@ -118,7 +120,7 @@ def training_covariance(
 
 
 def factor_training_covariance(
-    kernel, noise_variance: float, samples: SampleSet, level: int
+    kernel: Kernel, noise_variance: float, samples: SampleSet, level: int
 ) -> np.ndarray:
     """Lower Cholesky factor of the label covariance of ``samples``.
 
@@ -142,7 +144,8 @@ def factor_training_covariance(
 
 
 def predict_local(
-    kernel, noise_variance: float, problem: LocalProblem, queries: np.ndarray, level: int
+    kernel: Kernel, noise_variance: float, problem: LocalProblem, queries: np.ndarray,
+    level: int
 ) -> Prediction:
     """GP predictive mean and variance at (Q, 2) map-frame queries from one local problem."""
     local_queries = np.asarray(queries, dtype=float) - problem.centre
@@ -162,7 +165,7 @@ def predict_local(
     return Prediction(mean=mean, variance=np.maximum(variance, 0.0), prior_variance=prior)
 
 
-def predict_full(kernel, noise_variance: float, samples: SampleSet, queries: np.ndarray,
+def predict_full(kernel: Kernel, noise_variance: float, samples: SampleSet, queries: np.ndarray,
                  level: int) -> Prediction:
     """The exact (non-local) GP prediction from every sample; the oracle for small problems."""
     problem = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(len(samples)))

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import platform
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,17 +17,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy
 
-import gpocc
 from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_from_dict, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier, fit_classifier
-from gpocc.gp.kernels import make_kernel
+from gpocc.gp.kernels import Kernel, make_kernel
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_path
 from gpocc.samples.sampleset import SampleSet
+from gpocc.versions import software_versions
 
 FORMAT_NAME = "gpocc-model"
 FORMAT_VERSION = 1
@@ -40,10 +38,13 @@ class GPModel:
     """Everything ``gpocc map`` needs: samples, kernel, noise, classifier, settings.
 
     ``samples`` are the samples the model predicts from: with ``input_noise`` off their
-    covariances are zero (the baseline GP), so prediction code needs no switch.
+    covariances are zero (the baseline GP), so prediction code needs no switch; their
+    ``sensor_names`` name the sensors they came from. ``versions``: the software that
+    trained the model (:func:`gpocc.versions.software_versions`). ``training``: the
+    learning's record (likelihoods, evaluations, patches, ``timings_s``).
     """
 
-    kernel: Any
+    kernel: Kernel
     noise_variance: float
     classifier: PlattClassifier
     samples: SampleSet
@@ -51,6 +52,7 @@ class GPModel:
     input_noise: bool
     training: dict[str, Any] = field(default_factory=dict)
     inputs: tuple[str, ...] = ()
+    versions: dict[str, str] = field(default_factory=software_versions)
 
     @property
     def level(self) -> int:
@@ -64,10 +66,10 @@ class GPModel:
         return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
-def kernel_parameters(kernel: Any) -> dict[str, Any]:
+def kernel_parameters(kernel: Kernel) -> dict[str, Any]:
     """The kernel's hyperparameters as plain data (name plus fields)."""
     values = {k: (list(v) if isinstance(v, tuple) else v)
-              for k, v in dataclasses.asdict(kernel).items()}
+              for k, v in dataclasses.asdict(kernel).items()}  # type: ignore[call-overload]
     return {"class": type(kernel).__name__, **values}
 
 
@@ -111,8 +113,8 @@ def save_model(model: GPModel, path: str | Path) -> None:
     meta = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
-        "versions": {"gpocc": gpocc.__version__, "numpy": np.__version__,
-                     "scipy": scipy.__version__, "python": platform.python_version()},
+        "versions": dict(model.versions),
+        "sensor_names": list(model.samples.sensor_names),
         "kernel": kernel_parameters(model.kernel),
         "kernel_name": model.config.model.kernel,
         "noise_variance": model.noise_variance,
@@ -137,7 +139,7 @@ def load_model(path: str | Path) -> GPModel:
     try:
         with np.load(p, allow_pickle=False) as data:
             meta = json.loads(bytes(data["metadata"]).decode())
-            arrays = {name: data[name] for name in _ARRAYS}
+            arrays: dict[str, Any] = {name: data[name] for name in _ARRAYS}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError,
             EOFError, UnicodeDecodeError):
         raise GpoccError(f"{p}: not a gpocc model file or corrupt; re-create it with "
@@ -159,9 +161,10 @@ def load_model(path: str | Path) -> GPModel:
         kernel=kernel,
         noise_variance=float(meta["noise_variance"]),
         classifier=PlattClassifier(**meta["classifier"]),
-        samples=SampleSet(**arrays),
+        samples=SampleSet(**arrays, sensor_names=tuple(meta.get("sensor_names", ()))),
         config=config,
         input_noise=bool(meta["input_noise"]),
         training=meta.get("training", {}),
         inputs=tuple(meta.get("inputs", ())),
+        versions=dict(meta.get("versions", {})),
     )

@@ -21,6 +21,7 @@ from scipy.optimize import dual_annealing, minimize
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_matrix
+from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.samples.sampleset import SampleSet
 
@@ -41,7 +42,7 @@ class TrainingResult:
         patches: number of patches and samples per patch.
     """
 
-    kernel: object
+    kernel: Kernel
     noise_variance: float
     log_marginal_likelihood: float
     initial_log_marginal_likelihood: float
@@ -111,7 +112,8 @@ def negative_log_likelihood(
 
 
 def learn_hyperparameters(
-    kernel, noise_variance: float, samples: SampleSet, level: int, config: TrainingConfig,
+    kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
+    config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.

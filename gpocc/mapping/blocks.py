@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpocc.gp.local import NeighbourIndex, predict_local
+from gpocc.gp.model import GPModel
 from gpocc.gridspec import GridSpec
 
 
@@ -46,7 +47,8 @@ def plan_blocks(spec: GridSpec, cells: int) -> list[Block]:
     ]
 
 
-def predict_block(model, index: NeighbourIndex, spec: GridSpec, block: Block) -> BlockResult:
+def predict_block(model: GPModel, index: NeighbourIndex, spec: GridSpec,
+                  block: Block) -> BlockResult:
     """Predict every cell centre of ``block`` from the neighbours of the block's centre."""
     window = spec.window(block.row0, block.col0, block.rows, block.cols)
     xs, ys = window.cell_centres()

@@ -14,6 +14,7 @@ from concurrent.futures import ProcessPoolExecutor
 from gpocc.blas import single_threaded_blas
 from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex
+from gpocc.gp.model import GPModel
 from gpocc.gridspec import GridSpec
 from gpocc.mapping.blocks import Block, BlockResult, predict_block
 
@@ -24,7 +25,7 @@ def _chunks(blocks: list[Block], size: int) -> list[list[Block]]:
     return [blocks[i:i + size] for i in range(0, len(blocks), size)]
 
 
-def _index_for(model) -> NeighbourIndex:
+def _index_for(model: GPModel) -> NeighbourIndex:
     # One index per model per process: building it costs as much as a few blocks.
     key = id(model)
     if _worker_state.get("key") != key:
@@ -32,14 +33,14 @@ def _index_for(model) -> NeighbourIndex:
     return _worker_state["index"]  # type: ignore[return-value]
 
 
-def compute_chunk(model, spec: GridSpec, chunk: list[Block]) -> list[BlockResult]:
+def compute_chunk(model: GPModel, spec: GridSpec, chunk: list[Block]) -> list[BlockResult]:
     """Predict a list of blocks of ``spec`` with ``model``."""
     index = _index_for(model)
     with single_threaded_blas():
         return [predict_block(model, index, spec, block) for block in chunk]
 
 
-def _init_worker(model) -> None:
+def _init_worker(model: GPModel) -> None:
     _worker_state["process_model"] = model
 
 
@@ -56,7 +57,7 @@ def default_workers() -> int:
 
 
 def run_blocks(
-    model,
+    model: GPModel,
     spec: GridSpec,
     blocks: list[Block],
     workers: int = 1,
@@ -89,7 +90,8 @@ def run_blocks(
                 on_done(len(chunk))
 
 
-def _run_dask(model, spec, chunks, scheduler, on_done) -> Iterator[BlockResult]:
+def _run_dask(model: GPModel, spec: GridSpec, chunks: list[list[Block]], scheduler: str,
+              on_done: Callable[[int], None] | None) -> Iterator[BlockResult]:
     from distributed import Client
 
     try:

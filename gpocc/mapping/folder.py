@@ -1,38 +1,149 @@
-"""Writing a log-odds grid as a map folder, so ``gpocc evaluate`` compares it like a map."""
+"""The one writer of map folders, for GP maps (``gpocc map``) and the grid baseline
+(``gpocc grid``), so that ``gpocc evaluate`` reads both alike and a change of output
+format is one change.
+
+A folder holds ``probability.tif``, ``variance.tif`` and ``class.tif`` (or, for a map of
+several tiles, ``tiles/<layer>/*.tif`` plus a GDAL VRT mosaic per layer), ``map.yaml`` +
+``map.pgm`` (ROS map_server / Nav2), ``preview.png`` and ``metadata.json``. Layers arrive
+tile by tile (:meth:`MapFolder.add`), so no process has to hold a large map; the
+map_server export and the preview are made from the whole map when it is at most
+``MAX_PREVIEW_PIXELS`` a side, and from a decimated copy (the first cell of every
+stride x stride group) otherwise.
+"""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from gpocc.baselines.grid import LogOddsGrid
+import gpocc
 from gpocc.config import Config
-from gpocc.gp.classify import NO_DATA, class_counts, classify
+from gpocc.gp.classify import NO_DATA, class_counts
+from gpocc.gridspec import GridSpec
+from gpocc.io.atomic import atomic_path
 from gpocc.io.mapserver import write_map_server
-from gpocc.io.rasters import write_geotiff
-from gpocc.mapping.render import preview_factor, render_preview
+from gpocc.io.rasters import write_geotiff, write_vrt
+from gpocc.mapping.render import MAX_PREVIEW_PIXELS, preview_factor, render_preview
+from gpocc.versions import software_versions
+
+LAYERS = ("probability", "variance", "class")
+CLASS_LAYER = "uint8: 0 free, 1 occupied, 2 unsure, 255 no data"
 
 
-def write_grid_folder(out_dir: Path, grid: LogOddsGrid, config: Config) -> dict[str, int]:
-    """Write the map-folder layers of ``grid`` into ``out_dir``; return the class counts.
+class MapFolder:
+    """Writes the layers of one map into ``out_dir`` (a temporary folder: see
+    :func:`gpocc.io.atomic.atomic_directory`).
 
-    Files: ``probability.tif`` and ``variance.tif`` (float32, NaN no data; the variance
-    is the Bernoulli ``p (1 - p)``), ``class.tif`` (uint8 0 free, 1 occupied, 2 unsure,
-    255 no data), ``map.yaml`` + ``map.pgm`` and ``preview.png``.
+    Args:
+        out_dir: the folder.
+        spec: the whole map's raster geometry.
+        config: gives the thresholds (``classify``) and the CRS (``map.epsg``).
+        tiled: write tiles + VRT mosaics instead of single GeoTIFFs.
+        tile: tile side in cells (names the tile files).
     """
-    spec = grid.spec
-    epsg = config.map.epsg
-    occupied, free = config.classify.occupied, config.classify.free
-    probability = grid.probability.astype(np.float32)
-    variance = grid.variance.astype(np.float32)
-    classes = classify(probability, occupied, free)
-    write_geotiff(out_dir / "probability.tif", probability, spec, nodata=np.nan, epsg=epsg)
-    write_geotiff(out_dir / "variance.tif", variance, spec, nodata=np.nan, epsg=epsg)
-    write_geotiff(out_dir / "class.tif", classes, spec, nodata=NO_DATA, epsg=epsg)
-    write_map_server(out_dir / "map.yaml", probability, spec, occupied, free)
-    stride = preview_factor(spec.shape)
-    render_preview(out_dir / "preview.png", probability[::stride, ::stride],
-                   variance[::stride, ::stride], spec.decimated(stride),
-                   title="log-odds occupancy grid")
-    return class_counts(classes)
+
+    def __init__(self, out_dir: Path, spec: GridSpec, config: Config, tiled: bool = False,
+                 tile: int = 0) -> None:
+        self.out_dir = out_dir
+        self.spec = spec
+        self.epsg = config.map.epsg
+        self.occupied = config.classify.occupied
+        self.free = config.classify.free
+        self.tiled = tiled
+        self.tile = tile
+        self.stride = preview_factor(spec.shape, MAX_PREVIEW_PIXELS)
+        self.preview_spec = spec.decimated(self.stride)
+        self.preview_variance = np.full(self.preview_spec.shape, np.nan, dtype=np.float32)
+        self.preview_decided = np.full(self.preview_spec.shape, np.nan, dtype=np.float32)
+        self.tile_files: dict[str, list[tuple[Path, GridSpec]]] = {n: [] for n in LAYERS}
+        self.counts = {"free": 0, "occupied": 0, "unsure": 0}
+
+    def add(self, row0: int, col0: int, window: GridSpec, probability: np.ndarray,
+            variance: np.ndarray, classes: np.ndarray,
+            decided: np.ndarray | None = None) -> None:
+        """Write one tile (the whole map when not tiled) at cell offset (row0, col0).
+
+        Args:
+            probability, variance: (h, w) float32, NaN no data.
+            classes: (h, w) uint8 (:func:`gpocc.gp.classify.classify`).
+            decided: (h, w) the probability a user may rely on, NaN where it is too
+                uncertain to classify; map_server and the preview show it (default:
+                ``probability``).
+        """
+        for key, value in class_counts(classes).items():
+            self.counts[key] += value
+        layers = {"probability": (probability, np.nan), "variance": (variance, np.nan),
+                  "class": (classes, NO_DATA)}
+        for name, (array, nodata) in layers.items():
+            if self.tiled:
+                path = (self.out_dir / "tiles" / name
+                        / f"{name}_{row0 // self.tile}_{col0 // self.tile}.tif")
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_geotiff(path, array, window, nodata=nodata, epsg=self.epsg)
+                self.tile_files[name].append((path, window))
+            else:
+                write_geotiff(self.out_dir / f"{name}.tif", array, window, nodata=nodata,
+                              epsg=self.epsg)
+        stride = self.stride
+        r_off, c_off = (-row0) % stride, (-col0) % stride
+        pr, pc = (row0 + r_off) // stride, (col0 + c_off) // stride
+        decided = probability if decided is None else decided
+        for target, source in ((self.preview_variance, variance),
+                               (self.preview_decided, decided)):
+            part = source[r_off::stride, c_off::stride]
+            target[pr:pr + part.shape[0], pc:pc + part.shape[1]] = part
+
+    def finish(self, title: str, no_data_label: str = "no data") -> dict[str, int]:
+        """Write the VRT mosaics (tiled), map_server files and preview; return the class
+        counts."""
+        if self.tiled:
+            for name in LAYERS:
+                dtype = "uint8" if name == "class" else "float32"
+                nodata = NO_DATA if name == "class" else float("nan")
+                write_vrt(self.out_dir / f"{name}.vrt", self.tile_files[name], self.spec,
+                          dtype, nodata, self.epsg)
+        write_map_server(self.out_dir / "map.yaml", self.preview_decided, self.preview_spec,
+                         self.occupied, self.free)
+        render_preview(self.out_dir / "preview.png", self.preview_decided,
+                       self.preview_variance, self.preview_spec, title=title,
+                       no_data_label=no_data_label)
+        return dict(self.counts)
+
+
+def folder_metadata(method: str, spec: GridSpec, config: Config, counts: dict[str, int],
+                    layers: dict[str, str], timings_s: dict[str, float],
+                    **extra: Any) -> dict[str, Any]:
+    """The content of ``metadata.json``: what every map folder states, then ``extra``.
+
+    Args:
+        method: ``grid``, ``gp`` or ``gp-no-input-noise``.
+        spec: the map's raster geometry.
+        config: gives the CRS and thresholds.
+        counts: class counts (:meth:`MapFolder.finish`).
+        layers: what the probability and variance layers hold (the class layer is the
+            same for every method).
+        timings_s: wall seconds per stage (rounded to ms here).
+    """
+    return {
+        "gpocc_version": gpocc.__version__,
+        "versions": software_versions(),
+        "method": method,
+        "resolution_m": spec.resolution,
+        "bounds_m": list(spec.bounds),
+        "size_cells": [spec.width, spec.height],
+        "epsg": config.map.epsg,
+        "thresholds": {"occupied": config.classify.occupied, "free": config.classify.free},
+        "class_counts": counts,
+        "timings_s": {k: round(v, 3) for k, v in timings_s.items()},
+        "layers": {**layers, "class": CLASS_LAYER},
+        **extra,
+    }
+
+
+def write_metadata(out_dir: Path, meta: dict[str, Any]) -> None:
+    """Write ``metadata.json`` (from :func:`folder_metadata`) atomically."""
+    with atomic_path(out_dir / "metadata.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=2) + "\n")

@@ -1,34 +1,27 @@
 """Sample a trained model on a raster and write the map folder.
 
 A map is computed tile by tile (``map.tile_pixels`` cells a side); each tile is split
-into blocks that share one local GP problem. A map of one tile is written as single
-GeoTIFFs; a larger one as tile files under ``tiles/<layer>/`` plus a GDAL VRT mosaic per
-layer, so no process ever holds the whole map. The map_server export and the preview are
-made from the whole map when it is one tile, and from a decimated copy otherwise.
+into blocks that share one local GP problem, and handed to the folder writer
+(:class:`gpocc.mapping.folder.MapFolder`) as soon as it is done, so no process ever holds
+the whole map.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-import gpocc
-from gpocc.gp.classify import NO_DATA, class_counts, classify
+from gpocc.gp.classify import classify
+from gpocc.gp.model import GPModel, kernel_parameters
 from gpocc.gridspec import GridSpec
-from gpocc.io.atomic import atomic_path
-from gpocc.io.mapserver import write_map_server
-from gpocc.io.rasters import write_geotiff, write_vrt
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import run_blocks
-from gpocc.mapping.render import preview_factor, render_preview
-
-LAYERS = ("probability", "variance", "class")
-_PREVIEW_PIXELS = 2000
+from gpocc.mapping.folder import MapFolder, folder_metadata
 
 
 @dataclass(frozen=True)
@@ -42,7 +35,7 @@ class MapSummary:
     class_counts: dict[str, int]
 
 
-def default_spec(model, resolution: float, margin: float) -> GridSpec:
+def default_spec(model: GPModel, resolution: float, margin: float) -> GridSpec:
     """The samples' extent plus ``margin`` metres, at ``resolution`` metres."""
     x0, y0, x1, y1 = model.extent
     return GridSpec.from_bounds(x0 - margin, y0 - margin, x1 + margin, y1 + margin, resolution)
@@ -54,14 +47,15 @@ def _tile_windows(spec: GridSpec, tile: int) -> list[tuple[int, int, GridSpec]]:
 
 
 def make_map(
-    model,
+    model: GPModel,
     spec: GridSpec,
     out_dir: Path,
     workers: int = 1,
     scheduler: str | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> MapSummary:
-    """Compute the map of ``model`` over ``spec`` and write every layer into ``out_dir``."""
+    """Compute the map of ``model`` over ``spec`` and write its layers into ``out_dir``
+    (:class:`gpocc.mapping.folder.MapFolder`; ``metadata.json`` is the caller's)."""
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
@@ -70,15 +64,8 @@ def make_map(
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
     windows = _tile_windows(spec, tile)
-    tiled = len(windows) > 1
-    stride = preview_factor(spec.shape, _PREVIEW_PIXELS)
-    preview_spec = spec.decimated(stride)
-    preview_v = np.full(preview_spec.shape, np.nan, dtype=np.float32)
-    preview_decided = np.full(preview_spec.shape, np.nan, dtype=np.float32)
-    tile_files: dict[str, list[tuple[Path, GridSpec]]] = {name: [] for name in LAYERS}
-    counts = {"free": 0, "occupied": 0, "unsure": 0}
+    folder = MapFolder(out_dir, spec, config, tiled=len(windows) > 1, tile=tile)
     n_blocks = 0
-    epsg = config.map.epsg
 
     for row0, col0, window in windows:
         blocks = plan_blocks(window, cells)
@@ -93,73 +80,37 @@ def make_map(
             variance[cells_of_block] = result.variance
             unsure[cells_of_block] = result.variance > ratio * result.prior_variance
         classes = classify(probability, occupied, free, unsure)
-        for key, value in class_counts(classes).items():
-            counts[key] += value
-        layers = {"probability": (probability, np.nan), "variance": (variance, np.nan),
-                  "class": (classes, NO_DATA)}
-        for name, (array, nodata) in layers.items():
-            if tiled:
-                path = out_dir / "tiles" / name / f"{name}_{row0 // tile}_{col0 // tile}.tif"
-                path.parent.mkdir(parents=True, exist_ok=True)
-                write_geotiff(path, array, window, nodata=nodata, epsg=epsg)
-                tile_files[name].append((path, window))
-            else:
-                write_geotiff(out_dir / f"{name}.tif", array, window, nodata=nodata, epsg=epsg)
-        # Decimated copies for the preview and map_server: the first cell of every
-        # stride x stride group (stride 1 unless the map is very large).
-        r_off = (-row0) % stride
-        c_off = (-col0) % stride
-        pr, pc = (row0 + r_off) // stride, (col0 + c_off) // stride
         # map_server has no "unsure by variance": such cells are exported as unknown.
-        decided = np.where(unsure, np.nan, probability)
-        for target, source in ((preview_v, variance), (preview_decided, decided)):
-            part = source[r_off::stride, c_off::stride]
-            target[pr:pr + part.shape[0], pc:pc + part.shape[1]] = part
+        folder.add(row0, col0, window, probability, variance, classes,
+                   decided=np.where(unsure, np.nan, probability))
 
-    if tiled:
-        for name in LAYERS:
-            dtype = "uint8" if name == "class" else "float32"
-            nodata = NO_DATA if name == "class" else float("nan")
-            write_vrt(out_dir / f"{name}.vrt", tile_files[name], spec, dtype, nodata, epsg)
-    write_map_server(out_dir / "map.yaml", preview_decided, preview_spec, occupied, free)
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     # The preview shows what a user may rely on: cells too uncertain to classify (and so
     # exported as unknown) are drawn as no data; probability.tif keeps the model's value.
-    render_preview(out_dir / "preview.png", preview_decided, preview_v, preview_spec,
-                   title=title, no_data_label="no data or too uncertain (class: unsure)")
+    counts = folder.finish(title, no_data_label="no data or too uncertain (class: unsure)")
     return MapSummary(spec=spec, tiles=len(windows), blocks=n_blocks,
                       seconds=time.perf_counter() - started, class_counts=counts)
 
 
-def write_metadata(path: Path, model_path: str, model, summary: MapSummary,
-                   extra: dict | None = None) -> None:
-    """``metadata.json``: model, resolution, bounds, thresholds, timings, versions."""
-    spec = summary.spec
-    meta = {
-        "gpocc_version": gpocc.__version__,
-        "method": "gp" if model.input_noise else "gp-no-input-noise",
-        "model": str(model_path),
-        "model_versions": model.training.get("versions"),
-        "resolution_m": spec.resolution,
-        "bounds_m": list(spec.bounds),
-        "size_cells": [spec.width, spec.height],
-        "epsg": model.config.map.epsg,
-        "thresholds": {"occupied": model.config.classify.occupied,
-                       "free": model.config.classify.free},
-        "kernel": type(model.kernel).__name__,
-        "input_noise": model.input_noise,
-        "quadrature_level": model.level,
-        "neighbours": model.config.model.neighbours,
-        "block_size_m": model.config.model.block_size_m,
-        "tiles": summary.tiles,
-        "blocks": summary.blocks,
-        "class_counts": summary.class_counts,
-        "timings_s": {"map": round(summary.seconds, 3)},
-        "layers": {"probability": "p(occupied), float32",
-                   "variance": "latent GP predictive variance, float32",
-                   "class": "uint8: 0 free, 1 occupied, 2 unsure, 255 no data"},
-    }
-    if extra:
-        meta.update(extra)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(meta, indent=2) + "\n")
+def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
+                 **extra: Any) -> dict[str, Any]:
+    """``metadata.json`` of a GP map: the common fields, the model and its versions."""
+    cfg = model.config
+    return folder_metadata(
+        "gp" if model.input_noise else "gp-no-input-noise", summary.spec, cfg,
+        summary.class_counts,
+        {"probability": "p(occupied), float32",
+         "variance": "latent GP predictive variance, float32"},
+        {"map": summary.seconds},
+        model=str(model_path),
+        model_versions=dict(model.versions),
+        model_sensors=list(model.samples.sensor_names),
+        kernel=kernel_parameters(model.kernel),
+        input_noise=model.input_noise,
+        quadrature_level=model.level,
+        neighbours=cfg.model.neighbours,
+        block_size_m=cfg.model.block_size_m,
+        tiles=summary.tiles,
+        blocks=summary.blocks,
+        **extra,
+    )
