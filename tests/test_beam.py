@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -121,3 +122,21 @@ def test_samples_and_heldout_truth_put_hits_at_the_same_points() -> None:
     points, labels = labelled_points(batch, sensor, 0, np.random.default_rng(0))
     assert len(hits) == int(np.isfinite(ranges).sum() - 1) == len(points)
     np.testing.assert_allclose(hits, points[labels == 1], atol=1e-9)
+
+
+def test_scan_ids_are_unique_across_inputs_and_sensors_are_named() -> None:
+    """Two inputs of one sensor and a second sensor: no scan id is shared, so no pose
+    correlation is assumed between scans of different inputs."""
+    rng = np.random.default_rng(2)
+    poses = rng.uniform(-1, 1, size=(3, 3))
+    a = _batch(np.full((3, 5), 2.0), poses)
+    b = dataclasses.replace(a, source="second input")
+    c = dataclasses.replace(a, sensor="other")
+    samples = build_samples([a, b, c], Config(samples=SamplesConfig(thin_cell_m=0.0)))
+    assert samples.sensor_names == ("laser", "other")
+    per_batch = len(samples) // 3
+    ids = [set(samples.scan_ids[i * per_batch:(i + 1) * per_batch]) for i in range(3)]
+    assert all(len(s) == 3 for s in ids)
+    assert not (ids[0] & ids[1]) and not (ids[0] & ids[2]) and not (ids[1] & ids[2])
+    np.testing.assert_array_equal(samples.sensor_ids[:2 * per_batch], 0)
+    np.testing.assert_array_equal(samples.sensor_ids[2 * per_batch:], 1)

@@ -77,7 +77,7 @@ def test_one_bounds_wording_for_map_and_grid() -> None:
     assert bounds_help("map") == bounds_help("grid")
 
 
-def test_quiet_silences_stderr_and_verbose_is_accepted(model_path: Path, tmp_path: Path) -> None:
+def test_quiet_silences_stderr_and_verbose_adds_lines(model_path: Path, tmp_path: Path) -> None:
     args = ["map", str(model_path), "--resolution", "0.5", "--workers", "1"]
     noisy = subprocess.run([sys.executable, "-m", "gpocc", *args, "--out", str(tmp_path / "a")],
                            capture_output=True, text=True, cwd=REPO)
@@ -87,6 +87,13 @@ def test_quiet_silences_stderr_and_verbose_is_accepted(model_path: Path, tmp_pat
     assert "mapping" in noisy.stderr and quiet.stderr == ""
     assert quiet.stdout.replace(str(tmp_path / "b"), "X").splitlines()[:3] == \
         noisy.stdout.replace(str(tmp_path / "a"), "X").splitlines()[:3]
+    verbose = subprocess.run([sys.executable, "-m", "gpocc", *args, "--out",
+                              str(tmp_path / "v"), "--verbose"], capture_output=True, text=True,
+                             cwd=REPO)
+    assert verbose.returncode == 0
+    # The model's details are a verbose-only line (rich may wrap it: compare words).
+    assert "from sensors left, right;" in " ".join(verbose.stderr.split())
+    assert "from sensors" not in noisy.stderr
     both = subprocess.run([sys.executable, "-m", "gpocc", *args, "--out", str(tmp_path / "c"),
                            "-q", "-v"], capture_output=True, text=True, cwd=REPO)
     assert both.returncode == 2 and "exclude each other" in both.stderr

@@ -132,3 +132,22 @@ def test_leave_one_out_matches_refitting(kernel):
         alpha = np.linalg.solve(kk, samples.labels[keep])
         assert mu[i] == pytest.approx(ks @ alpha, rel=1e-6, abs=1e-9)
         assert var[i] == pytest.approx(k[i, i] - ks @ np.linalg.solve(kk, ks), rel=1e-6)
+
+
+def test_failed_cholesky_is_rejected_for_learning_and_jittered_for_prediction():
+    from gpocc.gp.local import try_cholesky
+
+    # Rank-deficient by rounding: a Gram matrix of 3 vectors in 2-D, slightly indefinite.
+    v = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    gram = v @ v.T - 1e-12 * np.eye(3)
+    assert np.linalg.eigvalsh(gram).min() < 0
+    assert try_cholesky(gram, jitter=False) is None
+    chol = try_cholesky(gram, jitter=True)
+    assert chol is not None
+    # The jitter is tiny next to the matrix: the factor reproduces it to 1e-4 of its scale.
+    np.testing.assert_allclose(chol @ chol.T, gram, atol=1e-4 * np.mean(np.diag(gram)))
+    # A positive definite matrix is factored exactly, whatever the policy.
+    pd = gram + 0.1 * np.eye(3)
+    np.testing.assert_allclose(try_cholesky(pd, jitter=False), np.linalg.cholesky(pd))
+    # Far from positive definite: even jitter fails, and the caller decides.
+    assert try_cholesky(-np.eye(3), jitter=True) is None

@@ -8,14 +8,14 @@ from pathlib import Path
 import typer
 
 from gpocc.commands.options import Bounds, Force, OutFolder, check_at_least, check_resolution
-from gpocc.gp.model import load_model
+from gpocc.gp.model import kernel_parameters, load_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, check_can_write
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import default_workers
 from gpocc.mapping.folder import write_metadata
 from gpocc.mapping.mapper import default_spec, make_map, map_metadata
-from gpocc.progress import log, progress_bar
+from gpocc.progress import debug, log, progress_bar
 
 
 def map_command(
@@ -37,6 +37,9 @@ def map_command(
     if workers is not None:
         check_at_least("--workers", workers, 1)
     model = load_model(model_path)
+    debug(f"model {model_path}: {len(model.samples)} samples from sensors "
+          f"{', '.join(model.samples.sensor_names) or '(unnamed)'}; kernel "
+          f"{kernel_parameters(model.kernel)}, noise variance {model.noise_variance:.6g}")
     if bounds is not None:
         spec = GridSpec.from_bounds(*bounds, resolution)
     else:

@@ -77,18 +77,26 @@ def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -
     return LocalProblem(centre=centre, samples=local, index=index)
 
 
-def robust_cholesky(matrix: np.ndarray) -> np.ndarray | None:
-    """Lower Cholesky factor, adding diagonal jitter (1e-10 .. 1e-4 of the mean diagonal)
-    only when the matrix is numerically indefinite.
+def try_cholesky(matrix: np.ndarray, jitter: bool = True) -> np.ndarray | None:
+    """Lower Cholesky factor of a label covariance, or None: the one place where a failed
+    factorisation becomes a decision.
 
-    Correlated same-scan entries come from a 4-D quadrature and are not guaranteed to
-    keep the expected-kernel matrix exactly positive definite when the learned label
-    noise is tiny; a relative jitter of at most 1e-4 is far below any label noise.
+    ``jitter=True`` (prediction, classifier fitting: the hyperparameters are fixed, a
+    factor is needed): add diagonal jitter (1e-10 .. 1e-4 of the mean diagonal) only when
+    the matrix is numerically indefinite. Correlated same-scan entries come from a 4-D
+    quadrature and are not guaranteed to keep the expected-kernel matrix exactly positive
+    definite when the learned label noise is tiny; a relative jitter of at most 1e-4 is
+    far below any label noise. None then means even that failed
+    (:func:`factor_training_covariance` falls back to independent inputs).
+
+    ``jitter=False`` (hyperparameter learning): None at once, and the learner rejects the
+    hyperparameters; a jittered likelihood would score a matrix the model cannot have.
     """
     try:
         return np.linalg.cholesky(matrix)
     except np.linalg.LinAlgError:
-        pass
+        if not jitter:
+            return None
     scale = float(np.mean(np.diag(matrix)))
     eye = np.eye(matrix.shape[0])
     for exponent in range(-10, -3):
@@ -130,9 +138,9 @@ def factor_training_covariance(
     level is low. If even jitter cannot save it, the problem falls back to independent
     inputs, which is exactly positive definite.
     """
-    chol = robust_cholesky(training_covariance(kernel, noise_variance, samples, level))
+    chol = try_cholesky(training_covariance(kernel, noise_variance, samples, level))
     if chol is None:
-        chol = robust_cholesky(
+        chol = try_cholesky(
             training_covariance(kernel, noise_variance, samples, level, correlated=False)
         )
     if chol is None:

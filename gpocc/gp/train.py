@@ -22,7 +22,7 @@ from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_matrix
 from gpocc.gp.kernels import Kernel
-from gpocc.gp.local import LocalProblem, NeighbourIndex
+from gpocc.gp.local import LocalProblem, NeighbourIndex, try_cholesky
 from gpocc.samples.sampleset import SampleSet
 
 _JITTER = 1e-8
@@ -98,9 +98,8 @@ def negative_log_likelihood(
             pose_factors=s.pose_factors, with_gradient=True,
         )
         cov[np.diag_indices_from(cov)] += noise + _JITTER
-        try:
-            chol = np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
+        chol = try_cholesky(cov, jitter=False)
+        if chol is None:  # not a valid covariance: reject these hyperparameters
             return 1e10, np.zeros_like(params)
         alpha = cho_solve((chol, True), s.labels)
         value += 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI

@@ -24,7 +24,7 @@ from gpocc.errors import GpoccError
 from gpocc.io import bags, carmen
 from gpocc.io.bags import POSE_TYPES, SCAN_TYPE, BagContents, TopicSummary
 from gpocc.io.scans import ScanBatch
-from gpocc.progress import log
+from gpocc.progress import debug, log
 
 FORMAT_NAMES = {**bags.FORMAT_NAMES, "carmen": "CARMEN log"}
 CARMEN_SUFFIXES = (".log", ".clf", ".gfs")
@@ -244,6 +244,11 @@ def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:
     batches: list[ScanBatch] = []
     for p in paths:
         batches.extend(read_input(p, config))
+    for b in batches:
+        debug(f"{b.source}: sensor '{b.sensor}': {b.n_scans} scans of {b.n_beams} beams, "
+              f"range {b.range_min:g}..{b.range_max:g} m, pose covariance from "
+              f"{'the input' if b.has_pose_covariance else 'the config'}, "
+              f"{b.skipped_scans} scans skipped")
     used = {b.sensor for b in batches}
     for sensor in config.sensors:
         if sensor.name not in used:
