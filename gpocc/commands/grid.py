@@ -15,6 +15,7 @@ from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
 from gpocc.evaluation.grid import default_grid_spec, occupancy_grid
 from gpocc.evaluation.grid_folder import write_grid_folder
+from gpocc.gridspec import georef_metadata
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
 from gpocc.io.inputs import read_inputs
 from gpocc.progress import log
@@ -74,7 +75,7 @@ def grid_command(
             "resolution_m": spec.resolution,
             "bounds_m": list(spec.bounds),
             "size_cells": [spec.width, spec.height],
-            "epsg": cfg.map.epsg,
+            "georef": georef_metadata(cfg.map.georef),
             "thresholds": {"occupied": cfg.classify.occupied, "free": cfg.classify.free},
             "grid": config_to_dict(cfg)["grid"],
             "class_counts": counts,

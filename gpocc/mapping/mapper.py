@@ -3,8 +3,9 @@
 A map is computed tile by tile (``map.tile_pixels`` cells a side); each tile is split
 into blocks that share one local GP problem. A map of one tile is written as single
 GeoTIFFs; a larger one as tile files under ``tiles/<layer>/`` plus a GDAL VRT mosaic per
-layer, so no process ever holds the whole map. The map_server export and the preview are
-made from the whole map when it is one tile, and from a decimated copy otherwise.
+layer, so no process ever holds the whole map. The map_server export is always at the
+map's resolution (assembled from the class tiles); the preview is made from the whole map
+when it is one tile, and from a decimated copy otherwise.
 """
 
 from __future__ import annotations
@@ -19,15 +20,23 @@ import numpy as np
 
 import gpocc
 from gpocc.gp.classify import NO_DATA, class_counts, classify
-from gpocc.gridspec import GridSpec
+from gpocc.gridspec import GridSpec, georef_metadata
 from gpocc.io.atomic import atomic_path
-from gpocc.io.mapserver import write_map_server
-from gpocc.io.rasters import write_geotiff, write_vrt
+from gpocc.io.mapserver import check_map_server_size, class_pixels, write_map_server_tiles
+from gpocc.io.rasters import (
+    CLASS_BAND,
+    PROBABILITY_BAND,
+    VARIANCE_BAND,
+    read_raster,
+    write_geotiff,
+    write_vrt,
+)
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import run_blocks
 from gpocc.mapping.render import preview_factor, render_preview
 
 LAYERS = ("probability", "variance", "class")
+BANDS = {"probability": PROBABILITY_BAND, "variance": VARIANCE_BAND, "class": CLASS_BAND}
 _PREVIEW_PIXELS = 2000
 
 
@@ -66,6 +75,7 @@ def make_map(
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
     ratio = config.classify.max_variance_ratio
+    check_map_server_size(spec, config.map.max_pgm_pixels)  # before any work
     cells = block_cells(config.model.block_size_m, spec.resolution)
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
@@ -78,7 +88,8 @@ def make_map(
     tile_files: dict[str, list[tuple[Path, GridSpec]]] = {name: [] for name in LAYERS}
     counts = {"free": 0, "occupied": 0, "unsure": 0}
     n_blocks = 0
-    epsg = config.map.epsg
+    georef = config.map.georef
+    class_files: list[tuple[Path, GridSpec]] = []
 
     for row0, col0, window in windows:
         blocks = plan_blocks(window, cells)
@@ -101,10 +112,15 @@ def make_map(
             if tiled:
                 path = out_dir / "tiles" / name / f"{name}_{row0 // tile}_{col0 // tile}.tif"
                 path.parent.mkdir(parents=True, exist_ok=True)
-                write_geotiff(path, array, window, nodata=nodata, epsg=epsg)
+                write_geotiff(path, array, window, nodata=nodata, georef=georef,
+                              band=BANDS[name])
                 tile_files[name].append((path, window))
             else:
-                write_geotiff(out_dir / f"{name}.tif", array, window, nodata=nodata, epsg=epsg)
+                path = out_dir / f"{name}.tif"
+                write_geotiff(path, array, window, nodata=nodata, georef=georef,
+                              band=BANDS[name])
+            if name == "class":
+                class_files.append((path, window))
         # Decimated copies for the preview and map_server: the first cell of every
         # stride x stride group (stride 1 unless the map is very large).
         r_off = (-row0) % stride
@@ -120,8 +136,11 @@ def make_map(
         for name in LAYERS:
             dtype = "uint8" if name == "class" else "float32"
             nodata = NO_DATA if name == "class" else float("nan")
-            write_vrt(out_dir / f"{name}.vrt", tile_files[name], spec, dtype, nodata, epsg)
-    write_map_server(out_dir / "map.yaml", preview_decided, preview_spec, occupied, free)
+            write_vrt(out_dir / f"{name}.vrt", tile_files[name], spec, dtype, nodata, georef,
+                      BANDS[name])
+    # map.pgm at full resolution from the class tiles, one tile in memory at a time.
+    pgm_tiles = ((window, class_pixels(read_raster(path)[0])) for path, window in class_files)
+    write_map_server_tiles(out_dir / "map.yaml", spec, pgm_tiles, occupied, free)
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     # The preview shows what a user may rely on: cells too uncertain to classify (and so
     # exported as unknown) are drawn as no data; probability.tif keeps the model's value.
@@ -143,7 +162,7 @@ def write_metadata(path: Path, model_path: str, model, summary: MapSummary,
         "resolution_m": spec.resolution,
         "bounds_m": list(spec.bounds),
         "size_cells": [spec.width, spec.height],
-        "epsg": model.config.map.epsg,
+        "georef": georef_metadata(model.config.map.georef),
         "thresholds": {"occupied": model.config.classify.occupied,
                        "free": model.config.classify.free},
         "kernel": type(model.kernel).__name__,
