@@ -8,10 +8,9 @@ import warnings
 
 import numpy as np
 import pytest
+import rasterio
+import rasterio.shutil
 import tifffile
-
-rasterio = pytest.importorskip("rasterio")
-import rasterio.shutil  # noqa: E402
 from affine import Affine  # noqa: E402  (comes with rasterio)
 from rasterio.crs import CRS  # noqa: E402
 from rasterio.enums import Compression  # noqa: E402

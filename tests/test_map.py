@@ -252,3 +252,38 @@ def test_map_server_size_limit_is_an_explicit_error(model_path, tmp_path):
     assert "map.max_pgm_pixels" in result.output and "--resolution" in result.output
     assert not out.exists()
     run_map(path, out, "--resolution", "0.2", "--bounds", "-2.4", "-1.7", "2.4", "1.8")
+
+
+def test_georeferenced_map_folder_is_cog_and_lands_where_the_robot_was(model_path, tmp_path):
+    import math
+
+    from rio_cogeo.cogeo import cog_validate
+
+    from gpocc.config import GeorefConfig
+
+    georef = GeorefConfig(epsg=32633, easting_m=389_000.25, northing_m=5_819_500.5,
+                          yaw_deg=30.0)
+    model = load_model(model_path)
+    placed = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, georef=georef)))
+    path = tmp_path / "placed.npz"
+    save_model(placed, path)
+    out = run_map(path, tmp_path / "geo", "--resolution", "0.1",
+                  "--bounds", "-2.4", "-1.7", "2.4", "1.8")
+    yaw = math.radians(30.0)
+    for name in ("probability", "variance", "class"):
+        valid, errors, warnings = cog_validate(str(out / f"{name}.tif"), strict=True)
+        assert valid, (name, errors, warnings)
+        with rasterio.open(out / f"{name}.tif") as ds:
+            assert ds.crs.to_epsg() == 32633
+            # The map frame's (xmin, ymax) corner, rotated by yaw and moved to the origin.
+            x, y = -2.4, -1.7 + ds.height * 0.1
+            expected = (georef.easting_m + math.cos(yaw) * x - math.sin(yaw) * y,
+                        georef.northing_m + math.sin(yaw) * x + math.cos(yaw) * y)
+            assert ds.transform @ (0, 0) == pytest.approx(expected, abs=1e-6)
+            assert ds.read_masks(1).all()  # inside the samples' extent every cell has data
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["georef"]["epsg"] == 32633 and meta["georef"]["yaw_deg"] == 30.0
+    # map.yaml stays in the map frame (Nav2 works there).
+    _, spec = read_map_server(out / "map.yaml")
+    assert (spec.x0, spec.y0) == pytest.approx((-2.4, -1.7))
