@@ -41,6 +41,10 @@ def _assert_cog(path: Path, cli: bool = False) -> None:
     """rio-cogeo's validator (strict: warnings fail too); ``cli`` also runs the command."""
     valid, errors, warnings = cog_validate(str(path), strict=True)
     assert valid, (path, errors, warnings)
+    # GDAL's ghost area right after the header announces the COG layout to readers.
+    head = path.read_bytes()[:400]
+    assert b"GDAL_STRUCTURAL_METADATA" in head and b"LAYOUT=IFDS_BEFORE_DATA" in head
+    assert b"BLOCK_ORDER=ROW_MAJOR" in head
     if not cli:
         return
     done = subprocess.run([_rio(), "cogeo", "validate", "--strict", str(path)],

@@ -18,6 +18,7 @@ from gpocc.evaluation.grid_folder import write_grid_folder
 from gpocc.gridspec import georef_metadata
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
 from gpocc.io.inputs import read_inputs
+from gpocc.io.mapserver import check_map_server_size
 from gpocc.progress import log
 
 #: Refuse grids above this many cells (about 17 bytes each in memory); the GP map
@@ -58,6 +59,7 @@ def grid_command(
             f"the grid would have {spec.width} x {spec.height} cells (more than {MAX_CELLS}); "
             f"use a coarser --resolution or a smaller --bounds"
         )
+    check_map_server_size(spec, cfg.map.max_pgm_pixels)  # before any work
     log(f"grid: {spec.width} x {spec.height} cells at {res} m")
     t0 = time.perf_counter()
     grid = occupancy_grid(batches, cfg, spec)
