@@ -232,3 +232,17 @@ def test_multiband_and_unreadable_rasters_name_the_file_not_a_codec(tmp_path):
     with pytest.raises(GpoccError, match="junk.tif: GDAL cannot read it") as info:
         read_raster(tmp_path / "junk.tif")
     assert "imagecodecs" not in str(info.value)
+
+
+def test_map_grid_is_ignored_once_the_file_is_georeferenced_anew(tmp_path):
+    """gdalwarp / gdal_edit keep metadata: a stale map grid must not override GDAL's."""
+    georef = GeorefConfig(epsg=32633, easting_m=500_000.0, northing_m=5_000_000.0)
+    spec = GridSpec(-3.0, -2.0, 0.5, 40, 30)
+    path = tmp_path / "p.tif"
+    write_geotiff(path, _probability_with_holes(spec, 6), spec, nodata=NAN, georef=georef)
+    assert read_raster(path)[1] == spec  # the map frame while the transform is ours
+    moved = rasterio.Affine(0.5, 0.0, 500_100.0, 0.0, -0.5, 5_000_200.0)
+    with rasterio.open(path, "r+", IGNORE_COG_LAYOUT_BREAK="YES") as ds:
+        ds.transform = moved
+    _, back, _ = read_raster(path)
+    assert (back.x0, back.y1, back.resolution) == pytest.approx((500_100.0, 5_000_200.0, 0.5))

@@ -49,7 +49,9 @@ LOCAL_FRAME_WKT = (
     f'LOCAL_CS["{LOCAL_FRAME_NAME}",UNIT["metre",1,AUTHORITY["EPSG","9001"]],'
     'AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
 )
-#: Dataset metadata item holding ``x0 y0 resolution`` of the raster in the map frame.
+#: Dataset metadata item: ``x0 y0 resolution`` of the raster in the map frame, then the
+#: six-number GDAL geotransform it was written with. A reader trusts the map grid only
+#: while the file still has that geotransform (gdalwarp and friends copy metadata).
 MAP_GRID_TAG = "GPOCC_MAP_GRID"
 
 _GDAL_TYPES = {
@@ -161,7 +163,7 @@ def write_geotiff(
         with MemoryFile() as staged:
             with staged.open(**profile) as ds:
                 ds.write(a, 1)
-                ds.update_tags(**{MAP_GRID_TAG: _map_grid_text(spec)})
+                ds.update_tags(**{MAP_GRID_TAG: _map_grid_text(spec, georef)})
                 if band is not None:
                     _describe(ds, band)
             with staged.open() as src:
@@ -177,8 +179,9 @@ def _describe(ds: Any, band: Band) -> None:
         ds.update_tags(1, **{f"CATEGORY_{c.value}": c.name for c in band.categories})
 
 
-def _map_grid_text(spec: GridSpec) -> str:
-    return f"{float(spec.x0)!r} {float(spec.y0)!r} {float(spec.resolution)!r}"
+def _map_grid_text(spec: GridSpec, georef: Any) -> str:
+    values = (spec.x0, spec.y0, spec.resolution, *geotransform(spec, georef))
+    return " ".join(repr(float(v)) for v in values)
 
 
 def _crs(georef: Any) -> Any:
@@ -250,7 +253,7 @@ def write_vrt(
     transform = ET.SubElement(root, "GeoTransform")
     transform.text = ", ".join(repr(float(v)) for v in geotransform(full, georef))
     metadata = ET.SubElement(root, "Metadata")
-    ET.SubElement(metadata, "MDI", key=MAP_GRID_TAG).text = _map_grid_text(full)
+    ET.SubElement(metadata, "MDI", key=MAP_GRID_TAG).text = _map_grid_text(full, georef)
     vrt_band = ET.SubElement(root, "VRTRasterBand", dataType=_GDAL_TYPES[dt.name], band="1")
     if band is not None:
         ET.SubElement(vrt_band, "Description").text = band.description
@@ -354,17 +357,26 @@ def _read_geotiff(path: Path) -> tuple[np.ndarray, GridSpec, Nodata]:
             f"{path}: GDAL cannot read it ({detail}); the file is corrupt, truncated or not "
             f"a raster: write or copy it again"
         ) from None
-    if grid_text is not None:
-        spec = _grid_from_text(path, grid_text, array.shape)
-    else:
+    spec = _map_grid(path, grid_text, transform.to_gdal(), array.shape)
+    if spec is None:
         spec = _north_up_grid(path, transform, bool(gcps), array.shape)
     return array, spec, _nodata_for(nodata, array.dtype)
 
 
-def _grid_from_text(path: Path, text: str, shape: tuple[int, int]) -> GridSpec:
-    """The map-frame grid gpocc records in its own rasters (whatever their georeference)."""
+def _map_grid(path: Path, text: str | None, gt: Any,
+              shape: tuple[int, int]) -> GridSpec | None:
+    """The map-frame grid gpocc recorded in its own raster (whatever its georeference),
+    or None when there is none or the file's geotransform changed since (warped, edited)."""
+    if text is None:
+        return None
     try:
-        x0, y0, res = (float(v) for v in text.split())
+        values = [float(v) for v in text.split()]
+        if len(values) != 9:
+            raise ValueError
+        x0, y0, res = values[:3]
+        if not all(math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-9)
+                   for a, b in zip(values[3:], gt, strict=True)):
+            return None
         return GridSpec(x0, y0, res, int(shape[1]), int(shape[0]))
     except (ValueError, GpoccError):
         raise GpoccError(
@@ -439,9 +451,8 @@ def _read_vrt(path: Path, depth: int) -> tuple[np.ndarray, GridSpec, Nodata]:
     for item in root.iterfind("Metadata/MDI"):
         if item.attrib.get("key") == MAP_GRID_TAG:
             grid_text = item.text or ""
-    if grid_text is not None:
-        spec = _grid_from_text(path, grid_text, (height, width))
-    else:
+    spec = _map_grid(path, grid_text, gt, (height, width))
+    if spec is None:
         x0, sx, rx, y1, ry, sy = gt
         if rx != 0.0 or ry != 0.0:
             raise GpoccError(f"{path}: the mosaic is rotated or sheared; {fix}")
