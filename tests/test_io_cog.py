@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+import rasterio.shutil
 from rio_cogeo.cogeo import cog_validate
 
 from gpocc.config import GeorefConfig
@@ -112,6 +113,10 @@ def test_class_layer_has_colour_table_and_category_names(tmp_path):
         assert ds.tags(1)["CATEGORY_1"] == "occupied"
         assert ds.descriptions == (CLASS_BAND.description,)
         np.testing.assert_array_equal(ds.read(1), classes)
+        # GDAL parsed the VRT's CategoryNames: its GTiff copy keeps them (in PAM).
+        rasterio.shutil.copy(ds, tmp_path / "copy.tif", driver="GTiff")
+    pam = (tmp_path / "copy.tif.aux.xml").read_text()
+    assert "<Category>free</Category>" in pam and "<Category>unsure</Category>" in pam
 
 
 def _map_to_crs(georef: GeorefConfig, x: float, y: float) -> tuple[float, float]:

@@ -10,8 +10,9 @@ class layers, so no class is ever invented.
 
 No-data is declared (``GDAL_NODATA``) and used: NaN in float layers, 255 in class
 layers. A layer may carry a band description, units, a colour table and category names
-(band metadata ``CATEGORY_<value>``, plus the colour table's entries) and a
-``GPOCC_MAP_GRID`` item recording its grid in the robot's map frame.
+as band metadata ``CATEGORY_<value>`` (GDAL's GTiff driver keeps its own CategoryNames
+only in a ``.aux.xml`` sidecar, which copies lose; VRT mosaics carry them natively), and
+a ``GPOCC_MAP_GRID`` item recording its grid in the robot's map frame.
 
 Georeferencing: without :class:`~gpocc.config.GeorefConfig` the raster is in a local
 engineering frame in metres (GDAL: ``LOCAL_CS``), the map frame itself. With one, the
