@@ -191,13 +191,38 @@ class ClassifyConfig:
 
 
 @dataclass(frozen=True)
+class GeorefConfig:
+    """Where the map frame sits in a projected CRS, so GeoTIFFs land where the robot was.
+
+    ``easting_m``, ``northing_m``: the map frame's origin (x = y = 0) in the CRS, metres.
+    ``yaw_deg``: the direction of the map frame's +x axis, degrees counter-clockwise from
+    the CRS's east axis (the ROS / ENU convention). A map point (x, y) lands at
+    ``E = easting + cos(yaw) x - sin(yaw) y``, ``N = northing + sin(yaw) x + cos(yaw) y``.
+    """
+
+    epsg: int = 0
+    easting_m: float = 0.0
+    northing_m: float = 0.0
+    yaw_deg: float = 0.0
+
+
+@dataclass(frozen=True)
 class MapConfig:
-    """Map output defaults. ``epsg``: a projected CRS code, or null for a local frame."""
+    """Map output defaults.
+
+    ``georef``: the map frame's place in a projected CRS (:class:`GeorefConfig`), or null
+    for a local engineering frame in metres. ``epsg`` is the retired form (a CRS without
+    an origin misplaces the map); any value other than null is an error naming the fix.
+    ``max_pgm_pixels``: optional limit on the side of ``map.pgm``; a larger map is an
+    error (the map_server image is never silently coarsened). Null: no limit.
+    """
 
     resolution_m: float = 0.1
     margin_m: float = 1.0
+    georef: GeorefConfig | None = None
     epsg: int | None = None
     tile_pixels: int = 4096
+    max_pgm_pixels: int | None = None
 
 
 @dataclass(frozen=True)
@@ -236,7 +261,7 @@ _POSITIVE_KEYS = {
     "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",
     "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
-    "max_variance_ratio",
+    "max_variance_ratio", "max_pgm_pixels",
     "weight_variance", "bias_variance",
 }
 
@@ -348,6 +373,18 @@ def _validate(config: Config, source: str) -> Config:
     if config.model.kernel not in ("nn", "se"):
         raise GpoccError(
             f"{source}: key 'model.kernel' must be 'nn' or 'se', got {config.model.kernel!r}"
+        )
+    if config.map.epsg is not None:
+        raise GpoccError(
+            f"{source}: key 'map.epsg' is retired: a CRS code without the map frame's origin "
+            f"puts the map in the wrong place; use map.georef with epsg, easting_m, "
+            f"northing_m and yaw_deg (or remove map.epsg for a local frame)"
+        )
+    georef = config.map.georef
+    if georef is not None and not 1024 <= georef.epsg < 32767:
+        raise GpoccError(
+            f"{source}: key 'map.georef.epsg' must be a projected EPSG code (e.g. 32633 for "
+            f"UTM 33N), got {georef.epsg}"
         )
     if config.model.quadrature_level > 10:
         raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")

@@ -105,3 +105,35 @@ class GridSpec:
         row = self.height - 1 - np.floor((pts[:, 1] - self.y0) / self.resolution).astype(np.int64)
         inside = (col >= 0) & (col < self.width) & (row >= 0) & (row < self.height)
         return row, col, inside
+
+
+def geotransform(spec: GridSpec, georef=None) -> tuple[float, float, float, float, float, float]:
+    """GDAL geotransform ``(c, a, b, f, d, e)`` of ``spec``: pixel (col, row) corner to CRS.
+
+    ``X = c + a col + b row``, ``Y = f + d col + e row``. Without ``georef`` the CRS is
+    the map frame itself (north-up, ``(x0, y1 + ...)``). With one (an object with
+    ``easting_m``, ``northing_m``, ``yaw_deg``: the map frame's origin in the CRS and the
+    direction of its +x axis, counter-clockwise from east), a map point (x, y) lands at
+    ``E = easting + cos(yaw) x - sin(yaw) y``, ``N = northing + sin(yaw) x + cos(yaw) y``;
+    for a non-zero yaw the geotransform is rotated, so the raster keeps the map's cells.
+    """
+    res = float(spec.resolution)
+    if georef is None:
+        return (float(spec.x0), res, 0.0, float(spec.y1), 0.0, -res)
+    yaw = math.radians(float(georef.yaw_deg))
+    c, s = math.cos(yaw), math.sin(yaw)
+    if abs(s) < 1e-15:  # keep exact zeros: a north-up map stays exactly north-up
+        s = 0.0
+    # Pixel (col, row) corner in the map frame: x = x0 + col res, y = y1 - row res.
+    x, y = float(spec.x0), float(spec.y1)
+    east = float(georef.easting_m) + c * x - s * y
+    north = float(georef.northing_m) + s * x + c * y
+    return (east, c * res, s * res, north, s * res, -c * res)
+
+
+def georef_metadata(georef) -> dict | None:
+    """The ``map.georef`` block for metadata.json (None: local frame in metres)."""
+    if georef is None:
+        return None
+    return {"epsg": georef.epsg, "easting_m": georef.easting_m,
+            "northing_m": georef.northing_m, "yaw_deg": georef.yaw_deg}

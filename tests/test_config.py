@@ -73,3 +73,16 @@ def test_cli_reports_bad_config_in_one_line(tmp_path):
 def test_missing_config_file(tmp_path):
     with pytest.raises(GpoccError, match="config file not found"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_map_epsg_alone_is_retired_and_georef_is_validated():
+    with pytest.raises(GpoccError, match=r"c.yaml: key 'map.epsg' is retired.*map.georef"):
+        config_from_dict({"map": {"epsg": 32633}}, "c.yaml")
+    with pytest.raises(GpoccError, match="map.georef.epsg' must be a projected EPSG code"):
+        config_from_dict({"map": {"georef": {"easting_m": 1.0}}}, "c.yaml")
+    with pytest.raises(GpoccError, match="unknown key 'origin' under 'map.georef'"):
+        config_from_dict({"map": {"georef": {"epsg": 32633, "origin": [1, 2]}}}, "c.yaml")
+    cfg = config_from_dict({"map": {"georef": {"epsg": 32633, "easting_m": 400000,
+                                               "northing_m": 5800000.5, "yaw_deg": 12}}})
+    assert cfg.map.georef.easting_m == 400000.0 and cfg.map.georef.yaw_deg == 12.0
+    assert config_from_dict({"map": {"epsg": None}}).map.georef is None

@@ -291,3 +291,38 @@ def test_probability_raster_value_other_than_classes_is_rejected_as_truth(tmp_pa
     write_geotiff(truth, np.full(SPEC.shape, 0.3, np.float32), SPEC, nodata=NODATA)
     with pytest.raises(GpoccError, match="prob_as_truth.tif"):
         load_truth(truth)
+
+
+@pytest.mark.parametrize(("map_options", "truth_options"), [
+    (dict(compress="lzw"), dict(compress="lzw", predictor=2)),
+    (dict(compress="zstd", predictor=3, tiled=True, blockxsize=16, blockysize=16),
+     dict(compress="deflate")),
+])
+def test_evaluate_scores_geotiffs_written_by_gdal(tmp_path, map_options, truth_options):
+    """Map and truth written by GDAL itself (LZW, ZSTD, predictors) score like ours."""
+    transform = rasterio.Affine(SPEC.resolution, 0, SPEC.x0, 0, -SPEC.resolution, SPEC.y1)
+    folder = tmp_path / "gdal_map"
+    folder.mkdir()
+    prob = _probability(3)
+    with rasterio.open(folder / "probability.tif", "w", driver="GTiff", width=SPEC.width,
+                       height=SPEC.height, count=1, dtype="float32", transform=transform,
+                       nodata=NODATA, **map_options) as ds:
+        ds.write(prob, 1)
+    rng = np.random.default_rng(8)
+    xs, _ = SPEC.cell_centres()
+    classes = (xs + rng.normal(0, 0.5, xs.shape) > 0.7).astype(np.uint8)
+    classes[rng.random(classes.shape) < 0.2] = 255
+    truth = tmp_path / "truth.tif"
+    with rasterio.open(truth, "w", driver="GTiff", width=SPEC.width, height=SPEC.height,
+                       count=1, dtype="uint8", transform=transform, nodata=255,
+                       **truth_options) as ds:
+        ds.write(classes, 1)
+
+    result = _invoke(str(folder), "--ground-truth", str(truth), "--out", str(tmp_path / "o"))
+    assert result.exit_code == 0, result.output
+    rows, cols = np.nonzero(classes != 255)
+    labels = classes[rows, cols]
+    scores = prob[rows, cols].astype(float)
+    scores[scores == NODATA] = 0.5
+    auc = json.loads((tmp_path / "o" / "results.json").read_text())["maps"][0]["auc"]
+    assert auc == pytest.approx(roc_auc_score(labels, scores), abs=1e-9)

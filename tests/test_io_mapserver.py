@@ -195,3 +195,99 @@ def test_bad_map_server_files_give_clear_errors(tmp_path):
     (tmp_path / "cut.yaml").write_text(good)
     with pytest.raises(GpoccError, match="m.pgm: truncated"):
         read_map_server(tmp_path / "cut.yaml")
+
+
+# --------------------------------------------------------------------------- Nav2
+
+
+def nav2_load_map(yaml_path):
+    """Nav2's map_io (nav2_map_server/src/map_io.cpp) loadMapYaml + loadMapFromFile, in Python.
+
+    Re-implemented from its rules, for 8-bit grey images: the image path is relative to
+    the yaml's folder; ``mode`` defaults to trinary; ``negate`` is an int or a bool;
+    ``normalized = grey / 255`` (float32), inverted unless negate; occupied (100) where
+    ``normalized >= occupied_thresh``, free (0) where ``<= free_thresh``, else unknown
+    (-1); rows are flipped so data row 0 is the image's bottom row.
+
+    Returns ``(data (H, W) int8 with row 0 south, resolution, origin [x, y, yaw])``.
+    """
+    doc = yaml.safe_load(yaml_path.read_text())
+    image = doc["image"]
+    if not image:
+        raise ValueError("The image tag was empty.")
+    if not image.startswith("/"):
+        image = str(yaml_path.parent / image)
+    resolution = float(doc["resolution"])
+    origin = [float(v) for v in doc["origin"]]
+    if len(origin) != 3:
+        raise ValueError("value of the 'origin' tag should have 3 elements")
+    free_thresh = float(doc["free_thresh"])
+    occupied_thresh = float(doc["occupied_thresh"])
+    mode = doc.get("mode", "trinary")
+    assert mode == "trinary"
+    negate = int(doc["negate"])
+    _, width, height, maxval, pixels = parse_pgm(type(yaml_path)(image))
+    assert maxval == 255
+    grey = pixels[: width * height].reshape(height, width)
+    normalized = grey.astype(np.float32) / np.float32(255.0)
+    if not negate:
+        normalized = np.float32(1.0) - normalized
+    result = np.full((height, width), -1, dtype=np.int8)
+    result[normalized >= occupied_thresh] = 100
+    result[normalized <= free_thresh] = 0
+    return result[::-1], resolution, origin
+
+
+def _nav2_cell_of(points, resolution, origin, shape):
+    """Row (from the south) and column of each (N, 2) point in a loaded Nav2 grid."""
+    col = np.floor((points[:, 0] - origin[0]) / resolution).astype(int)
+    row = np.floor((points[:, 1] - origin[1]) / resolution).astype(int)
+    assert ((col >= 0) & (col < shape[1]) & (row >= 0) & (row < shape[0])).all()
+    return row, col
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_nav2_loads_every_cell_at_the_requested_resolution(tmp_path, tiled):
+    from gpocc.gp.classify import classify
+    from gpocc.io.mapserver import class_pixels, write_map_server_tiles
+
+    # A 130 m long building at 0.05 m: 2600 cells a side, over the old 2000 px limit.
+    spec = GridSpec(-40.0, -30.0, 0.05, 2600, 230)
+    rng = np.random.default_rng(7)
+    p = rng.random(spec.shape).astype(np.float32)
+    p[rng.random(spec.shape) < 0.05] = np.nan  # cells without data
+    occupied, free = 0.65, 0.35
+    classes = classify(p, occupied, free)
+    yaml_path = tmp_path / "map.yaml"
+    if tiled:  # the mapper's path: one tile at a time, from class tiles
+        tile = 96
+        tiles = ((spec.window(r, c, tile, tile),
+                  class_pixels(classes[r:r + tile, c:c + tile]))
+                 for r in range(0, spec.height, tile) for c in range(0, spec.width, tile))
+        write_map_server_tiles(yaml_path, spec, tiles, occupied, free)
+    else:
+        write_map_server(yaml_path, p, spec, occupied, free)
+
+    data, resolution, origin = nav2_load_map(yaml_path)
+    assert resolution == spec.resolution
+    assert origin == [spec.x0, spec.y0, 0.0]
+    assert data.shape == spec.shape
+    # Every cell, looked up by its centre in Nav2's grid, keeps its class.
+    xs, ys = spec.cell_centres()
+    row, col = _nav2_cell_of(np.column_stack([xs.ravel(), ys.ravel()]), resolution, origin,
+                             data.shape)
+    loaded = data[row, col].reshape(spec.shape)
+    np.testing.assert_array_equal(loaded == 100, classes == 1)
+    np.testing.assert_array_equal(loaded == 0, classes == 0)
+    np.testing.assert_array_equal(loaded == -1, (classes == 2) | (classes == 255))
+    assert (classes == 1).sum() > 1000 and (classes == 255).sum() > 100
+
+
+def test_size_limit_errors_and_writes_nothing(tmp_path):
+    spec = GridSpec(0.0, 0.0, 0.05, 2001, 10)
+    p = np.zeros(spec.shape)
+    with pytest.raises(GpoccError, match="2001 x 10 pixels, over map.max_pgm_pixels = 2000"):
+        write_map_server(tmp_path / "map.yaml", p, spec, 0.65, 0.35, max_pixels=2000)
+    assert list(tmp_path.iterdir()) == []
+    write_map_server(tmp_path / "map.yaml", p, spec, 0.65, 0.35, max_pixels=2001)
+    assert parse_pgm(tmp_path / "map.pgm")[1:3] == (2001, 10)

@@ -209,10 +209,10 @@ def test_cells_far_from_every_sample_are_unsure_and_unknown_to_map_server(model_
     assert np.all(server_classes[:, far] == 2)
 
 
-def test_decimated_preview_and_map_server_of_a_large_map_stay_aligned(model_path, tmp_path,
-                                                                       monkeypatch):
-    # Force decimation (stride 3) on a small map whose height is not a multiple of 3:
-    # map.pgm's cells must still sit on the full-resolution cells they were taken from.
+def test_map_server_is_full_resolution_when_preview_is_decimated_or_map_tiled(
+        model_path, tmp_path, monkeypatch):
+    # Force a decimated preview (stride 3) and, below, a tiled map: map.pgm must still
+    # have one pixel per map cell, equal to class.tif's decided cells.
     import gpocc.mapping.folder as folder
 
     monkeypatch.setattr(folder, "MAX_PREVIEW_PIXELS", 20)
@@ -220,9 +220,70 @@ def test_decimated_preview_and_map_server_of_a_large_map_stay_aligned(model_path
                   "--bounds", "-2.4", "-1.7", "2.4", "1.8")
     with rasterio.open(out / "class.tif") as ds:
         classes = ds.read(1)
-        full_top = ds.bounds.top
+        bounds = ds.bounds
     server, spec = read_map_server(out / "map.yaml")
-    assert spec.resolution == pytest.approx(0.3)
-    assert spec.y1 == pytest.approx(full_top)
-    np.testing.assert_array_equal(server == 1, classes[::3, ::3] == 1)
-    np.testing.assert_array_equal(server == 0, classes[::3, ::3] == 0)
+    assert spec.resolution == pytest.approx(0.1)
+    assert (spec.x0, spec.y0, spec.y1) == pytest.approx((bounds.left, bounds.bottom, bounds.top))
+    np.testing.assert_array_equal(server == 1, classes == 1)
+    np.testing.assert_array_equal(server == 0, classes == 0)
+
+    model = load_model(model_path)
+    tiled_model = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, tile_pixels=12)))
+    tiled_path = tmp_path / "tiled.npz"
+    save_model(tiled_model, tiled_path)
+    tiled = run_map(tiled_path, tmp_path / "t", "--resolution", "0.1", "--workers", "1",
+                    "--bounds", "-2.4", "-1.7", "2.4", "1.8")
+    assert (tiled / "class.vrt").is_file()
+    tiled_server, tiled_spec = read_map_server(tiled / "map.yaml")
+    assert tiled_spec == spec
+    np.testing.assert_array_equal(tiled_server, server)
+
+
+def test_map_server_size_limit_is_an_explicit_error(model_path, tmp_path):
+    model = load_model(model_path)
+    limited = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, max_pgm_pixels=30)))
+    path = tmp_path / "limited.npz"
+    save_model(limited, path)
+    out = tmp_path / "lim"
+    result = runner.invoke(app, ["map", str(path), "--resolution", "0.1", "--out", str(out)])
+    assert result.exit_code != 0
+    assert "map.max_pgm_pixels" in result.output and "--resolution" in result.output
+    assert not out.exists()
+    run_map(path, out, "--resolution", "0.2", "--bounds", "-2.4", "-1.7", "2.4", "1.8")
+
+
+def test_georeferenced_map_folder_is_cog_and_lands_where_the_robot_was(model_path, tmp_path):
+    import math
+
+    from rio_cogeo.cogeo import cog_validate
+
+    from gpocc.config import GeorefConfig
+
+    georef = GeorefConfig(epsg=32633, easting_m=389_000.25, northing_m=5_819_500.5,
+                          yaw_deg=30.0)
+    model = load_model(model_path)
+    placed = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, georef=georef)))
+    path = tmp_path / "placed.npz"
+    save_model(placed, path)
+    out = run_map(path, tmp_path / "geo", "--resolution", "0.1",
+                  "--bounds", "-2.4", "-1.7", "2.4", "1.8")
+    yaw = math.radians(30.0)
+    for name in ("probability", "variance", "class"):
+        valid, errors, warnings = cog_validate(str(out / f"{name}.tif"), strict=True)
+        assert valid, (name, errors, warnings)
+        with rasterio.open(out / f"{name}.tif") as ds:
+            assert ds.crs.to_epsg() == 32633
+            # The map frame's (xmin, ymax) corner, rotated by yaw and moved to the origin.
+            x, y = -2.4, -1.7 + ds.height * 0.1
+            expected = (georef.easting_m + math.cos(yaw) * x - math.sin(yaw) * y,
+                        georef.northing_m + math.sin(yaw) * x + math.cos(yaw) * y)
+            assert ds.transform @ (0, 0) == pytest.approx(expected, abs=1e-6)
+            assert ds.read_masks(1).all()  # inside the samples' extent every cell has data
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["georef"]["epsg"] == 32633 and meta["georef"]["yaw_deg"] == 30.0
+    # map.yaml stays in the map frame (Nav2 works there).
+    _, spec = read_map_server(out / "map.yaml")
+    assert (spec.x0, spec.y0) == pytest.approx((-2.4, -1.7))

@@ -14,6 +14,8 @@ from gpocc.errors import GpoccError
 from gpocc.gp.classify import classify
 from gpocc.io.atomic import atomic_directory, check_can_write
 from gpocc.io.inputs import read_inputs
+from gpocc.io.mapserver import check_map_server_size
+from gpocc.io.rasters import BERNOULLI_VARIANCE_BAND
 from gpocc.mapping.folder import MapFolder, folder_metadata, write_metadata
 from gpocc.progress import log
 
@@ -47,6 +49,7 @@ def grid_command(
             f"the grid would have {spec.width} x {spec.height} cells (more than {MAX_CELLS}); "
             f"use a coarser --resolution or a smaller --bounds"
         )
+    check_map_server_size(spec, cfg.map.max_pgm_pixels)  # before any work
     log(f"grid: {spec.width} x {spec.height} cells at {res} m")
     t0 = time.perf_counter()
     grid = occupancy_grid(batches, cfg, spec)
@@ -56,7 +59,7 @@ def grid_command(
     classes = classify(probability, cfg.classify.occupied, cfg.classify.free)
     t0 = time.perf_counter()
     with atomic_directory(out, force=force) as tmp:
-        folder = MapFolder(tmp, spec, cfg)
+        folder = MapFolder(tmp, spec, cfg, bands={"variance": BERNOULLI_VARIANCE_BAND})
         folder.add(0, 0, spec, probability, variance, classes)
         counts = folder.finish("log-odds occupancy grid")
         write_s = time.perf_counter() - t0

@@ -24,7 +24,7 @@ from gpocc.evaluation.world import WORLD_NAMES
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
 from gpocc.io.bags import write_bag
-from gpocc.io.rasters import write_geotiff
+from gpocc.io.rasters import TRUTH_BAND, write_geotiff
 from gpocc.progress import log
 
 _CONFIG_HEADER = """\
@@ -111,7 +111,7 @@ def simulate_command(
         batches = [run.batch(source=str(out / "sim.mcap")) for run in sim.runs]
         topics = [(run.platform.scan_topic, run.platform.pose_topic) for run in sim.runs]
         write_bag(tmp / "sim.mcap", batches, topics, "mcap")
-        write_geotiff(tmp / "truth.tif", labels, spec, nodata=255)
+        write_geotiff(tmp / "truth.tif", labels, spec, nodata=255, band=TRUTH_BAND)
         with atomic_path(tmp / "sim.yaml") as path:
             path.write_text(_CONFIG_HEADER + yaml.safe_dump(sim_config(sim, resolution),
                                                             sort_keys=False))

@@ -2,8 +2,10 @@
 
 Three kinds of file are accepted:
 
-* a GeoTIFF (or a GDAL VRT mosaic of them): 1 occupied, 0 free, the no-data value
-  (or NaN) for unknown; every labelled cell centre becomes a point;
+* a GeoTIFF (or a GDAL VRT mosaic of them): any single-band raster GDAL reads (any
+  TIFF compression or predictor, striped or tiled, COG), north-up in the map frame:
+  1 occupied, 0 free, the no-data value (or NaN) for unknown; every labelled cell centre
+  becomes a point;
 * a ROS map_server YAML with its image, read with map_server's trinary rules: occupied
   cells give 1, free cells 0, unknown cells nothing;
 * a labelled point file: CSV with a header naming the columns ``x,y,label`` (other

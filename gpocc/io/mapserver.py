@@ -2,20 +2,23 @@
 
 map_server turns a pixel ``v`` (the mean of its colour channels, inverted when
 ``negate: 1``) into ``p = (255 - v) / 255`` and then, in ``trinary`` mode: occupied when
-``p > occupied_thresh``, free when ``p < free_thresh``, unknown otherwise. ``origin`` is
+``p > occupied_thresh``, free when ``p < free_thresh``, unknown otherwise (Nav2's
+``map_io``: ``>=`` and ``<=``; our pixels sit clear of both rules). ``origin`` is
 the pose (x, y, yaw) of the lower-left corner of the lower-left pixel; image row 0 is
 the top (north) row.
 
 We write only the three values 0 (occupied, p = 1), 254 (free, p = 1/255) and 205
 (unknown, p = 50/255 = 0.19608), with ``occupied_thresh: 0.65`` and ``free_thresh:
 0.196`` (the ROS defaults): 205 then sits just above the free threshold, so map_server
-reads back exactly our three classes.
+reads back exactly our three classes. The image always has one pixel per map cell:
+a large map is assembled tile by tile, never coarsened (an optional size limit errors).
 """
 
 from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -34,27 +37,11 @@ YAML_OCCUPIED_THRESH, YAML_FREE_THRESH = 0.65, 0.196
 FREE, OCCUPIED, UNKNOWN = 0, 1, 2
 
 
-def write_map_server(
-    yaml_path: str | os.PathLike[str],
-    probability: np.ndarray,
-    spec: GridSpec,
-    occupied_threshold: float,
-    free_threshold: float,
-) -> None:
-    """Write ``map.yaml`` and its ``.pgm`` (binary P5, 8-bit, trinary), atomically.
-
-    Args:
-        yaml_path: the yaml; the image is written beside it with the same stem and a
-            ``.pgm`` suffix, and named relative to it.
-        probability: (H, W) p(occupied) on ``spec``, NaN where there is no data.
-        spec: the grid; its lower-left corner becomes ``origin`` and its cell size
-            ``resolution`` (metres).
-        occupied_threshold: p above it is occupied.
-        free_threshold: p below it is free; in between (and NaN) is unknown.
-    """
+def map_server_pixels(
+    probability: np.ndarray, occupied_threshold: float, free_threshold: float
+) -> np.ndarray:
+    """(H, W) uint8 pixels of p(occupied): occupied above, free below, else (and NaN) unknown."""
     p = np.asarray(probability, dtype=float)
-    if p.shape != spec.shape:
-        raise ValueError(f"probability shape {p.shape} does not match the grid {spec.shape}")
     if not 0.0 <= free_threshold <= occupied_threshold <= 1.0:
         raise GpoccError(
             f"classify thresholds must satisfy 0 <= free <= occupied <= 1, got free "
@@ -64,16 +51,100 @@ def write_map_server(
     with np.errstate(invalid="ignore"):  # NaN compares False: stays unknown
         pixels[p > occupied_threshold] = OCCUPIED_PIXEL
         pixels[p < free_threshold] = FREE_PIXEL
+    return pixels
 
+
+def class_pixels(classes: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 pixels of gpocc classes: 1 occupied, 0 free, anything else unknown.
+
+    Unsure (2) and no-data (255) cells become unknown: map_server has no other state.
+    """
+    from gpocc.gp.classify import FREE as CLASS_FREE
+    from gpocc.gp.classify import OCCUPIED as CLASS_OCCUPIED
+
+    c = np.asarray(classes)
+    pixels = np.full(c.shape, UNKNOWN_PIXEL, dtype=np.uint8)
+    pixels[c == CLASS_OCCUPIED] = OCCUPIED_PIXEL
+    pixels[c == CLASS_FREE] = FREE_PIXEL
+    return pixels
+
+
+def check_map_server_size(spec: GridSpec, max_pixels: int | None) -> None:
+    """Refuse a map whose image would exceed ``max_pixels`` a side (None: no limit).
+
+    The image is never coarsened to fit: a smaller map needs a coarser ``--resolution``
+    or smaller bounds, chosen by the user.
+    """
+    if max_pixels is not None and max(spec.width, spec.height) > max_pixels:
+        raise GpoccError(
+            f"map.pgm would be {spec.width} x {spec.height} pixels, over map.max_pgm_pixels "
+            f"= {max_pixels}; use a coarser --resolution or smaller --bounds, or raise or "
+            f"remove map.max_pgm_pixels"
+        )
+
+
+def write_map_server(
+    yaml_path: str | os.PathLike[str],
+    probability: np.ndarray,
+    spec: GridSpec,
+    occupied_threshold: float,
+    free_threshold: float,
+    max_pixels: int | None = None,
+) -> None:
+    """Write ``map.yaml`` and its ``.pgm`` (binary P5, 8-bit, trinary), atomically.
+
+    Args:
+        yaml_path: the yaml; the image is written beside it with the same stem and a
+            ``.pgm`` suffix, and named relative to it.
+        probability: (H, W) p(occupied) on ``spec``, NaN where there is no data.
+        spec: the grid; its lower-left corner becomes ``origin`` and its cell size
+            ``resolution`` (metres). The image has exactly one pixel per cell.
+        occupied_threshold: p above it is occupied.
+        free_threshold: p below it is free; in between (and NaN) is unknown.
+        max_pixels: optional limit on the image side (see :func:`check_map_server_size`).
+    """
+    p = np.asarray(probability)
+    if p.shape != spec.shape:
+        raise ValueError(f"probability shape {p.shape} does not match the grid {spec.shape}")
+    pixels = map_server_pixels(p, occupied_threshold, free_threshold)
+    write_map_server_tiles(yaml_path, spec, [(spec, pixels)], occupied_threshold,
+                           free_threshold, max_pixels)
+
+
+def write_map_server_tiles(
+    yaml_path: str | os.PathLike[str],
+    spec: GridSpec,
+    tiles: Iterable[tuple[GridSpec, np.ndarray]],
+    occupied_threshold: float,
+    free_threshold: float,
+    max_pixels: int | None = None,
+) -> None:
+    """Write ``map.yaml`` and a full-resolution ``.pgm`` assembled from tiles, atomically.
+
+    Args:
+        yaml_path: as for :func:`write_map_server`.
+        spec: the whole map's grid.
+        tiles: (tile grid, (h, w) uint8 pixels from :func:`map_server_pixels` or
+            :func:`class_pixels`) pairs; each tile lies on ``spec``'s lattice. Only one
+            tile is in memory at a time; cells no tile covers are unknown.
+        occupied_threshold, free_threshold: the thresholds the pixels were made with
+            (recorded in the yaml's comment).
+        max_pixels: optional limit on the image side (see :func:`check_map_server_size`).
+    """
+    check_map_server_size(spec, max_pixels)
     yaml_path = Path(yaml_path)
     image_path = yaml_path.with_suffix(".pgm")
     header = (
         f"P5\n# gpocc occupancy map, {spec.resolution!r} m/cell\n"
         f"{spec.width} {spec.height}\n255\n"
     ).encode("ascii")
+    # Nav2's map_io: occupied when (255 - v) / 255 >= occupied_thresh, free when it is
+    # <= free_thresh (ROS 1 map_server: > and <); our 0 / 254 / 205 pixels give 1.0,
+    # 0.0039 and 0.19608, so either rule reads back exactly our three classes.
     text = (
         f"# ROS map_server / Nav2 map written by gpocc: free where p(occupied) < "
-        f"{free_threshold!r}, occupied where p > {occupied_threshold!r}.\n"
+        f"{free_threshold!r}, occupied where p > {occupied_threshold!r}; one pixel per "
+        f"map cell.\n"
         f"image: {image_path.name}\n"
         f"mode: trinary\n"
         f"resolution: {float(spec.resolution)!r}\n"
@@ -86,9 +157,40 @@ def write_map_server(
     with atomic_path(image_path) as tmp:
         with open(tmp, "wb") as f:
             f.write(header)
-            f.write(np.ascontiguousarray(pixels).tobytes())
+        _write_pixels(tmp, len(header), spec, tiles)
     with atomic_path(yaml_path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def _write_pixels(path: Path, offset: int, spec: GridSpec,
+                  tiles: Iterable[tuple[GridSpec, np.ndarray]]) -> None:
+    """Fill the image body after the header, one tile at a time, via a memory map."""
+    with open(path, "r+b") as f:
+        f.truncate(offset + spec.width * spec.height)
+    body = np.memmap(path, dtype=np.uint8, mode="r+", offset=offset, shape=spec.shape)
+    try:
+        body[...] = UNKNOWN_PIXEL
+        for window, pixels in tiles:
+            row, col = _offset_in(window, spec)
+            px = np.asarray(pixels, dtype=np.uint8)
+            if px.shape != window.shape:
+                raise ValueError(f"tile pixels {px.shape} do not match its grid {window.shape}")
+            body[row:row + window.height, col:col + window.width] = px
+        body.flush()
+    finally:
+        del body
+
+
+def _offset_in(window: GridSpec, spec: GridSpec) -> tuple[int, int]:
+    res = spec.resolution
+    col_f, row_f = (window.x0 - spec.x0) / res, (spec.y1 - window.y1) / res
+    col, row = round(col_f), round(row_f)
+    if (abs(col_f - col) > 1e-6 or abs(row_f - row) > 1e-6
+            or not math.isclose(window.resolution, res, rel_tol=1e-9)):
+        raise ValueError("a map_server tile is not on the map's cells")
+    if col < 0 or row < 0 or col + window.width > spec.width or row + window.height > spec.height:
+        raise ValueError("a map_server tile extends outside the map")
+    return row, col
 
 
 def read_map_server(yaml_path: str | os.PathLike[str]) -> tuple[np.ndarray, GridSpec]:

@@ -1,68 +1,59 @@
-"""GeoTIFF and VRT rasters: written with tifffile, readable by GDAL/rasterio and by us.
+"""GeoTIFF and VRT rasters: Cloud Optimized GeoTIFFs written and read through GDAL.
 
-The GeoTIFFs are single-band, internally tiled, deflate-compressed, carry their
-overviews as following pages marked ``NewSubfileType = 1`` (reduced-resolution image,
-which is where GDAL looks for internal overviews), and are georeferenced with
-ModelPixelScale + ModelTiepoint (north-up, ``RasterPixelIsArea``). Without an EPSG code
-the GeoKeys describe a user-defined model in metres, which GDAL reads as a
-``LOCAL_CS`` (an engineering frame: metric, not geographic); with one they name the
-projected CRS. No-data goes in GDAL's own ASCII tag (42113).
+Every layer is written by GDAL's own COG driver (through rasterio, whose wheels bundle
+GDAL), so the layout is exactly what ``rio cogeo validate`` expects: all IFDs (full
+resolution, then 2x, 4x, ... overviews) at the start of the file, followed by the tile
+data from the smallest overview to the full resolution, tiles in row order. Layers are
+single-band, 256 x 256 tiles, deflate with the horizontal (integers) or floating-point
+predictor. Overviews average the valid cells of floats and keep the nearest cell of
+class layers, so no class is ever invented.
 
-Very large maps are written as tiles plus a GDAL VRT mosaic (:func:`write_vrt`), so no
-process needs to hold the whole map; :func:`read_raster` reads either back.
+No-data is declared (``GDAL_NODATA``) and used: NaN in float layers, 255 in class
+layers. A layer may carry a band description, units, a colour table and category names
+as band metadata ``CATEGORY_<value>`` (GDAL's GTiff driver keeps its own CategoryNames
+only in a ``.aux.xml`` sidecar, which copies lose; VRT mosaics carry them natively), and
+a ``GPOCC_MAP_GRID`` item recording its grid in the robot's map frame.
+
+Georeferencing: without :class:`~gpocc.config.GeorefConfig` the raster is in a local
+engineering frame in metres (GDAL: ``LOCAL_CS``), the map frame itself. With one, the
+map frame's origin and yaw place it in the projected CRS; a yawed map gets a rotated
+geotransform (GeoTIFF ``ModelTransformationTag``), so every cell lands where the robot
+saw it while the raster keeps the map's rows and columns.
+
+Very large maps are written as tiles plus a GDAL VRT mosaic (:func:`write_vrt`), each tile
+a COG; :func:`read_raster` reads either back, and reads any single-band raster GDAL
+reads (any compression, predictor, striped or tiled) for ground truth and evaluation.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import warnings
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tifffile
 
 from gpocc.errors import GpoccError
-from gpocc.gridspec import GridSpec
+from gpocc.gridspec import GridSpec, geotransform
 from gpocc.io.atomic import atomic_path
-
-try:  # Only imagecodecs has the floating-point predictor; without it floats go unpredicted.
-    import imagecodecs  # noqa: F401
-
-    _FLOAT_PREDICTOR = 3
-except ImportError:  # pragma: no cover - depends on the environment
-    _FLOAT_PREDICTOR = 1
 
 Nodata = float | int | None
 
-#: Name of the local engineering frame written when no EPSG code is given.
+#: Name of the local engineering frame written when no georeference is given.
 LOCAL_FRAME_NAME = "gpocc local map frame"
-#: The same frame as GDAL reports it (used as the SRS of VRT mosaics).
+#: The same frame as GDAL reports it (the SRS of local rasters and VRT mosaics).
 LOCAL_FRAME_WKT = (
     f'LOCAL_CS["{LOCAL_FRAME_NAME}",UNIT["metre",1,AUTHORITY["EPSG","9001"]],'
     'AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
 )
-
-# TIFF / GeoTIFF tag codes.
-_MODEL_PIXEL_SCALE = 33550
-_MODEL_TIEPOINT = 33922
-_MODEL_TRANSFORMATION = 34264
-_GEO_KEY_DIRECTORY = 34735
-_GEO_ASCII_PARAMS = 34737
-_GDAL_NODATA = 42113
-
-# GeoKey ids and values (GeoTIFF 1.1, OGC 19-008r4).
-_GT_MODEL_TYPE = 1024
-_GT_RASTER_TYPE = 1025
-_GT_CITATION = 1026
-_PROJECTED_CS_TYPE = 3072
-_PROJ_LINEAR_UNITS = 3076
-_MODEL_TYPE_PROJECTED = 1
-_USER_DEFINED = 32767
-_RASTER_PIXEL_IS_AREA = 1
-_RASTER_PIXEL_IS_POINT = 2
-_LINEAR_METRE = 9001
+#: Dataset metadata item: ``x0 y0 resolution`` of the raster in the map frame, then the
+#: six-number GDAL geotransform it was written with. A reader trusts the map grid only
+#: while the file still has that geotransform (gdalwarp and friends copy metadata).
+MAP_GRID_TAG = "GPOCC_MAP_GRID"
 
 _GDAL_TYPES = {
     "uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16",
@@ -71,6 +62,45 @@ _GDAL_TYPES = {
 _NUMPY_TYPES = {v: k for k, v in _GDAL_TYPES.items()}
 
 _MAX_VRT_DEPTH = 4
+
+
+@dataclass(frozen=True)
+class Category:
+    """One value of a class layer: its name and RGBA colour (0..255 each)."""
+
+    value: int
+    name: str
+    rgba: tuple[int, int, int, int]
+
+
+@dataclass(frozen=True)
+class Band:
+    """What a layer's band holds: a description, its units, and classes if categorical."""
+
+    description: str
+    units: str = ""
+    categories: tuple[Category, ...] = ()
+
+
+def _class_categories() -> tuple[Category, ...]:
+    from gpocc.gp.classify import FREE, NO_DATA, OCCUPIED, UNSURE
+
+    # Free white, occupied black (as in map_server images), unsure amber, no data clear.
+    return (Category(FREE, "free", (255, 255, 255, 255)),
+            Category(OCCUPIED, "occupied", (0, 0, 0, 255)),
+            Category(UNSURE, "unsure", (230, 159, 0, 255)),
+            Category(NO_DATA, "no data", (0, 0, 0, 0)))
+
+
+#: The bands of a map folder's layers.
+PROBABILITY_BAND = Band("p(occupied): probability that the cell is occupied", "probability")
+VARIANCE_BAND = Band("latent GP predictive variance (of the regression on labels -1/+1)",
+                     "label^2")
+BERNOULLI_VARIANCE_BAND = Band("Bernoulli variance p (1 - p) of the occupancy", "probability^2")
+CLASS_BAND = Band("occupancy class: 0 free, 1 occupied, 2 unsure, 255 no data", "class",
+                  _class_categories())
+TRUTH_BAND = Band("ground-truth occupancy: 0 free, 1 occupied, 255 unknown", "class",
+                  tuple(c for c in _class_categories() if c.value != 2))
 
 
 # --------------------------------------------------------------------------- writing
@@ -82,24 +112,29 @@ def write_geotiff(
     spec: GridSpec,
     *,
     nodata: Nodata,
-    epsg: int | None = None,
+    georef: Any = None,
+    band: Band | None = None,
     tile: int = 256,
     overviews: bool = True,
 ) -> None:
-    """Write a single-band, tiled, deflate-compressed GeoTIFF with overviews, atomically.
+    """Write a single-band Cloud Optimized GeoTIFF with overviews, atomically.
 
     Args:
         path: output file; replaced atomically (the caller checks overwrite permission).
         array: (H, W) values; row 0 is north. Any of uint8, int8, (u)int16, (u)int32,
-            float32, float64.
-        spec: the grid of ``array`` (``spec.shape == array.shape``).
-        nodata: value marking cells without data (NaN allowed for floats), or None.
-        epsg: projected CRS code; None for a local metric frame (GDAL: ``LOCAL_CS``).
+            float32, float64. NaN cells of a float layer are no data.
+        spec: the grid of ``array`` in the map frame (``spec.shape == array.shape``).
+        nodata: value marking cells without data (NaN for floats), or None.
+        georef: a :class:`~gpocc.config.GeorefConfig` (EPSG code, origin, yaw) or None
+            for a local metric frame (GDAL: ``LOCAL_CS``).
+        band: description, units and categories (colour table) of the band.
         tile: tile edge in pixels, a multiple of 16.
-        overviews: add 2x, 4x, ... reduced pages until the largest side is <= ``tile``.
-            Floats are averaged over valid cells; integers (classes) keep the top-left
-            cell of each 2 x 2 group, so no class is ever invented.
+        overviews: add 2x, 4x, ... overviews until the largest side fits one tile.
     """
+    import rasterio
+    from rasterio.io import MemoryFile
+    from rasterio.shutil import copy as gdal_copy
+
     a = np.asarray(array)
     if a.ndim != 2 or a.shape != spec.shape:
         raise ValueError(f"array shape {a.shape} does not match the grid {spec.shape}")
@@ -108,24 +143,60 @@ def write_geotiff(
     if tile <= 0 or tile % 16:
         raise ValueError(f"tile must be a positive multiple of 16, got {tile}")
     nodata = _check_nodata(nodata, a.dtype)
+    categorical = band is not None and bool(band.categories)
+    if categorical and a.dtype != np.uint8:
+        raise ValueError(f"a colour table needs uint8 values, got {a.dtype}")
 
-    extratags = _geotiff_tags(spec, nodata, epsg)
-    if a.dtype.kind == "f":
-        predictor = _FLOAT_PREDICTOR
-    else:
-        predictor = 2  # horizontal differencing: long runs of one class become zeros
-    options: dict[str, Any] = dict(
-        tile=(tile, tile), compression="zlib", predictor=predictor, photometric="minisblack",
-        metadata=None, software="gpocc",
+    profile = dict(
+        driver="GTiff", width=spec.width, height=spec.height, count=1, dtype=a.dtype.name,
+        nodata=nodata, crs=_crs(georef), transform=_affine(spec, georef),
     )
-    levels = _overview_levels(a, nodata, tile) if overviews else []
-    total = a.nbytes + sum(level.nbytes for level in levels)
-    with atomic_path(path) as tmp:
-        # Classic TIFF offsets are 32-bit; compression rarely grows data, but be safe.
-        with tifffile.TiffWriter(tmp, bigtiff=total > 2**31) as tw:
-            tw.write(np.ascontiguousarray(a), extratags=extratags, **options)
-            for level in levels:
-                tw.write(level, subfiletype=1, **options)
+    options = dict(
+        COMPRESS="DEFLATE", PREDICTOR="3" if a.dtype.kind == "f" else "2",
+        BLOCKSIZE=str(tile), BIGTIFF="IF_SAFER",
+        OVERVIEWS="AUTO" if overviews else "NONE",
+        # Averages of valid cells for values; the nearest cell for classes.
+        OVERVIEW_RESAMPLING="NEAREST" if a.dtype.kind in "iu" else "AVERAGE",
+    )
+    with rasterio.Env(GDAL_PAM_ENABLED="NO"), atomic_path(path) as tmp:
+        # GDAL builds the COG from a finished dataset: stage it in memory (uncompressed,
+        # one copy of the array), then let the COG driver lay out IFDs, overviews and tiles.
+        with MemoryFile() as staged:
+            with staged.open(**profile) as ds:
+                ds.write(a, 1)
+                ds.update_tags(**{MAP_GRID_TAG: _map_grid_text(spec, georef)})
+                if band is not None:
+                    _describe(ds, band)
+            with staged.open() as src:
+                gdal_copy(src, str(tmp), driver="COG", **options)
+
+
+def _describe(ds: Any, band: Band) -> None:
+    ds.set_band_description(1, band.description)
+    if band.units:
+        ds.set_band_unit(1, band.units)
+    if band.categories:
+        ds.write_colormap(1, {c.value: c.rgba for c in band.categories})
+        ds.update_tags(1, **{f"CATEGORY_{c.value}": c.name for c in band.categories})
+
+
+def _map_grid_text(spec: GridSpec, georef: Any) -> str:
+    values = (spec.x0, spec.y0, spec.resolution, *geotransform(spec, georef))
+    return " ".join(repr(float(v)) for v in values)
+
+
+def _crs(georef: Any) -> Any:
+    from rasterio.crs import CRS
+
+    if georef is None:
+        return CRS.from_wkt(LOCAL_FRAME_WKT)
+    return CRS.from_epsg(int(georef.epsg))
+
+
+def _affine(spec: GridSpec, georef: Any) -> Any:
+    from affine import Affine
+
+    return Affine.from_gdal(*geotransform(spec, georef))
 
 
 def _check_nodata(nodata: Nodata, dtype: np.dtype) -> Nodata:
@@ -151,81 +222,14 @@ def _format_nodata(nodata: float | int) -> str:
     return str(nodata)
 
 
-def _geotiff_tags(spec: GridSpec, nodata: Nodata, epsg: int | None) -> list[tuple]:
-    """tifffile ``extratags``: (code, type, count, value, writeonce)."""
-    res = float(spec.resolution)
-    keys: list[tuple[int, int, int, int]] = []
-    ascii_params = ""
-    if epsg is None:
-        # What GDAL reads back as LOCAL_CS in metres: a user-defined model whose only
-        # definition is a citation and linear units.
-        ascii_params = LOCAL_FRAME_NAME + "|"
-        keys += [
-            (_GT_MODEL_TYPE, 0, 1, _USER_DEFINED),
-            (_GT_RASTER_TYPE, 0, 1, _RASTER_PIXEL_IS_AREA),
-            (_GT_CITATION, _GEO_ASCII_PARAMS, len(ascii_params), 0),
-            (_PROJ_LINEAR_UNITS, 0, 1, _LINEAR_METRE),
-        ]
-    else:
-        if not (isinstance(epsg, int | np.integer) and 1024 <= int(epsg) < _USER_DEFINED):
-            raise GpoccError(f"map.epsg: {epsg!r} is not a projected EPSG code (e.g. 32633)")
-        keys += [
-            (_GT_MODEL_TYPE, 0, 1, _MODEL_TYPE_PROJECTED),
-            (_GT_RASTER_TYPE, 0, 1, _RASTER_PIXEL_IS_AREA),
-            (_PROJECTED_CS_TYPE, 0, 1, int(epsg)),
-        ]
-    directory = [1, 1, 0, len(keys)] + [v for key in keys for v in key]
-    tags: list[tuple] = [
-        (_MODEL_PIXEL_SCALE, 12, 3, (res, res, 0.0), True),
-        (_MODEL_TIEPOINT, 12, 6, (0.0, 0.0, 0.0, float(spec.x0), float(spec.y1), 0.0), True),
-        (_GEO_KEY_DIRECTORY, 3, len(directory), tuple(directory), True),
-    ]
-    if ascii_params:
-        tags.append((_GEO_ASCII_PARAMS, 2, 0, ascii_params, True))
-    if nodata is not None:
-        tags.append((_GDAL_NODATA, 2, 0, _format_nodata(nodata), True))
-    return tags
-
-
-def _overview_levels(a: np.ndarray, nodata: Nodata, tile: int) -> list[np.ndarray]:
-    """Each level halves the previous one (ceil), as GDAL sizes 2x, 4x, ... overviews."""
-    levels = []
-    current = a
-    while max(current.shape) > tile:
-        current = _halve(current, nodata)
-        levels.append(current)
-    return levels
-
-
-def _halve(a: np.ndarray, nodata: Nodata) -> np.ndarray:
-    """(ceil(H/2), ceil(W/2)): mean of valid cells for floats, top-left cell otherwise."""
-    if a.dtype.kind != "f":
-        return np.ascontiguousarray(a[::2, ::2])
-    h, w = a.shape
-    work = np.float64 if a.dtype == np.float64 else np.float32
-    padded = np.full((h + h % 2, w + w % 2), np.nan, dtype=work)
-    padded[:h, :w] = a
-    valid = ~np.isnan(padded)
-    if nodata is not None and not math.isnan(nodata):
-        valid &= padded != nodata
-    values = np.where(valid, padded, work(0))
-    # Four strided adds: much faster than reshaping to (h, 2, w, 2) and summing axes.
-    total = values[0::2, 0::2] + values[1::2, 0::2] + values[0::2, 1::2] + values[1::2, 1::2]
-    count = (valid[0::2, 0::2].astype(np.uint8) + valid[1::2, 0::2] + valid[0::2, 1::2]
-             + valid[1::2, 1::2])
-    fill = np.nan if nodata is None else nodata
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(count > 0, total / np.maximum(count, 1), fill)
-    return out.astype(a.dtype)
-
-
 def write_vrt(
     path: str | os.PathLike[str],
     layer_tiles: list[tuple[Path, GridSpec]],
     full: GridSpec,
     dtype: Any,
     nodata: Nodata,
-    epsg: int | None = None,
+    georef: Any = None,
+    band: Band | None = None,
 ) -> None:
     """Write a GDAL VRT mosaic of GeoTIFF tiles, atomically.
 
@@ -233,10 +237,11 @@ def write_vrt(
         path: the ``.vrt`` file; tile paths are stored relative to its folder.
         layer_tiles: (tile file, tile grid) pairs; each grid must lie on ``full``'s
             lattice (same resolution, whole-cell offsets) and inside it.
-        full: the mosaic's grid.
+        full: the mosaic's grid in the map frame.
         dtype: the tiles' numpy dtype (e.g. ``"float32"``, ``np.uint8``).
         nodata: the tiles' no-data value (also what uncovered cells read as), or None.
-        epsg: projected CRS code, or None for the local metric frame.
+        georef: as for :func:`write_geotiff`; None for the local metric frame.
+        band: description, units and categories, as for :func:`write_geotiff`.
     """
     vrt_path = Path(path)
     dt = np.dtype(dtype)
@@ -245,18 +250,38 @@ def write_vrt(
     nodata = _check_nodata(nodata, dt)
     root = ET.Element("VRTDataset", rasterXSize=str(full.width), rasterYSize=str(full.height))
     srs = ET.SubElement(root, "SRS")
-    srs.text = LOCAL_FRAME_WKT if epsg is None else f"EPSG:{int(epsg)}"
+    srs.text = LOCAL_FRAME_WKT if georef is None else f"EPSG:{int(georef.epsg)}"
     transform = ET.SubElement(root, "GeoTransform")
-    transform.text = ", ".join(
-        repr(float(v)) for v in (full.x0, full.resolution, 0.0, full.y1, 0.0, -full.resolution)
-    )
-    band = ET.SubElement(root, "VRTRasterBand", dataType=_GDAL_TYPES[dt.name], band="1")
+    transform.text = ", ".join(repr(float(v)) for v in geotransform(full, georef))
+    metadata = ET.SubElement(root, "Metadata")
+    ET.SubElement(metadata, "MDI", key=MAP_GRID_TAG).text = _map_grid_text(full, georef)
+    vrt_band = ET.SubElement(root, "VRTRasterBand", dataType=_GDAL_TYPES[dt.name], band="1")
+    if band is not None:
+        ET.SubElement(vrt_band, "Description").text = band.description
     if nodata is not None:
-        ET.SubElement(band, "NoDataValue").text = _format_nodata(nodata)
-    ET.SubElement(band, "ColorInterp").text = "Gray"
+        ET.SubElement(vrt_band, "NoDataValue").text = _format_nodata(nodata)
+    if band is not None and band.units:
+        ET.SubElement(vrt_band, "UnitType").text = band.units
+    if band is not None and band.categories:
+        ET.SubElement(vrt_band, "ColorInterp").text = "Palette"
+        by_value = {c.value: c for c in band.categories}
+        top = max(by_value)
+        table = ET.SubElement(vrt_band, "ColorTable")
+        names = ET.SubElement(vrt_band, "CategoryNames")
+        for value in range(top + 1):
+            rgba = by_value[value].rgba if value in by_value else (0, 0, 0, 0)
+            ET.SubElement(table, "Entry", c1=str(rgba[0]), c2=str(rgba[1]), c3=str(rgba[2]),
+                          c4=str(rgba[3]))
+            ET.SubElement(names, "Category").text = (
+                by_value[value].name if value in by_value else "")
+        band_md = ET.SubElement(vrt_band, "Metadata")
+        for c in band.categories:
+            ET.SubElement(band_md, "MDI", key=f"CATEGORY_{c.value}").text = c.name
+    else:
+        ET.SubElement(vrt_band, "ColorInterp").text = "Gray"
     for tile_path, spec in layer_tiles:
         row, col = _offset_in(spec, full, tile_path)
-        source = ET.SubElement(band, "SimpleSource")
+        source = ET.SubElement(vrt_band, "SimpleSource")
         rel = os.path.relpath(Path(tile_path).resolve(), vrt_path.parent.resolve())
         ET.SubElement(source, "SourceFilename", relativeToVRT="1").text = Path(rel).as_posix()
         ET.SubElement(source, "SourceBand").text = "1"
@@ -310,88 +335,87 @@ def _read(path: Path, depth: int) -> tuple[np.ndarray, GridSpec, Nodata]:
 
 
 def _read_geotiff(path: Path) -> tuple[np.ndarray, GridSpec, Nodata]:
-    fix = "write it as a single-band GeoTIFF (e.g. gdal_translate -of GTiff)"
+    """Any single-band raster GDAL reads (any TIFF compression, predictor, layout)."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning, RasterioError
+
+    fix = "write it as a single-band GeoTIFF (e.g. gdal_translate -b 1 -of GTiff)"
     try:
-        with tifffile.TiffFile(path) as tif:
-            page = tif.pages.first
-            tags = {tag.code: tag.value for tag in page.tags.values()}
-            if page.samplesperpixel != 1 or len(page.shape) != 2:
-                raise GpoccError(f"{path}: expected one band, found shape {page.shape}; {fix}")
-            # tifffile fills tiles lying past the end of the file silently; refuse them.
-            end = max((o + n for o, n in zip(page.dataoffsets, page.databytecounts,
-                                             strict=True)), default=0)
-            if end > path.stat().st_size:
-                raise GpoccError(f"{path}: the file is truncated (a copy or download was "
-                                 f"cut short); write or copy it again")
-            array = page.asarray()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.Env(GDAL_PAM_ENABLED="NO"), rasterio.open(path) as ds:
+                if ds.count != 1:
+                    raise GpoccError(f"{path}: expected one band, found {ds.count}; {fix}")
+                transform, gcps = ds.transform, ds.gcps[0]
+                nodata = ds.nodata
+                grid_text = ds.tags().get(MAP_GRID_TAG)
+                array = ds.read(1)
     except GpoccError:
         raise
-    except Exception as exc:  # tifffile raises many types for bad or unsupported files
+    except (RasterioError, OSError) as exc:
+        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise GpoccError(
-            f"{path}: not a readable TIFF ({type(exc).__name__}: {exc}); {fix}"
+            f"{path}: GDAL cannot read it ({detail}); the file is corrupt, truncated or not "
+            f"a raster: write or copy it again"
         ) from None
-    if array.ndim != 2:
-        raise GpoccError(f"{path}: expected one band, found shape {array.shape}; {fix}")
-    spec = _geotiff_grid(path, tags, array.shape)
-    nodata = _parse_nodata(path, tags.get(_GDAL_NODATA), array.dtype)
-    return array, spec, nodata
+    spec = _map_grid(path, grid_text, transform.to_gdal(), array.shape)
+    if spec is None:
+        spec = _north_up_grid(path, transform, bool(gcps), array.shape)
+    return array, spec, _nodata_for(nodata, array.dtype)
 
 
-def _geotiff_grid(path: Path, tags: dict[int, Any], shape: tuple[int, int]) -> GridSpec:
+def _map_grid(path: Path, text: str | None, gt: Any,
+              shape: tuple[int, int]) -> GridSpec | None:
+    """The map-frame grid gpocc recorded in its own raster (whatever its georeference),
+    or None when there is none or the file's geotransform changed since (warped, edited)."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split()]
+        if len(values) != 9:
+            raise ValueError
+        x0, y0, res = values[:3]
+        if not all(math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-9)
+                   for a, b in zip(values[3:], gt, strict=True)):
+            return None
+        return GridSpec(x0, y0, res, int(shape[1]), int(shape[0]))
+    except (ValueError, GpoccError):
+        raise GpoccError(
+            f"{path}: malformed {MAP_GRID_TAG} metadata {text!r}; remove it with "
+            f"gdal_edit -unsetmd or write the raster again"
+        ) from None
+
+
+def _north_up_grid(path: Path, t: Any, has_gcps: bool, shape: tuple[int, int]) -> GridSpec:
     height, width = shape
     fix = "georeference it as a north-up raster (e.g. gdalwarp, or gdal_translate -a_ullr)"
-    if _MODEL_TRANSFORMATION in tags:
-        m = np.asarray(tags[_MODEL_TRANSFORMATION], dtype=float)
-        if m.size != 16:
-            raise GpoccError(f"{path}: malformed ModelTransformation tag; {fix}")
-        m = m.reshape(4, 4)
-        sx, rx, ox = m[0, 0], m[0, 1], m[0, 3]
-        ry, sy, oy = m[1, 0], m[1, 1], m[1, 3]
-        if rx != 0.0 or ry != 0.0:
-            raise GpoccError(f"{path}: the raster is rotated or sheared; {fix}")
-        if not sy < 0:
-            raise GpoccError(f"{path}: the raster is not north-up (row 0 is south); {fix}")
-        sy = -sy
-        i0 = j0 = 0.0
-    elif _MODEL_PIXEL_SCALE in tags and _MODEL_TIEPOINT in tags:
-        scale = np.asarray(tags[_MODEL_PIXEL_SCALE], dtype=float)
-        tie = np.asarray(tags[_MODEL_TIEPOINT], dtype=float)
-        if scale.size < 2 or tie.size != 6:
+    if t.is_identity:
+        if has_gcps:
             raise GpoccError(
-                f"{path}: has {tie.size // 6} tie points (ground control points), "
-                f"not one tie point and a pixel scale; {fix}"
-            )
-        sx, sy = scale[0], scale[1]
-        if not sy > 0:
-            raise GpoccError(f"{path}: the raster is not north-up (row 0 is south); {fix}")
-        i0, j0, ox, oy = tie[0], tie[1], tie[3], tie[4]
-    else:
+                f"{path}: georeferenced by ground control points, not one transform; "
+                f"warp it first (gdalwarp)")
         raise GpoccError(f"{path}: not georeferenced (no GeoTIFF transform tags); {fix}")
+    if t.b != 0.0 or t.d != 0.0:
+        raise GpoccError(f"{path}: the raster is rotated or sheared; {fix}")
+    if not t.e < 0:
+        raise GpoccError(f"{path}: the raster is not north-up (row 0 is south); {fix}")
+    sx, sy = t.a, -t.e
     if not (sx > 0 and math.isfinite(sx) and math.isfinite(sy)):
         raise GpoccError(f"{path}: invalid pixel size {sx} x {sy}; {fix}")
     if not math.isclose(sx, sy, rel_tol=1e-9):
         raise GpoccError(
             f"{path}: pixels are not square ({sx} x {sy} m); resample with gdalwarp -tr R R"
         )
-    west = ox - i0 * sx
-    north = oy + j0 * sy
-    if _raster_type(tags) == _RASTER_PIXEL_IS_POINT:
-        # The tie point is a cell centre; GDAL shifts it to the corner the same way.
-        west -= 0.5 * sx
-        north += 0.5 * sy
-    return GridSpec(float(west), float(north - height * sy), float(sx), int(width), int(height))
+    return GridSpec(float(t.c), float(t.f - height * sy), float(sx), int(width), int(height))
 
 
-def _raster_type(tags: dict[int, Any]) -> int:
-    directory = tags.get(_GEO_KEY_DIRECTORY)
-    if directory is None or len(directory) < 4:
-        return _RASTER_PIXEL_IS_AREA
-    keys = np.asarray(directory[4:], dtype=np.int64)
-    for k in range(min(int(directory[3]), keys.size // 4)):
-        key_id, location, _, value = keys[4 * k:4 * k + 4]
-        if key_id == _GT_RASTER_TYPE and location == 0:
-            return int(value)
-    return _RASTER_PIXEL_IS_AREA
+def _nodata_for(value: float | None, dtype: np.dtype) -> Nodata:
+    if value is None:
+        return None
+    value = float(value)
+    if dtype.kind in "iu" and math.isfinite(value) and value.is_integer():
+        return int(value)
+    return value
 
 
 def _parse_nodata(path: Path, text: Any, dtype: np.dtype) -> Nodata:
@@ -406,9 +430,7 @@ def _parse_nodata(path: Path, text: Any, dtype: np.dtype) -> Nodata:
         raise GpoccError(
             f"{path}: unreadable no-data value {text!r}; set one with gdal_edit -a_nodata"
         ) from None
-    if dtype.kind in "iu" and math.isfinite(value) and value.is_integer():
-        return int(value)
-    return value
+    return _nodata_for(value, dtype)
 
 
 def _read_vrt(path: Path, depth: int) -> tuple[np.ndarray, GridSpec, Nodata]:
@@ -426,12 +448,18 @@ def _read_vrt(path: Path, depth: int) -> tuple[np.ndarray, GridSpec, Nodata]:
     bands = root.findall("VRTRasterBand")
     if root.tag != "VRTDataset" or len(gt) != 6 or len(bands) != 1:
         raise GpoccError(f"{path}: expected a single-band VRTDataset with a GeoTransform; {fix}")
-    x0, sx, rx, y1, ry, sy = gt
-    if rx != 0.0 or ry != 0.0:
-        raise GpoccError(f"{path}: the mosaic is rotated or sheared; {fix}")
-    if not (sx > 0 and sy < 0 and math.isclose(sx, -sy, rel_tol=1e-9)):
-        raise GpoccError(f"{path}: the mosaic is not north-up with square pixels; {fix}")
-    spec = GridSpec(x0, y1 + height * sy, sx, width, height)
+    grid_text = None
+    for item in root.iterfind("Metadata/MDI"):
+        if item.attrib.get("key") == MAP_GRID_TAG:
+            grid_text = item.text or ""
+    spec = _map_grid(path, grid_text, gt, (height, width))
+    if spec is None:
+        x0, sx, rx, y1, ry, sy = gt
+        if rx != 0.0 or ry != 0.0:
+            raise GpoccError(f"{path}: the mosaic is rotated or sheared; {fix}")
+        if not (sx > 0 and sy < 0 and math.isclose(sx, -sy, rel_tol=1e-9)):
+            raise GpoccError(f"{path}: the mosaic is not north-up with square pixels; {fix}")
+        spec = GridSpec(x0, y1 + height * sy, sx, width, height)
     band = bands[0]
     type_name = band.attrib.get("dataType", "Byte")
     if type_name not in _NUMPY_TYPES:

@@ -6,9 +6,9 @@ A folder holds ``probability.tif``, ``variance.tif`` and ``class.tif`` (or, for 
 several tiles, ``tiles/<layer>/*.tif`` plus a GDAL VRT mosaic per layer), ``map.yaml`` +
 ``map.pgm`` (ROS map_server / Nav2), ``preview.png`` and ``metadata.json``. Layers arrive
 tile by tile (:meth:`MapFolder.add`), so no process has to hold a large map; the
-map_server export and the preview are made from the whole map when it is at most
-``MAX_PREVIEW_PIXELS`` a side, and from a decimated copy (the first cell of every
-stride x stride group) otherwise.
+map_server export is always at the map's resolution (assembled from the class tiles); the
+preview is made from the whole map when it is at most ``MAX_PREVIEW_PIXELS`` a side, and
+from a decimated copy (the first cell of every stride x stride group) otherwise.
 """
 
 from __future__ import annotations
@@ -22,14 +22,24 @@ import numpy as np
 import gpocc
 from gpocc.config import Config
 from gpocc.gp.classify import NO_DATA, class_counts
-from gpocc.gridspec import GridSpec
+from gpocc.gridspec import GridSpec, georef_metadata
 from gpocc.io.atomic import atomic_path
-from gpocc.io.mapserver import write_map_server
-from gpocc.io.rasters import write_geotiff, write_vrt
+from gpocc.io.mapserver import class_pixels, write_map_server_tiles
+from gpocc.io.rasters import (
+    CLASS_BAND,
+    PROBABILITY_BAND,
+    VARIANCE_BAND,
+    Band,
+    read_raster,
+    write_geotiff,
+    write_vrt,
+)
 from gpocc.mapping.render import MAX_PREVIEW_PIXELS, preview_factor, render_preview
 from gpocc.versions import software_versions
 
 LAYERS = ("probability", "variance", "class")
+#: Band descriptions and units of a GP map's layers (a baseline may pass its own).
+GP_BANDS = {"probability": PROBABILITY_BAND, "variance": VARIANCE_BAND, "class": CLASS_BAND}
 CLASS_LAYER = "uint8: 0 free, 1 occupied, 2 unsure, 255 no data"
 
 
@@ -40,16 +50,20 @@ class MapFolder:
     Args:
         out_dir: the folder.
         spec: the whole map's raster geometry.
-        config: gives the thresholds (``classify``) and the CRS (``map.epsg``).
+        config: gives the thresholds (``classify``) and the CRS (``map.georef``).
         tiled: write tiles + VRT mosaics instead of single GeoTIFFs.
         tile: tile side in cells (names the tile files).
+        bands: description and unit of each layer's band (default: a GP map's).
     """
 
     def __init__(self, out_dir: Path, spec: GridSpec, config: Config, tiled: bool = False,
-                 tile: int = 0) -> None:
+                 tile: int = 0, bands: dict[str, Band] | None = None) -> None:
         self.out_dir = out_dir
         self.spec = spec
-        self.epsg = config.map.epsg
+        self.georef = config.map.georef
+        self.max_pgm_pixels = config.map.max_pgm_pixels
+        self.bands = {**GP_BANDS, **(bands or {})}
+        self.class_files: list[tuple[Path, GridSpec]] = []
         self.occupied = config.classify.occupied
         self.free = config.classify.free
         self.tiled = tiled
@@ -70,8 +84,8 @@ class MapFolder:
             probability, variance: (h, w) float32, NaN no data.
             classes: (h, w) uint8 (:func:`gpocc.gp.classify.classify`).
             decided: (h, w) the probability a user may rely on, NaN where it is too
-                uncertain to classify; map_server and the preview show it (default:
-                ``probability``).
+                uncertain to classify; the preview shows it (default: ``probability``).
+                map.pgm is made from ``classes``.
         """
         for key, value in class_counts(classes).items():
             self.counts[key] += value
@@ -82,11 +96,13 @@ class MapFolder:
                 path = (self.out_dir / "tiles" / name
                         / f"{name}_{row0 // self.tile}_{col0 // self.tile}.tif")
                 path.parent.mkdir(parents=True, exist_ok=True)
-                write_geotiff(path, array, window, nodata=nodata, epsg=self.epsg)
                 self.tile_files[name].append((path, window))
             else:
-                write_geotiff(self.out_dir / f"{name}.tif", array, window, nodata=nodata,
-                              epsg=self.epsg)
+                path = self.out_dir / f"{name}.tif"
+            write_geotiff(path, array, window, nodata=nodata, georef=self.georef,
+                          band=self.bands[name])
+            if name == "class":
+                self.class_files.append((path, window))
         stride = self.stride
         r_off, c_off = (-row0) % stride, (-col0) % stride
         pr, pc = (row0 + r_off) // stride, (col0 + c_off) // stride
@@ -104,9 +120,12 @@ class MapFolder:
                 dtype = "uint8" if name == "class" else "float32"
                 nodata = NO_DATA if name == "class" else float("nan")
                 write_vrt(self.out_dir / f"{name}.vrt", self.tile_files[name], self.spec,
-                          dtype, nodata, self.epsg)
-        write_map_server(self.out_dir / "map.yaml", self.preview_decided, self.preview_spec,
-                         self.occupied, self.free)
+                          dtype, nodata, self.georef, self.bands[name])
+        # map.pgm at full resolution from the class tiles, one tile in memory at a time.
+        pgm_tiles = ((window, class_pixels(read_raster(path)[0]))
+                     for path, window in self.class_files)
+        write_map_server_tiles(self.out_dir / "map.yaml", self.spec, pgm_tiles, self.occupied,
+                               self.free, self.max_pgm_pixels)
         render_preview(self.out_dir / "preview.png", self.preview_decided,
                        self.preview_variance, self.preview_spec, title=title,
                        no_data_label=no_data_label)
@@ -134,7 +153,7 @@ def folder_metadata(method: str, spec: GridSpec, config: Config, counts: dict[st
         "resolution_m": spec.resolution,
         "bounds_m": list(spec.bounds),
         "size_cells": [spec.width, spec.height],
-        "epsg": config.map.epsg,
+        "georef": georef_metadata(config.map.georef),
         "thresholds": {"occupied": config.classify.occupied, "free": config.classify.free},
         "class_counts": counts,
         "timings_s": {k: round(v, 3) for k, v in timings_s.items()},

@@ -19,6 +19,7 @@ import numpy as np
 from gpocc.gp.classify import classify
 from gpocc.gp.model import GPModel, kernel_parameters
 from gpocc.gridspec import GridSpec
+from gpocc.io.mapserver import check_map_server_size
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import run_blocks
 from gpocc.mapping.folder import MapFolder, folder_metadata
@@ -60,6 +61,7 @@ def make_map(
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
     ratio = config.classify.max_variance_ratio
+    check_map_server_size(spec, config.map.max_pgm_pixels)  # before any work
     cells = block_cells(config.model.block_size_m, spec.resolution)
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
@@ -80,7 +82,7 @@ def make_map(
             variance[cells_of_block] = result.variance
             unsure[cells_of_block] = result.variance > ratio * result.prior_variance
         classes = classify(probability, occupied, free, unsure)
-        # map_server has no "unsure by variance": such cells are exported as unknown.
+        # The preview draws cells too uncertain to classify as no data.
         folder.add(row0, col0, window, probability, variance, classes,
                    decided=np.where(unsure, np.nan, probability))
 
