@@ -28,6 +28,7 @@ from gpocc.gp.classify import PlattClassifier, fit_classifier
 from gpocc.gp.kernels import make_kernel
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_path
+from gpocc.samples.coverage import Coverage
 from gpocc.samples.sampleset import SampleSet
 
 FORMAT_NAME = "gpocc-model"
@@ -41,6 +42,8 @@ class GPModel:
 
     ``samples`` are the samples the model predicts from: with ``input_noise`` off their
     covariances are zero (the baseline GP), so prediction code needs no switch.
+    ``coverage``: the cells the training beams crossed (None for models built from
+    samples alone); maps are nodata far from it.
     """
 
     kernel: Any
@@ -51,6 +54,7 @@ class GPModel:
     input_noise: bool
     training: dict[str, Any] = field(default_factory=dict)
     inputs: tuple[str, ...] = ()
+    coverage: Coverage | None = None
 
     @property
     def level(self) -> int:
@@ -74,6 +78,7 @@ def kernel_parameters(kernel: Any) -> dict[str, Any]:
 def build_model(
     samples: SampleSet, config: Config, inputs: tuple[str, ...] = (),
     on_evaluation: Callable[[int], None] | None = None,
+    coverage: Coverage | None = None,
 ) -> GPModel:
     """Learn hyperparameters and the classifier from ``samples`` under ``config``.
 
@@ -102,7 +107,7 @@ def build_model(
     return GPModel(
         kernel=result.kernel, noise_variance=result.noise_variance, classifier=classifier,
         samples=samples, config=config, input_noise=model_cfg.input_noise,
-        training=training, inputs=tuple(inputs),
+        training=training, inputs=tuple(inputs), coverage=coverage,
     )
 
 
@@ -123,6 +128,11 @@ def save_model(model: GPModel, path: str | Path) -> None:
         "config": config_to_dict(model.config),
     }
     arrays = {name: getattr(model.samples, name) for name in _ARRAYS}
+    if model.coverage is not None:
+        cov = model.coverage
+        meta["coverage"] = {"x0": cov.x0, "y0": cov.y0, "cell_m": cov.cell_m,
+                            "step_m": cov.step_m, "shape": list(cov.covered.shape)}
+        arrays["coverage"] = np.packbits(cov.covered, axis=None)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, metadata=np.frombuffer(json.dumps(meta).encode(), np.uint8),
@@ -138,6 +148,7 @@ def load_model(path: str | Path) -> GPModel:
         with np.load(p, allow_pickle=False) as data:
             meta = json.loads(bytes(data["metadata"]).decode())
             arrays = {name: data[name] for name in _ARRAYS}
+            coverage_bits = data["coverage"] if "coverage" in data.files else None
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError,
             EOFError, UnicodeDecodeError):
         raise GpoccError(f"{p}: not a gpocc model file or corrupt; re-create it with "
@@ -164,4 +175,19 @@ def load_model(path: str | Path) -> GPModel:
         input_noise=bool(meta["input_noise"]),
         training=meta.get("training", {}),
         inputs=tuple(meta.get("inputs", ())),
+        coverage=_coverage(meta.get("coverage"), coverage_bits, p),
     )
+
+
+def _coverage(meta: dict | None, bits: np.ndarray | None, path: Path) -> Coverage | None:
+    """The stored coverage raster; None for files written before it existed."""
+    if meta is None or bits is None:
+        return None
+    try:
+        shape = tuple(int(v) for v in meta["shape"])
+        covered = np.unpackbits(bits, count=shape[0] * shape[1]).astype(bool).reshape(shape)
+        return Coverage(float(meta["x0"]), float(meta["y0"]), float(meta["cell_m"]),
+                        float(meta["step_m"]), covered)
+    except (KeyError, TypeError, ValueError):
+        raise GpoccError(f"{path}: corrupt coverage raster; re-create it with "
+                         "`gpocc train`") from None

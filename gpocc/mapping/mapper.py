@@ -1,10 +1,12 @@
 """Sample a trained model on a raster and write the map folder.
 
-A map is computed tile by tile (``map.tile_pixels`` cells a side); each tile is split
-into blocks that share one local GP problem. A map of one tile is written as single
-GeoTIFFs; a larger one as tile files under ``tiles/<layer>/`` plus a GDAL VRT mosaic per
-layer, so no process ever holds the whole map. The map_server export and the preview are
-made from the whole map when it is one tile, and from a decimated copy otherwise.
+A map is computed tile by tile (``map.tile_pixels`` cells a side); each cell is the
+blend of the local GP problems anchored on the blocks around it
+(:mod:`gpocc.mapping.blend`), and cells far from every beam are nodata. A map of one
+tile is written as single GeoTIFFs; a larger one as tile files under ``tiles/<layer>/``
+plus a GDAL VRT mosaic per layer, so no process ever holds the whole map. The map_server
+export and the preview are made from the whole map when it is one tile, and from a
+decimated copy otherwise.
 """
 
 from __future__ import annotations
@@ -23,9 +25,10 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_path
 from gpocc.io.mapserver import write_map_server
 from gpocc.io.rasters import write_geotiff, write_vrt
-from gpocc.mapping.blocks import block_cells, plan_blocks
-from gpocc.mapping.executors import run_blocks
+from gpocc.mapping.blend import predict_tile
+from gpocc.mapping.blocks import AnchorLattice, block_cells
 from gpocc.mapping.render import preview_factor, render_preview
+from gpocc.mapping.support import model_support
 
 LAYERS = ("probability", "variance", "class")
 _PREVIEW_PIXELS = 2000
@@ -65,8 +68,9 @@ def make_map(
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
-    ratio = config.classify.max_variance_ratio
     cells = block_cells(config.model.block_size_m, spec.resolution)
+    lattice = AnchorLattice(spec, cells)
+    support = model_support(model)
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
     windows = _tile_windows(spec, tile)
@@ -81,17 +85,11 @@ def make_map(
     epsg = config.map.epsg
 
     for row0, col0, window in windows:
-        blocks = plan_blocks(window, cells)
-        n_blocks += len(blocks)
-        probability = np.full(window.shape, np.nan, dtype=np.float32)
-        variance = np.full(window.shape, np.nan, dtype=np.float32)
-        unsure = np.zeros(window.shape, dtype=bool)
-        for result in run_blocks(model, window, blocks, workers, scheduler, on_done=progress):
-            b = result.block
-            cells_of_block = (slice(b.row0, b.row0 + b.rows), slice(b.col0, b.col0 + b.cols))
-            probability[cells_of_block] = result.probability
-            variance[cells_of_block] = result.variance
-            unsure[cells_of_block] = result.variance > ratio * result.prior_variance
+        layers = predict_tile(model, lattice, row0, col0, window, support, workers,
+                              scheduler, progress)
+        n_blocks += layers.anchors
+        probability, unsure = layers.probability, layers.unsure
+        variance = layers.variance.astype(np.float32)
         classes = classify(probability, occupied, free, unsure)
         for key, value in class_counts(classes).items():
             counts[key] += value

@@ -1,0 +1,103 @@
+"""A tile's layers from the blended predictions of the anchors around it.
+
+Each cell's latent prediction is the mixture of its anchors' Gaussian predictions with
+the bilinear weights ``w_k`` (summing to one): mean ``sum w_k mu_k`` and variance
+``sum w_k (v_k + mu_k^2) - mean^2``, which adds the anchors' disagreement to their
+variances instead of hiding it. The prior variance is blended linearly. Cells outside
+the data's support, and anchors whose whole footprint is outside, are not computed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from gpocc.gridspec import GridSpec
+from gpocc.mapping.blocks import AnchorLattice, Block
+from gpocc.mapping.executors import run_anchors
+from gpocc.mapping.support import Support
+
+
+@dataclass(frozen=True)
+class TileLayers:
+    """A tile's (H, W) layers; NaN / False outside the support.
+
+    ``mean``, ``variance``, ``prior_variance``: latent GP (float64); ``probability``:
+    p(occupied) (float32); ``unsure``: variance above ``max_variance_ratio`` x prior.
+    ``anchors``: local problems computed for this tile.
+    """
+
+    mean: np.ndarray
+    variance: np.ndarray
+    prior_variance: np.ndarray
+    probability: np.ndarray
+    unsure: np.ndarray
+    anchors: int
+
+
+def predict_tile(
+    model,
+    lattice: AnchorLattice,
+    row0: int,
+    col0: int,
+    window: GridSpec,
+    support: Support | None,
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> TileLayers:
+    """Blend the anchors over the tile ``window`` whose top-left cell is (row0, col0) of
+    ``lattice.spec``; ``progress(n)`` counts the tile's own anchors (one per block)."""
+    tile = Block(row0, col0, window.height, window.width)
+    anchors = lattice.anchors_over(tile)
+    cells = lattice.cells
+
+    def owned(anchor) -> bool:
+        return (row0 <= anchor.row * cells < row0 + tile.rows
+                and col0 <= anchor.col * cells < col0 + tile.cols)
+
+    if support is not None:
+        centres = np.array([lattice.centre(a) for a in anchors]).reshape(-1, 2)
+        keep = support.within(centres, lattice.radius_m())
+        skipped = [a for a, k in zip(anchors, keep, strict=True) if not k]
+        anchors = [a for a, k in zip(anchors, keep, strict=True) if k]
+        inside = support.mask(window, cells)
+        if progress:
+            progress(sum(owned(a) for a in skipped))
+    else:
+        inside = np.ones(window.shape, dtype=bool)
+
+    sum_w = np.zeros(window.shape)
+    sum_mean = np.zeros(window.shape)
+    sum_square = np.zeros(window.shape)
+    sum_prior = np.zeros(window.shape)
+    for result in run_anchors(model, lattice, anchors, workers, scheduler):
+        b = result.block
+        r_lo, r_hi = max(b.row0, row0), min(b.row0 + b.rows, row0 + tile.rows)
+        c_lo, c_hi = max(b.col0, col0), min(b.col0 + b.cols, col0 + tile.cols)
+        if progress and owned(result.anchor):
+            progress(1)
+        if r_lo >= r_hi or c_lo >= c_hi:
+            continue
+        src = (slice(r_lo - b.row0, r_hi - b.row0), slice(c_lo - b.col0, c_hi - b.col0))
+        dst = (slice(r_lo - row0, r_hi - row0), slice(c_lo - col0, c_hi - col0))
+        w, mu = result.weight[src], result.mean[src]
+        sum_w[dst] += w
+        sum_mean[dst] += w * mu
+        sum_square[dst] += w * (result.variance[src] + mu * mu)
+        sum_prior[dst] += w * result.prior_variance[src]
+
+    valid = inside & (sum_w > 0)
+    nan = np.full(window.shape, np.nan)
+    mean = np.divide(sum_mean, sum_w, out=nan.copy(), where=valid)
+    variance = np.divide(sum_square, sum_w, out=nan.copy(), where=valid)
+    variance = np.maximum(variance - mean * mean, 0.0, out=variance, where=valid)
+    prior = np.divide(sum_prior, sum_w, out=nan.copy(), where=valid)
+    probability = np.full(window.shape, np.nan, dtype=np.float32)
+    probability[valid] = model.classifier.probability(mean[valid], variance[valid])
+    ratio = model.config.classify.max_variance_ratio
+    unsure = np.zeros(window.shape, dtype=bool)
+    unsure[valid] = variance[valid] > ratio * prior[valid]
+    return TileLayers(mean, variance, prior, probability, unsure, len(anchors))
