@@ -113,9 +113,9 @@ def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path)
         transform = ds.transform
     with rasterio.open(out / "class.tif") as ds:
         classes = ds.read(1)
-    # Re-predict a few cells directly from the model: the Gaussian mixture of the local
-    # problems centred on the (up to) four block centres around the cell, with bilinear
-    # weights (clamped at the map's edges).
+    # Re-predict a few cells directly from the model: the blend of the local problems
+    # centred on the (up to) four block centres around the cell, with bilinear weights
+    # (clamped at the map's edges).
     index = NeighbourIndex(model.samples)
     cells = 6  # block_size_m 0.6 / 0.1
     n_rows, n_cols = -(-prob.shape[0] // cells), -(-prob.shape[1] // cells)
@@ -138,7 +138,7 @@ def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path)
         w, mu, var = np.array(mix_w), np.array(mix_mu), np.array(mix_var)
         assert w.sum() == pytest.approx(1.0)
         mean = np.sum(w * mu)
-        variance = np.sum(w * (var + mu**2)) - mean**2
+        variance = np.sum(w * var)
         expected = model.classifier.probability(mean, variance)
         assert prob[row, col] == pytest.approx(expected, abs=1e-6)
     spec_classes, spec = read_map_server(out / "map.yaml")
