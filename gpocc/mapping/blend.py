@@ -62,11 +62,22 @@ def predict_tile(
                 and col0 <= anchor.col * cells < col0 + tile.cols)
 
     if support is not None:
-        centres = np.array([lattice.centre(a) for a in anchors]).reshape(-1, 2)
-        keep = support.within(centres, lattice.radius_m())
+        # The support of the tile and two blocks around it, which holds the footprint of
+        # every anchor over the tile: an anchor is computed only if its footprint holds a
+        # supported cell, so the choice does not depend on the tiling.
+        spec = lattice.spec
+        er0, ec0 = max(0, row0 - 2 * cells), max(0, col0 - 2 * cells)
+        er1 = min(spec.height, row0 + tile.rows + 2 * cells)
+        ec1 = min(spec.width, col0 + tile.cols + 2 * cells)
+        around = support.mask(spec.window(er0, ec0, er1 - er0, ec1 - ec0), cells)
+        keep = []
+        for anchor in anchors:
+            fp, _ = lattice.footprint(anchor)
+            keep.append(bool(around[fp.row0 - er0:fp.row0 + fp.rows - er0,
+                                    fp.col0 - ec0:fp.col0 + fp.cols - ec0].any()))
         skipped = [a for a, k in zip(anchors, keep, strict=True) if not k]
         anchors = [a for a, k in zip(anchors, keep, strict=True) if k]
-        inside = support.mask(window, cells)
+        inside = around[row0 - er0:row0 + tile.rows - er0, col0 - ec0:col0 + tile.cols - ec0]
         if progress:
             progress(sum(owned(a) for a in skipped))
     else:

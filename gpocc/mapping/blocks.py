@@ -105,10 +105,6 @@ class AnchorLattice:
         c0, wc = self._axis(anchor.col, self.spec.width, n_cols)
         return Block(r0, c0, len(wr), len(wc)), np.outer(wr, wc)
 
-    def radius_m(self) -> float:
-        """Metres from an anchor's centre within which its footprint lies."""
-        return self.cells * self.spec.resolution * math.sqrt(2.0)
-
     def anchors_over(self, block: Block) -> list[Anchor]:
         """Anchors whose footprint meets ``block`` (row-major order)."""
         n_rows, n_cols = self.shape
