@@ -199,7 +199,7 @@ class MapConfig:
     that far are not computed; null maps everywhere. 1.5 m: beyond about 1 m from any
     sample the variance already exceeds ``classify.max_variance_ratio`` of the prior (the
     cells are unsure), so no classified cell is lost, and with the coverage raster's
-    0.19 m error every cell more than 2 m from a beam is nodata (docs/results.md).
+    0.24 m error every cell more than 2 m from a beam is nodata (docs/results.md).
     """
 
     resolution_m: float = 0.1

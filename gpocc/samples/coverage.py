@@ -5,10 +5,10 @@ from the sensor to the hit, or to the free extent of a no-return beam). The trai
 samples are a poor proxy for the beams: free samples start one spacing (0.4 m) from the
 sensor and stop a gap (up to metres with noisy ranges) before the hit, and thinning keeps
 one per 0.15 m cell and label. So the model stores, at train time, a boolean raster of
-``COVERAGE_CELL_M`` cells marked wherever a point taken every ``cell / 2`` along any beam
+``COVERAGE_CELL_M`` cells marked wherever a point taken every cell side along any beam
 fell. Distances to the centres of marked cells then differ from the exact point-to-beam
 distance by at most :attr:`Coverage.error_m` (half a cell diagonal plus half a step):
-about 0.19 m, a few kilobytes per building.
+0.24 m, a few kilobytes per building, about 1 s per 1000 scans of 180 beams to build.
 """
 
 from __future__ import annotations
@@ -96,7 +96,9 @@ def beam_segments(batch: ScanBatch, sensor: SensorConfig, config: Config
 
 def _segment_points(start: np.ndarray, end: np.ndarray, step: float) -> Iterator[np.ndarray]:
     """(P, 2) points every ``step`` along each segment, plus each end point, in chunks."""
-    length = np.hypot(*(end - start).T)
+    delta = end - start
+    length = np.hypot(delta[:, 0], delta[:, 1])
+    unit = delta / np.maximum(length, 1e-12)[:, None]
     counts = np.floor(length / step).astype(np.int64) + 2  # 0, step, ..., and the end
     bounds = np.searchsorted(np.cumsum(counts), np.arange(0, counts.sum(), _CHUNK_POINTS))
     bounds = np.unique(np.concatenate([bounds, [len(counts)]]))
@@ -104,14 +106,14 @@ def _segment_points(start: np.ndarray, end: np.ndarray, step: float) -> Iterator
         n = counts[a:b]
         seg = np.repeat(np.arange(a, b), n)
         k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-        t = np.minimum(k * step / np.maximum(length[seg], 1e-12), 1.0)
-        yield start[seg] + t[:, None] * (end[seg] - start[seg])
+        t = np.minimum(k * step, length[seg])
+        yield start[seg] + t[:, None] * unit[seg]
 
 
 def coverage_of_segments(start: np.ndarray, end: np.ndarray,
                          cell_m: float = COVERAGE_CELL_M) -> Coverage:
     """The coverage raster of (N, 2) segments ``start -> end`` (metres)."""
-    step = cell_m / 2.0
+    step = cell_m
     if len(start) == 0:
         return Coverage(0.0, 0.0, cell_m, step, np.zeros((0, 0), dtype=bool))
     lo = np.minimum(start.min(axis=0), end.min(axis=0))
@@ -119,12 +121,14 @@ def coverage_of_segments(start: np.ndarray, end: np.ndarray,
     x0, y0 = (np.floor(lo / cell_m) - 1) * cell_m
     width = int(np.floor((hi[0] - x0) / cell_m)) + 2
     height = int(np.floor((hi[1] - y0) / cell_m)) + 2
-    covered = np.zeros((height, width), dtype=bool)
-    for pts in _segment_points(start, end, step):
-        cols = np.clip(np.floor((pts[:, 0] - x0) / cell_m).astype(np.int64), 0, width - 1)
-        rows = np.clip(np.floor((pts[:, 1] - y0) / cell_m).astype(np.int64), 0, height - 1)
-        covered[rows, cols] = True
-    return Coverage(float(x0), float(y0), cell_m, step, covered)
+    covered = np.zeros(height * width, dtype=bool)
+    # Points in cell units relative to the corner: the cell index is the integer part.
+    origin = np.array([x0, y0])
+    for pts in _segment_points((start - origin) / cell_m, (end - origin) / cell_m, 1.0):
+        cells = pts.astype(np.int64)  # non-negative, so truncation is floor
+        covered[np.clip(cells[:, 1], 0, height - 1) * width
+                + np.clip(cells[:, 0], 0, width - 1)] = True
+    return Coverage(float(x0), float(y0), cell_m, step, covered.reshape(height, width))
 
 
 def beam_coverage(batches: list[ScanBatch], config: Config,
