@@ -215,6 +215,12 @@ class MapConfig:
     an origin misplaces the map); any value other than null is an error naming the fix.
     ``max_pgm_pixels``: optional limit on the side of ``map.pgm``; a larger map is an
     error (the map_server image is never silently coarsened). Null: no limit.
+    ``max_beam_distance_m``: cells farther than this from every beam (sensor to hit, or
+    to the free extent of a no-return beam) are nodata in every layer, and blocks wholly
+    that far are not computed; null maps everywhere. 1.5 m: beyond about 1 m from any
+    sample the variance already exceeds ``classify.max_variance_ratio`` of the prior (the
+    cells are unsure), so no classified cell is lost, and with the coverage raster's
+    0.24 m error every cell more than 2 m from a beam is nodata (docs/results.md).
     """
 
     resolution_m: float = 0.1
@@ -223,6 +229,7 @@ class MapConfig:
     epsg: int | None = None
     tile_pixels: int = 4096
     max_pgm_pixels: int | None = None
+    max_beam_distance_m: float | None = 1.5
 
 
 @dataclass(frozen=True)
@@ -254,7 +261,7 @@ class Config:
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "min_noise_variance", "min_label_share",
+    "min_noise_variance", "min_label_share", "max_beam_distance_m",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }
 _POSITIVE_KEYS = {

@@ -113,18 +113,33 @@ def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path)
         transform = ds.transform
     with rasterio.open(out / "class.tif") as ds:
         classes = ds.read(1)
-    # Re-predict a few cells directly from the model with the cell's block neighbourhood.
+    # Re-predict a few cells directly from the model: the blend of the local problems
+    # centred on the (up to) four block centres around the cell, with bilinear weights
+    # (clamped at the map's edges).
     index = NeighbourIndex(model.samples)
     cells = 6  # block_size_m 0.6 / 0.1
-    for row, col in ((3, 4), (20, 30), (35, 10)):
+    n_rows, n_cols = -(-prob.shape[0] // cells), -(-prob.shape[1] // cells)
+    for row, col in ((3, 4), (20, 30), (35, 10), (9, 9)):
         x, y = transform @ (col + 0.5, row + 0.5)
-        r0, c0 = (row // cells) * cells, (col // cells) * cells
-        cx, cy = transform @ (c0 + min(cells, prob.shape[1] - c0) / 2,
-                              r0 + min(cells, prob.shape[0] - r0) / 2)
-        pred = predict_local(model.kernel, model.noise_variance,
-                             index.problem(np.array([cx, cy]), model.config.model.neighbours),
-                             np.array([[x, y]]), model.level)
-        expected = model.classifier.probability(pred.mean, pred.variance)[0]
+        u = np.clip((row + 0.5) / cells - 0.5, 0, n_rows - 1)
+        v = np.clip((col + 0.5) / cells - 0.5, 0, n_cols - 1)
+        mix_w, mix_mu, mix_var = [], [], []
+        for i in {int(np.floor(u)), int(np.ceil(u))}:
+            for j in {int(np.floor(v)), int(np.ceil(v))}:
+                w = (1 - abs(u - i)) * (1 - abs(v - j))
+                cx, cy = transform @ (j * cells + cells / 2, i * cells + cells / 2)
+                pred = predict_local(
+                    model.kernel, model.noise_variance,
+                    index.problem(np.array([cx, cy]), model.config.model.neighbours),
+                    np.array([[x, y]]), model.level)
+                mix_w.append(w)
+                mix_mu.append(pred.mean[0])
+                mix_var.append(pred.variance[0])
+        w, mu, var = np.array(mix_w), np.array(mix_mu), np.array(mix_var)
+        assert w.sum() == pytest.approx(1.0)
+        mean = np.sum(w * mu)
+        variance = np.sum(w * var)
+        expected = model.classifier.probability(mean, variance)
         assert prob[row, col] == pytest.approx(expected, abs=1e-6)
     spec_classes, spec = read_map_server(out / "map.yaml")
     np.testing.assert_array_equal(spec_classes == 1, classes == 1)
@@ -193,17 +208,22 @@ def test_bounds_and_grid_geometry(model_path, tmp_path):
         assert np.all(ds.read(1) >= 0)
 
 
-def test_cells_far_from_every_sample_are_unsure_and_unknown_to_map_server(model_path, tmp_path):
-    # The room's samples span about 4 x 3 m around the origin; 6 m away there is no data,
-    # so the predictive variance stays near the prior there whatever the mean does.
+def test_cells_far_from_every_sample_are_nodata_and_unknown_to_map_server(model_path, tmp_path):
+    # The room's samples span about 4 x 3 m around the origin; 6 m away there is no data.
+    # This model has no beams, so its support is the cells holding a sample.
     out = run_map(model_path, tmp_path / "far", "--resolution", "0.2",
                   "--bounds", "-2.2", "-1.8", "9.8", "1.8")
     with rasterio.open(out / "class.tif") as ds:
         classes = ds.read(1)
         transform = ds.transform
+    with rasterio.open(out / "probability.tif") as ds:
+        prob = ds.read(1)
+    with rasterio.open(out / "variance.tif") as ds:
+        variance = ds.read(1)
     xs = np.array([(transform @ (c + 0.5, 0.5))[0] for c in range(classes.shape[1])])
-    far = xs > 7.0
-    assert np.all(classes[:, far] == 2)
+    far = xs > 2.0 + 1.5 + 0.2
+    assert np.all(classes[:, far] == 255)
+    assert np.all(np.isnan(prob[:, far])) and np.all(np.isnan(variance[:, far]))
     assert np.any(classes[:, xs < 1.5] == 0) and np.any(classes[:, xs < 2.5] == 1)
     server_classes, _ = read_map_server(out / "map.yaml")
     assert np.all(server_classes[:, far] == 2)

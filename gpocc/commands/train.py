@@ -16,6 +16,7 @@ from gpocc.io.atomic import check_can_write
 from gpocc.io.inputs import read_inputs
 from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
+from gpocc.samples.coverage import beam_coverage
 
 
 class Switch(StrEnum):
@@ -47,12 +48,13 @@ def train(
     read_s = time.perf_counter() - started
     log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
     samples = build_samples(batches, cfg)
+    coverage = beam_coverage(batches, cfg)
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
     budget = 2 + cfg.model.training.anneal_maxfun + 2 * cfg.model.training.lbfgs_maxiter
     with progress_bar(budget, "likelihood evaluations (at most)") as advance:
         model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs),
-                            on_evaluation=advance)
+                            on_evaluation=advance, coverage=coverage)
     learn_s = time.perf_counter() - started - read_s - samples_s
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}

@@ -25,6 +25,7 @@ from gpocc.gp.classify import PlattClassifier, fit_classifier
 from gpocc.gp.kernels import Kernel, make_kernel
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_path
+from gpocc.samples.coverage import Coverage
 from gpocc.samples.sampleset import SampleSet
 from gpocc.versions import software_versions
 
@@ -42,6 +43,9 @@ class GPModel:
     ``sensor_names`` name the sensors they came from. ``versions``: the software that
     trained the model (:func:`gpocc.versions.software_versions`). ``training``: the
     learning's record (likelihoods, evaluations, patches, ``timings_s``).
+    covariances are zero (the baseline GP), so prediction code needs no switch.
+    ``coverage``: the cells the training beams crossed (None for models built from
+    samples alone); maps are nodata far from it.
     """
 
     kernel: Kernel
@@ -53,6 +57,7 @@ class GPModel:
     training: dict[str, Any] = field(default_factory=dict)
     inputs: tuple[str, ...] = ()
     versions: dict[str, str] = field(default_factory=software_versions)
+    coverage: Coverage | None = None
 
     @property
     def level(self) -> int:
@@ -76,6 +81,7 @@ def kernel_parameters(kernel: Kernel) -> dict[str, Any]:
 def build_model(
     samples: SampleSet, config: Config, inputs: tuple[str, ...] = (),
     on_evaluation: Callable[[int], None] | None = None,
+    coverage: Coverage | None = None,
 ) -> GPModel:
     """Learn hyperparameters and the classifier from ``samples`` under ``config``.
 
@@ -104,7 +110,7 @@ def build_model(
     return GPModel(
         kernel=result.kernel, noise_variance=result.noise_variance, classifier=classifier,
         samples=samples, config=config, input_noise=model_cfg.input_noise,
-        training=training, inputs=tuple(inputs),
+        training=training, inputs=tuple(inputs), coverage=coverage,
     )
 
 
@@ -125,6 +131,11 @@ def save_model(model: GPModel, path: str | Path) -> None:
         "config": config_to_dict(model.config),
     }
     arrays = {name: getattr(model.samples, name) for name in _ARRAYS}
+    if model.coverage is not None:
+        cov = model.coverage
+        meta["coverage"] = {"x0": cov.x0, "y0": cov.y0, "cell_m": cov.cell_m,
+                            "step_m": cov.step_m, "shape": list(cov.covered.shape)}
+        arrays["coverage"] = np.packbits(cov.covered, axis=None)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, metadata=np.frombuffer(json.dumps(meta).encode(), np.uint8),
@@ -139,7 +150,8 @@ def load_model(path: str | Path) -> GPModel:
     try:
         with np.load(p, allow_pickle=False) as data:
             meta = json.loads(bytes(data["metadata"]).decode())
-            arrays: dict[str, Any] = {name: data[name] for name in _ARRAYS}
+            arrays = {name: data[name] for name in _ARRAYS}
+            coverage_bits = data["coverage"] if "coverage" in data.files else None
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError,
             EOFError, UnicodeDecodeError):
         raise GpoccError(f"{p}: not a gpocc model file or corrupt; re-create it with "
@@ -167,4 +179,19 @@ def load_model(path: str | Path) -> GPModel:
         training=meta.get("training", {}),
         inputs=tuple(meta.get("inputs", ())),
         versions=dict(meta.get("versions", {})),
+        coverage=_coverage(meta.get("coverage"), coverage_bits, p),
     )
+
+
+def _coverage(meta: dict | None, bits: np.ndarray | None, path: Path) -> Coverage | None:
+    """The stored coverage raster; None for files written before it existed."""
+    if meta is None or bits is None:
+        return None
+    try:
+        shape = tuple(int(v) for v in meta["shape"])
+        covered = np.unpackbits(bits, count=shape[0] * shape[1]).astype(bool).reshape(shape)
+        return Coverage(float(meta["x0"]), float(meta["y0"]), float(meta["cell_m"]),
+                        float(meta["step_m"]), covered)
+    except (KeyError, TypeError, ValueError):
+        raise GpoccError(f"{path}: corrupt coverage raster; re-create it with "
+                         "`gpocc train`") from None

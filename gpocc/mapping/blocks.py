@@ -1,4 +1,13 @@
-"""Map blocks: square groups of cells that share one local GP problem."""
+"""Map blocks and the overlapping local problems that predict them.
+
+A map is covered by square blocks of ``cells`` x ``cells``. One local GP problem (the
+``neighbours`` training samples nearest a point, centred there) is anchored at the centre
+of every block. Each cell is predicted by the (up to) four anchors around it and the
+predictions are blended with bilinear weights: a smooth partition of unity over the anchor
+lattice, so probability and variance have no seams where the anchors change. An anchor's
+weight is positive on the cells less than one block away from it along both axes (along
+the map's edges the weights are clamped, so edge cells keep full weight).
+"""
 
 from __future__ import annotations
 
@@ -23,14 +32,28 @@ class Block:
 
 
 @dataclass(frozen=True)
-class BlockResult:
-    """Latent mean, variance, prior variance and p(occupied), each (rows, cols), of a block."""
+class Anchor:
+    """Local problem (row, col) of a map's anchor lattice: centred on block (row, col)."""
 
+    row: int
+    col: int
+
+
+@dataclass(frozen=True)
+class AnchorResult:
+    """One anchor's prediction over the cells where its weight is positive.
+
+    ``block`` gives those cells (whole-map rows and columns); ``weight``, ``mean``,
+    ``variance`` and ``prior_variance`` are (rows, cols): the blending weight and the
+    latent GP mean, variance and prior variance from this anchor's problem.
+    """
+
+    anchor: Anchor
     block: Block
+    weight: np.ndarray
     mean: np.ndarray
     variance: np.ndarray
     prior_variance: np.ndarray
-    probability: np.ndarray
 
 
 def block_cells(block_size_m: float, resolution: float) -> int:
@@ -47,16 +70,72 @@ def plan_blocks(spec: GridSpec, cells: int) -> list[Block]:
     ]
 
 
-def predict_block(model: GPModel, index: NeighbourIndex, spec: GridSpec,
-                  block: Block) -> BlockResult:
-    """Predict every cell centre of ``block`` from the neighbours of the block's centre."""
-    window = spec.window(block.row0, block.col0, block.rows, block.cols)
+@dataclass(frozen=True)
+class AnchorLattice:
+    """The anchors of a whole map ``spec`` with blocks of ``cells`` a side."""
+
+    spec: GridSpec
+    cells: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) of anchors: one per block."""
+        return (math.ceil(self.spec.height / self.cells), math.ceil(self.spec.width / self.cells))
+
+    def centre(self, anchor: Anchor) -> np.ndarray:
+        """(2,) metres: the centre of the anchor's (full-size) block."""
+        half = self.cells / 2.0
+        res = self.spec.resolution
+        return np.array([self.spec.x0 + (anchor.col * self.cells + half) * res,
+                         self.spec.y1 - (anchor.row * self.cells + half) * res])
+
+    def _axis(self, index: int, n_cells: int, n_anchors: int) -> tuple[int, np.ndarray]:
+        """First cell and (n,) weights of anchor ``index`` along one axis."""
+        lo = max(0, (index - 1) * self.cells)
+        hi = min(n_cells, (index + 2) * self.cells)
+        u = (np.arange(lo, hi) + 0.5) / self.cells - 0.5  # anchor coordinate of each cell
+        u = np.clip(u, 0.0, n_anchors - 1)
+        w = np.maximum(0.0, 1.0 - np.abs(u - index))
+        nonzero = np.flatnonzero(w > 0)
+        return lo + int(nonzero[0]), w[nonzero[0]:nonzero[-1] + 1]
+
+    def footprint(self, anchor: Anchor) -> tuple[Block, np.ndarray]:
+        """The cells where ``anchor``'s weight is positive, and the (rows, cols) weights."""
+        n_rows, n_cols = self.shape
+        r0, wr = self._axis(anchor.row, self.spec.height, n_rows)
+        c0, wc = self._axis(anchor.col, self.spec.width, n_cols)
+        return Block(r0, c0, len(wr), len(wc)), np.outer(wr, wc)
+
+    def anchors_over(self, block: Block) -> list[Anchor]:
+        """Anchors whose footprint meets ``block`` (row-major order)."""
+        n_rows, n_cols = self.shape
+        rows = range(max(0, block.row0 // self.cells - 1),
+                     min(n_rows, (block.row0 + block.rows - 1) // self.cells + 2))
+        cols = range(max(0, block.col0 // self.cells - 1),
+                     min(n_cols, (block.col0 + block.cols - 1) // self.cells + 2))
+        out = []
+        for r in rows:
+            for c in cols:
+                fp, _ = self.footprint(Anchor(r, c))
+                if (fp.row0 < block.row0 + block.rows and block.row0 < fp.row0 + fp.rows
+                        and fp.col0 < block.col0 + block.cols and block.col0 < fp.col0 + fp.cols):
+                    out.append(Anchor(r, c))
+        return out
+
+
+def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice,
+                   anchor: Anchor) -> AnchorResult:
+    """Predict every cell of ``anchor``'s footprint from the neighbours of its centre.
+
+    The footprint never depends on how the map is tiled, so neither do the values.
+    """
+    block, weight = lattice.footprint(anchor)
+    window = lattice.spec.window(block.row0, block.col0, block.rows, block.cols)
     xs, ys = window.cell_centres()
     queries = np.column_stack([xs.ravel(), ys.ravel()])
-    centre = np.array([(window.x0 + window.x1) / 2.0, (window.y0 + window.y1) / 2.0])
+    centre = lattice.centre(anchor)
     problem = index.problem(centre, model.config.model.neighbours)
     pred = predict_local(model.kernel, model.noise_variance, problem, queries, model.level)
-    probability = model.classifier.probability(pred.mean, pred.variance)
     shape = (block.rows, block.cols)
-    return BlockResult(block, pred.mean.reshape(shape), pred.variance.reshape(shape),
-                       pred.prior_variance.reshape(shape), probability.reshape(shape))
+    return AnchorResult(anchor, block, weight, pred.mean.reshape(shape),
+                        pred.variance.reshape(shape), pred.prior_variance.reshape(shape))

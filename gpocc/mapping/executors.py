@@ -1,6 +1,6 @@
-"""Running map blocks serially, on local processes, or on a Dask distributed cluster.
+"""Running map anchors (local problems) serially, on local processes, or on Dask.
 
-Blocks are independent and each is computed by the same deterministic code, so every
+Anchors are independent and each is computed by the same deterministic code, so every
 executor gives bit-identical results. Workers receive the model once (process
 initialiser, or a Dask scatter) and build their own neighbour index.
 """
@@ -15,14 +15,13 @@ from gpocc.blas import single_threaded_blas
 from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex
 from gpocc.gp.model import GPModel
-from gpocc.gridspec import GridSpec
-from gpocc.mapping.blocks import Block, BlockResult, predict_block
+from gpocc.mapping.blocks import Anchor, AnchorLattice, AnchorResult, predict_anchor
 
 _worker_state: dict[str, object] = {}
 
 
-def _chunks(blocks: list[Block], size: int) -> list[list[Block]]:
-    return [blocks[i:i + size] for i in range(0, len(blocks), size)]
+def _chunks(anchors: list[Anchor], size: int) -> list[list[Anchor]]:
+    return [anchors[i:i + size] for i in range(0, len(anchors), size)]
 
 
 def _index_for(model: GPModel) -> NeighbourIndex:
@@ -33,19 +32,20 @@ def _index_for(model: GPModel) -> NeighbourIndex:
     return _worker_state["index"]  # type: ignore[return-value]
 
 
-def compute_chunk(model: GPModel, spec: GridSpec, chunk: list[Block]) -> list[BlockResult]:
-    """Predict a list of blocks of ``spec`` with ``model``."""
+def compute_chunk(model: GPModel, lattice: AnchorLattice,
+                  chunk: list[Anchor]) -> list[AnchorResult]:
+    """Predict a list of anchors of ``lattice`` with ``model``."""
     index = _index_for(model)
     with single_threaded_blas():
-        return [predict_block(model, index, spec, block) for block in chunk]
+        return [predict_anchor(model, index, lattice, anchor) for anchor in chunk]
 
 
 def _init_worker(model: GPModel) -> None:
     _worker_state["process_model"] = model
 
 
-def _compute_in_worker(spec: GridSpec, chunk: list[Block]) -> list[BlockResult]:
-    return compute_chunk(_worker_state["process_model"], spec, chunk)
+def _compute_in_worker(lattice: AnchorLattice, chunk: list[Anchor]) -> list[AnchorResult]:
+    return compute_chunk(_worker_state["process_model"], lattice, chunk)
 
 
 def default_workers() -> int:
@@ -56,42 +56,43 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def run_blocks(
+def run_anchors(
     model: GPModel,
-    spec: GridSpec,
-    blocks: list[Block],
+    lattice: AnchorLattice,
+    anchors: list[Anchor],
     workers: int = 1,
     scheduler: str | None = None,
     chunk_size: int = 8,
     on_done: Callable[[int], None] | None = None,
-) -> Iterator[BlockResult]:
-    """Yield the result of every block (in ``blocks`` order).
+) -> Iterator[AnchorResult]:
+    """Yield the result of every anchor (in ``anchors`` order).
 
     ``scheduler`` (``tcp://HOST:PORT``) sends chunks to a Dask distributed cluster;
     otherwise ``workers`` > 1 uses local processes and 1 runs in this process.
-    ``on_done(n)`` is called after each chunk with the number of blocks it held.
+    ``on_done(n)`` is called after each chunk with the number of anchors it held.
     """
-    chunks = _chunks(blocks, chunk_size)
+    chunks = _chunks(anchors, chunk_size)
     if scheduler:
-        yield from _run_dask(model, spec, chunks, scheduler, on_done)
+        yield from _run_dask(model, lattice, chunks, scheduler, on_done)
         return
     if workers <= 1 or len(chunks) <= 1:
         for chunk in chunks:
-            yield from compute_chunk(model, spec, chunk)
+            yield from compute_chunk(model, lattice, chunk)
             if on_done:
                 on_done(len(chunk))
         return
     with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
                              initargs=(model,)) as pool:
-        results_per_chunk = pool.map(_compute_in_worker, [spec] * len(chunks), chunks)
+        results_per_chunk = pool.map(_compute_in_worker, [lattice] * len(chunks), chunks)
         for chunk, results in zip(chunks, results_per_chunk, strict=True):
             yield from results
             if on_done:
                 on_done(len(chunk))
 
 
-def _run_dask(model: GPModel, spec: GridSpec, chunks: list[list[Block]], scheduler: str,
-              on_done: Callable[[int], None] | None) -> Iterator[BlockResult]:
+def _run_dask(model: GPModel, lattice: AnchorLattice, chunks: list[list[Anchor]],
+              scheduler: str,
+              on_done: Callable[[int], None] | None) -> Iterator[AnchorResult]:
     from distributed import Client
 
     try:
@@ -102,7 +103,7 @@ def _run_dask(model: GPModel, spec: GridSpec, chunks: list[list[Block]], schedul
         ) from None
     try:
         model_future = client.scatter(model, broadcast=True)
-        futures = [client.submit(compute_chunk, model_future, spec, chunk, pure=False)
+        futures = [client.submit(compute_chunk, model_future, lattice, chunk, pure=False)
                    for chunk in chunks]
         for chunk, future in zip(chunks, futures, strict=True):
             yield from future.result()

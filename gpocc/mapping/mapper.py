@@ -1,9 +1,10 @@
 """Sample a trained model on a raster and write the map folder.
 
-A map is computed tile by tile (``map.tile_pixels`` cells a side); each tile is split
-into blocks that share one local GP problem, and handed to the folder writer
-(:class:`gpocc.mapping.folder.MapFolder`) as soon as it is done, so no process ever holds
-the whole map.
+A map is computed tile by tile (``map.tile_pixels`` cells a side); each cell is the
+blend of the local GP problems anchored on the blocks around it
+(:mod:`gpocc.mapping.blend`), and cells far from every beam are nodata. Each tile is
+handed to the folder writer (:class:`gpocc.mapping.folder.MapFolder`) as soon as it is
+done, so no process ever holds the whole map.
 """
 
 from __future__ import annotations
@@ -20,9 +21,10 @@ from gpocc.gp.classify import classify
 from gpocc.gp.model import GPModel, kernel_parameters
 from gpocc.gridspec import GridSpec
 from gpocc.io.mapserver import check_map_server_size
-from gpocc.mapping.blocks import block_cells, plan_blocks
-from gpocc.mapping.executors import run_blocks
+from gpocc.mapping.blend import predict_tile
+from gpocc.mapping.blocks import AnchorLattice, block_cells
 from gpocc.mapping.folder import MapFolder, folder_metadata
+from gpocc.mapping.support import model_support
 
 
 @dataclass(frozen=True)
@@ -60,9 +62,10 @@ def make_map(
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
-    ratio = config.classify.max_variance_ratio
     check_map_server_size(spec, config.map.max_pgm_pixels)  # before any work
     cells = block_cells(config.model.block_size_m, spec.resolution)
+    lattice = AnchorLattice(spec, cells)
+    support = model_support(model)
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
     windows = _tile_windows(spec, tile)
@@ -70,17 +73,11 @@ def make_map(
     n_blocks = 0
 
     for row0, col0, window in windows:
-        blocks = plan_blocks(window, cells)
-        n_blocks += len(blocks)
-        probability = np.full(window.shape, np.nan, dtype=np.float32)
-        variance = np.full(window.shape, np.nan, dtype=np.float32)
-        unsure = np.zeros(window.shape, dtype=bool)
-        for result in run_blocks(model, window, blocks, workers, scheduler, on_done=progress):
-            b = result.block
-            cells_of_block = (slice(b.row0, b.row0 + b.rows), slice(b.col0, b.col0 + b.cols))
-            probability[cells_of_block] = result.probability
-            variance[cells_of_block] = result.variance
-            unsure[cells_of_block] = result.variance > ratio * result.prior_variance
+        layers = predict_tile(model, lattice, row0, col0, window, support, workers,
+                              scheduler, progress)
+        n_blocks += layers.anchors
+        probability, unsure = layers.probability, layers.unsure
+        variance = layers.variance.astype(np.float32)
         classes = classify(probability, occupied, free, unsure)
         # The preview draws cells too uncertain to classify as no data.
         folder.add(row0, col0, window, probability, variance, classes,

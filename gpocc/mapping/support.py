@@ -1,0 +1,84 @@
+"""The data's support: which map cells lie within ``map.max_beam_distance_m`` of a beam.
+
+Cells outside are nodata in every layer (NaN probability and variance, 255 class,
+unknown in map.pgm), and local problems whose cells all lie outside are not computed.
+Distances are to the centres of the model's coverage cells
+(:mod:`gpocc.samples.coverage`), within ``coverage.error_m`` of the distance to the beams.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gpocc.gridspec import GridSpec
+from gpocc.samples.coverage import Coverage, sample_coverage
+
+
+class Support:
+    """Distance look-ups against a coverage raster, for one ``max_distance_m`` (metres)."""
+
+    def __init__(self, coverage: Coverage, max_distance_m: float) -> None:
+        self.coverage = coverage
+        self.max_distance_m = float(max_distance_m)
+        centres = coverage.centres()
+        self._tree = cKDTree(centres) if len(centres) else None
+
+    def within(self, points: np.ndarray, radius_m: float = 0.0) -> np.ndarray:
+        """(N,) bool: whether each (N, 2) point lies within ``max_distance_m + radius_m``
+        of a covered cell's centre."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        if self._tree is None:
+            return np.zeros(len(pts), dtype=bool)
+        limit = self.max_distance_m + radius_m
+        # Strictly beyond the limit is outside; the tree's bound is exclusive, so nudge it.
+        distance, _ = self._tree.query(pts, k=1, distance_upper_bound=limit * (1 + 1e-12)
+                                       + 1e-12)
+        return distance <= limit
+
+    def mask(self, spec: GridSpec, cells: int) -> np.ndarray:
+        """(H, W) bool of ``spec``'s cells inside the support.
+
+        Whole ``cells`` x ``cells`` groups are decided from their centre when it lies
+        farther than the group's half-diagonal from the support boundary (the distance is
+        1-Lipschitz), so only groups near the boundary query every cell.
+        """
+        xs, ys = spec.cell_centres()
+        inside = np.zeros(spec.shape, dtype=bool)
+        half = cells * spec.resolution * math.sqrt(0.5)
+        groups = [(r, c) for r in range(0, spec.height, cells)
+                  for c in range(0, spec.width, cells)]
+        centres = np.array([
+            [spec.x0 + (c + min(cells, spec.width - c) / 2) * spec.resolution,
+             spec.y1 - (r + min(cells, spec.height - r) / 2) * spec.resolution]
+            for r, c in groups])
+        maybe = self.within(centres, half)
+        surely = self.within(centres, -half) if self.max_distance_m > half else \
+            np.zeros(len(groups), dtype=bool)
+        for (r, c), m, s in zip(groups, maybe, surely, strict=True):
+            if not m:
+                continue
+            window = (slice(r, r + cells), slice(c, c + cells))
+            if s:
+                inside[window] = True
+            else:
+                pts = np.column_stack([xs[window].ravel(), ys[window].ravel()])
+                inside[window] = self.within(pts).reshape(xs[window].shape)
+        return inside
+
+
+def model_support(model) -> Support | None:
+    """The support of ``model`` under its ``map.max_beam_distance_m`` (None: no mask).
+
+    Models trained from beams carry their coverage; others (built from samples alone, or
+    written before coverage existed) fall back to the cells holding a training sample.
+    """
+    limit = model.config.map.max_beam_distance_m
+    if limit is None:
+        return None
+    coverage = getattr(model, "coverage", None)
+    if coverage is None:
+        coverage = sample_coverage(model.samples.means)
+    return Support(coverage, limit)
