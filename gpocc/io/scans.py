@@ -2,9 +2,28 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Where a batch's poses and covariances came from, for ``gpocc info`` and warnings.
+
+    Attributes:
+        pose_source: e.g. ``TF map->laser`` or ``topic /amcl_pose``.
+        frame_chain: the TF chain used (empty without TF).
+        covariance_source: e.g. ``/amcl_pose (held up to 30 s)`` or ``config``.
+        skipped: (reason, config key, count) of dropped scans.
+        notes: counted repairs and fallbacks.
+    """
+
+    pose_source: str
+    frame_chain: str = ""
+    covariance_source: str = ""
+    skipped: tuple[tuple[str, str, int], ...] = ()
+    notes: tuple[str, ...] = field(default=())
 
 
 @dataclass(frozen=True)
@@ -30,6 +49,7 @@ class ScanBatch:
             input had none, or the config overrides them, and the reader filled in the
             sensor config's ``pose_covariance``).
         skipped_scans: scans dropped for want of a pose within the allowed gap.
+        provenance: pose and covariance sources of a bag's batch (None: not recorded).
     """
 
     sensor: str
@@ -43,6 +63,7 @@ class ScanBatch:
     range_max: float
     has_pose_covariance: bool = True
     skipped_scans: int = 0
+    provenance: Provenance | None = None
 
     @property
     def n_scans(self) -> int:
