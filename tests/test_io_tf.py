@@ -1,0 +1,266 @@
+"""Poses from TF, covariances from AMCL / odometry, namespaced robots, several lasers.
+
+Each bag is built in tests/rosbag_scenes.py from a known truth; the reader's laser poses
+must match the truth within 1 mm, and the training samples must match those built from
+the same scans with the exact laser poses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbag_scenes import (
+    T0,
+    BagWriter,
+    Laser,
+    Robot,
+    Route,
+    add_robot,
+    amcl_stamps,
+    compose,
+    cov6,
+    inverse,
+    quat,
+)
+
+from gpocc.config import Config, SamplesConfig, SensorConfig
+from gpocc.io.inputs import read_inputs
+from gpocc.io.scans import ScanBatch
+from gpocc.samples.beams import build_samples
+
+NO_THIN = Config(samples=SamplesConfig(thin_cell_m=0.0))
+DEFAULT_P = SensorConfig().pose_covariance_matrix
+
+
+def lever_oracle(cov: np.ndarray, base_yaw: np.ndarray, mount: tuple) -> np.ndarray:
+    """Monte Carlo covariance of the laser pose when the base pose has covariance ``cov``."""
+    rng = np.random.default_rng(0)
+    out = []
+    for yaw, c in zip(base_yaw, cov, strict=True):
+        d = rng.multivariate_normal(np.zeros(3), c, size=200_000)
+        base = np.column_stack([d[:, 0], d[:, 1], yaw + d[:, 2]])
+        laser = compose(base, np.asarray(mount))
+        out.append(np.cov(laser.T))
+    return np.asarray(out)
+
+
+def assert_covariances(got: np.ndarray, want: np.ndarray) -> None:
+    """Equal up to Monte Carlo noise: differences in units of sqrt(c_ii c_jj) below 1%."""
+    sd = np.sqrt(np.diagonal(want, axis1=1, axis2=2))
+    scaled = (got - want) / (sd[:, :, None] * sd[:, None, :])
+    assert np.abs(scaled).max() < 0.01, np.abs(scaled).max()
+
+
+def clean_batch(read: ScanBatch, robot: Robot, laser: Laser) -> ScanBatch:
+    """The same scans with the exact laser poses (and the read covariances)."""
+    t = read.stamps - T0
+    truth = robot.laser_pose(laser, t)
+    return dataclasses.replace(read, poses=truth, provenance=None)
+
+
+def assert_same_samples(read: ScanBatch, clean: ScanBatch) -> None:
+    a = build_samples([read], NO_THIN)
+    b = build_samples([clean], NO_THIN)
+    assert len(a) == len(b) > 1000
+    np.testing.assert_array_equal(a.labels, b.labels)
+    assert np.abs(a.means - b.means).max() < 1e-3
+
+
+def assert_poses(read: ScanBatch, truth: np.ndarray) -> None:
+    assert np.abs(read.poses[:, :2] - truth[:, :2]).max() < 1e-3
+    assert np.abs(np.angle(np.exp(1j * (read.poses[:, 2] - truth[:, 2])))).max() < 1e-3
+
+
+def one_robot(speed: float = 0.5, duration: float = 12.0, lasers: list | None = None) -> Robot:
+    return Robot(Route(speed), lasers or [Laser("/scan", "laser")], duration=duration)
+
+
+@pytest.mark.parametrize("fmt,name,compress", [
+    ("ros2-mcap", "run", False), ("ros1", "run.bag", False), ("ros2-sqlite3", "run", True),
+    ("mcap", "run.mcap", False), ("ros1", "run.bag", True)])
+def test_tf_only_bag_with_drifting_odom_and_laser_offset(tmp_path: Path, fmt: str, name: str,
+                                                         compress: bool) -> None:
+    robot = one_robot()
+    bag = BagWriter(fmt)
+    add_robot(bag, robot)
+    path = bag.write(tmp_path / name, compress=compress)
+    [batch] = read_inputs([path], Config())  # no config: one laser + TF just works
+    laser = robot.lasers[0]
+    t_all = robot.scans["/scan"][0]
+    assert batch.sensor == "scan" and batch.n_scans == t_all.size and batch.skipped_scans == 0
+    assert_poses(batch, robot.laser_pose(laser, batch.stamps - T0))
+    # Odometry alone drifts by up to 0.7 m: reading it would fail the 1 mm check above.
+    assert_same_samples(batch, clean_batch(batch, robot, laser))
+    prov = batch.provenance
+    assert prov.pose_source == "TF map -> laser"
+    assert prov.frame_chain.startswith("map -> odom (/tf) -> base_footprint (/tf) -> base_link")
+    assert "laser (static)" in prov.frame_chain
+    assert prov.covariance_source.startswith("config")
+    # The config covariance is the base's; the laser 0.25 m ahead moves when the base turns.
+    some = slice(0, None, 40)
+    base_yaw = robot.route.base(batch.stamps[some] - T0)[:, 2]
+    want = lever_oracle(np.broadcast_to(DEFAULT_P, (base_yaw.size, 3, 3)), base_yaw,
+                        laser.mount)
+    assert_covariances(batch.pose_covariances[some], want)
+
+
+def test_no_map_frame_falls_back_to_odom_with_a_warning(tmp_path: Path, capsys) -> None:
+    robot = one_robot()
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot, map_to_odom=False)
+    [batch] = read_inputs([bag.write(tmp_path / "odom_only")], Config())
+    assert "map will drift" in capsys.readouterr().err
+    t = batch.stamps - T0
+    in_odom = compose(compose(inverse(robot.correction(t)), robot.route.base(t)),
+                      np.asarray(robot.lasers[0].mount))
+    assert_poses(batch, in_odom)
+    assert batch.provenance.frame_chain.startswith("odom -> base_footprint")
+
+
+def test_slow_robot_with_amcl_at_its_motion_cadence(tmp_path: Path, capsys) -> None:
+    # 5 cm/s: AMCL publishes every ~5 s, /odom at 50 Hz; both present, no config.
+    robot = one_robot(speed=0.05, duration=40.0)
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    t_amcl = amcl_stamps(robot)
+    assert 5 <= t_amcl.size <= 12
+    covs = []
+    for k, t in enumerate(t_amcl):
+        p = robot.route.base(np.array([t]))[0]
+        c = cov6(0.01 + 0.002 * k, 0.02, 0.003 + 0.0005 * k, xy=0.004)
+        covs.append(c[np.ix_([0, 1, 5], [0, 1, 5])])
+        bag.pose_cov("/amcl_pose", T0 + t, "map", (p[0], p[1], 0.0), quat(yaw=p[2]), c)
+    for t in np.arange(0, robot.duration, 0.02):
+        bag.odom("/odom", T0 + t, "odom", "base_footprint", (0.0, 0.0, 0.0), quat(),
+                 cov6(1e-3, 1e-3, 1e3))
+    [batch] = read_inputs([bag.write(tmp_path / "amcl")], Config())
+    assert "skipped" not in capsys.readouterr().err
+    n_scans = robot.scans["/scan"][0].size
+    assert batch.n_scans == n_scans and batch.skipped_scans == 0  # none lost to the cadence
+    laser = robot.lasers[0]
+    assert_poses(batch, robot.laser_pose(laser, batch.stamps - T0))
+    assert batch.provenance.covariance_source.startswith("/amcl_pose")
+    # Oracle: AMCL's covariance held before its first message, linear between messages,
+    # carried to the laser through the mount lever arm.
+    t = batch.stamps - T0
+    covs = np.asarray(covs)
+    held = np.stack([[np.interp(t, t_amcl, covs[:, i, j]) for j in range(3)]
+                     for i in range(3)]).transpose(2, 0, 1)
+    some = slice(0, None, 50)
+    want = lever_oracle(held[some], robot.route.base(t[some])[:, 2], laser.mount)
+    assert_covariances(batch.pose_covariances[some], want)
+    assert_same_samples(batch, clean_batch(batch, robot, laser))
+
+
+@pytest.mark.parametrize("sentinel", [1e3, 1e6, float("nan")])
+def test_do_not_trust_odometry_covariance_uses_the_config(tmp_path: Path, capsys,
+                                                          sentinel: float) -> None:
+    robot = one_robot()
+    bag = BagWriter("ros1")
+    add_robot(bag, robot)
+    for t in np.arange(0, robot.duration, 0.02):
+        bag.odom("/odom", T0 + t, "odom", "base_footprint", (0.0, 0.0, 0.0), quat(),
+                 cov6(1e-3, 1e-3, sentinel))
+    own = ((0.01, 0.0, 0.0), (0.0, 0.02, 0.0), (0.0, 0.0, 0.004))
+    config = Config(sensors=(SensorConfig(name="r", scan_topic="/scan", pose_covariance=own),))
+    [batch] = read_inputs([bag.write(tmp_path / "odom.bag")], config)
+    err = capsys.readouterr().err
+    assert err.count("covariance unknown") + err.count("covariances unknown") == 1  # said once
+    assert ("covariance_sentinel=1000" in err) == (sentinel >= 1e3)
+    assert batch.provenance.covariance_source.startswith("config")
+    laser = robot.lasers[0]
+    some = slice(0, None, 40)
+    yaw = robot.route.base(batch.stamps[some] - T0)[:, 2]
+    want = lever_oracle(np.broadcast_to(np.asarray(own), (yaw.size, 3, 3)), yaw, laser.mount)
+    assert_covariances(batch.pose_covariances[some], want)
+    # Mean pose uncertainty stays at the config's centimetres, not 1000 rad^2.
+    assert np.sqrt(batch.pose_covariances[:, 2, 2]).max() < 0.1
+
+
+def test_odometry_covariance_is_turned_from_odom_into_map(tmp_path: Path) -> None:
+    robot = one_robot()
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    c = cov6(0.04, 0.001, 0.002)  # long along odom's x axis
+    for t in np.arange(0, robot.duration, 0.02):
+        bag.odom("/odom", T0 + t, "odom", "base_footprint", (0.0, 0.0, 0.0), quat(), c)
+    [batch] = read_inputs([bag.write(tmp_path / "odom")], Config())
+    t = batch.stamps - T0
+    a = robot.correction(t)[:, 2]  # map -> odom yaw
+    rot = np.zeros((t.size, 3, 3))
+    rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = np.cos(a), -np.sin(a), np.sin(a), \
+        np.cos(a)
+    rot[:, 2, 2] = 1
+    in_map = rot @ c[np.ix_([0, 1, 5], [0, 1, 5])] @ rot.transpose(0, 2, 1)
+    some = slice(0, None, 40)
+    want = lever_oracle(in_map[some], robot.route.base(t[some])[:, 2], robot.lasers[0].mount)
+    assert_covariances(batch.pose_covariances[some], want)
+
+
+def test_two_namespaced_robots_pair_by_namespace(tmp_path: Path) -> None:
+    # robot1: prefixed frames on the shared /tf; robot2: its own /robot2/tf, plain frames.
+    r1 = Robot(Route(0.5), [Laser("/robot1/scan", "robot1/laser")], prefix="robot1/")
+    r2 = Robot(Route(0.8, route=1), [Laser("/robot2/scan", "laser2", mount=(-0.1, 0.0, 0.3))],
+               drift=(-0.3, 0.5, -0.1))
+    bag = BagWriter("ros1")
+    add_robot(bag, r1)
+    add_robot(bag, r2, tf_topic="/robot2/tf", static_topic="/robot2/tf_static")
+    for robot, topic in ((r1, "/robot1/amcl_pose"), (r2, "/robot2/amcl_pose")):
+        for t in amcl_stamps(robot):
+            p = robot.route.base(np.array([t]))[0]
+            bag.pose_cov(topic, T0 + t, "map", (p[0], p[1], 0), quat(yaw=p[2]),
+                         cov6(0.01, 0.01, 0.002))
+    batches = read_inputs([bag.write(tmp_path / "two.bag")], Config())
+    assert [(b.sensor, b.n_scans) for b in batches] == [
+        ("robot1/scan", r1.scans["/robot1/scan"][0].size),
+        ("robot2/scan", r2.scans["/robot2/scan"][0].size)]
+    for b, robot in zip(batches, (r1, r2), strict=True):
+        assert b.provenance.covariance_source.startswith(f"/{b.sensor.split('/')[0]}/amcl_pose")
+        assert_poses(b, robot.laser_pose(robot.lasers[0], b.stamps - T0))
+        assert_same_samples(b, clean_batch(b, robot, robot.lasers[0]))
+
+
+def test_front_and_back_laser_become_two_sensors(tmp_path: Path) -> None:
+    # The back laser looks backwards and is mounted upside down: it scans clockwise.
+    front = Laser("/front/scan", "front_laser", mount=(0.3, 0.0, 0.0))
+    back = Laser("/back/scan", "back_laser", mount=(-0.3, 0.02, math.pi), upside_down=True)
+    robot = one_robot(lasers=[front, back])
+    bag = BagWriter("ros2-sqlite3")
+    add_robot(bag, robot)
+    for t in amcl_stamps(robot):
+        p = robot.route.base(np.array([t]))[0]
+        bag.pose_cov("/amcl_pose", T0 + t, "map", (p[0], p[1], 0), quat(yaw=p[2]),
+                     cov6(0.01, 0.01, 0.002))
+    batches = read_inputs([bag.write(tmp_path / "two_lasers")], Config())
+    assert [b.sensor for b in batches] == ["back/scan", "front/scan"]
+    for b, laser in zip(batches, (back, front), strict=True):
+        assert b.n_scans == robot.scans[laser.topic][0].size
+        assert_poses(b, robot.laser_pose(laser, b.stamps - T0))
+        sign = -1.0 if laser.upside_down else 1.0
+        np.testing.assert_allclose(b.angles, sign * laser.angles, atol=1e-6)
+        clean = dataclasses.replace(clean_batch(b, robot, laser), angles=sign * laser.angles)
+        assert_same_samples(b, clean)
+    # Hits land on the world's walls: the bearings' mirroring is right.
+    from rosbag_scenes import WORLD
+
+    hits = build_samples([batches[0]], NO_THIN)
+    hit_xy = hits.means[hits.labels > 0]
+    assert np.median(np.abs(WORLD.clearance(hit_xy))) < 0.01
+
+
+def test_config_mount_on_top_of_tf_is_an_error(tmp_path: Path) -> None:
+    from gpocc.config import MountConfig
+    from gpocc.errors import GpoccError
+
+    robot = one_robot()
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    path = bag.write(tmp_path / "b")
+    config = Config(sensors=(SensorConfig(name="r", scan_topic="/scan",
+                                          mount=MountConfig(x_m=0.25)),))
+    with pytest.raises(GpoccError, match=r"b: sensor 'r': TF already gives the laser's mount"):
+        read_inputs([path], config)
