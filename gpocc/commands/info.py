@@ -60,6 +60,23 @@ def format_sensors(batches: Sequence[ScanBatch]) -> list[str]:
             f"  {name}: {used} scans used, {skipped} skipped, {beams} beams per scan, "
             f"range {limits} m, pose covariance from {covariance}"
         )
+        lines += provenance_lines(own)
+    return lines
+
+
+def provenance_lines(batches: Sequence[ScanBatch]) -> list[str]:
+    """Per input of one sensor: pose source, TF chain, covariance source, skips, repairs."""
+    lines = []
+    for b in batches:
+        p = b.provenance
+        if p is None:
+            continue
+        lines.append(f"    {Path(b.source).name}: pose from {p.pose_source}")
+        if p.frame_chain:
+            lines.append(f"      frame chain: {p.frame_chain}")
+        lines.append(f"      covariance: {p.covariance_source}")
+        lines += [f"      skipped {n}: {why} (config key {key})" for why, key, n in p.skipped]
+        lines += [f"      note: {note}" for note in p.notes]
     return lines
 
 
