@@ -104,6 +104,10 @@ class Robot:
         """(N, 3) map -> odom: grows linearly, as a localiser corrects odometry drift."""
         return np.asarray(self.drift)[None] * (np.asarray(t, float)[:, None] / self.duration)
 
+    def odometry(self, t: np.ndarray) -> np.ndarray:
+        """(N, 3) the drifting odom -> base_footprint pose."""
+        return compose(inverse(self.correction(t)), self.route.base(t))
+
     def laser_pose(self, laser: Laser, t: np.ndarray) -> np.ndarray:
         return compose(self.route.base(t), np.asarray(laser.mount))
 
@@ -232,14 +236,14 @@ class BagWriter:
 
 def add_robot(bag: BagWriter, robot: Robot, *, tf_topic: str = "/tf",
               static_topic: str = "/tf_static", map_to_odom: bool = True,
-              odom_tf: bool = True, odom_rate: float = 50.0, map_rate: float = 10.0) -> None:
+              odom_tf: bool = True, odom_rate: float = 50.0, map_rate: float = 10.0,
+              static_tf: bool = True) -> None:
     """The robot's scans and TF: map -> odom -> base_footprint -> base_link -> lasers."""
     if not robot.scans:
         robot.simulate()
     f = robot.frame
     tf_t = np.arange(0.0, robot.duration + 1e-9, 1 / odom_rate)
-    base = robot.route.base(tf_t)
-    odom = compose(inverse(robot.correction(tf_t)), base)  # odom -> base_footprint
+    odom = robot.odometry(tf_t)
     if odom_tf:
         for t, p in zip(tf_t, odom, strict=True):
             bag.tf(tf_topic, T0 + t, [(f("odom"), f("base_footprint"), (p[0], p[1], 0.0),
@@ -255,7 +259,8 @@ def add_robot(bag: BagWriter, robot: Robot, *, tf_topic: str = "/tf",
         mx, my, myaw = laser.mount
         static.append((f("base_link"), laser.frame, (mx, my, 0.2),
                        quat(roll=math.pi if laser.upside_down else 0.0, yaw=myaw)))
-    bag.tf(static_topic, T0, static)
+    if static_tf:
+        bag.tf(static_topic, T0, static)
     for laser in robot.lasers:
         t, _, ranges = robot.scans[laser.topic]
         for tk, r in zip(t, ranges, strict=True):

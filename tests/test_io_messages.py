@@ -167,7 +167,7 @@ def pose_messages(draw):
         pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov))
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(scan=scan_messages(), poses=st.lists(pose_messages(), min_size=1, max_size=3),
        repair=st.booleans())
 def test_decoding_gives_a_clean_error_or_a_valid_batch(scan, poses, repair: bool) -> None:

@@ -27,7 +27,7 @@ from rosbag_scenes import (
     quat,
 )
 
-from gpocc.config import Config, SamplesConfig, SensorConfig
+from gpocc.config import Config, MountConfig, SamplesConfig, SensorConfig
 from gpocc.io.inputs import read_inputs
 from gpocc.io.scans import ScanBatch
 from gpocc.samples.beams import build_samples
@@ -157,6 +157,69 @@ def test_slow_robot_with_amcl_at_its_motion_cadence(tmp_path: Path, capsys) -> N
     assert_same_samples(batch, clean_batch(batch, robot, laser))
 
 
+def _amcl_without_tf(tmp_path: Path, with_odom: bool) -> tuple[Robot, Path, np.ndarray]:
+    robot = one_robot(speed=0.05, duration=40.0)
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot, map_to_odom=False, odom_tf=False, static_tf=False)
+    t_amcl = amcl_stamps(robot)
+    for t in t_amcl:
+        p = robot.route.base(np.array([t]))[0]
+        bag.pose_cov("/amcl_pose", T0 + t, "map", (p[0], p[1], 0.0), quat(yaw=p[2]),
+                     cov6(0.01, 0.01, 0.002))
+    if with_odom:
+        for t in np.arange(0, robot.duration, 0.02):
+            p = robot.odometry(np.array([t]))[0]
+            bag.odom("/odom", T0 + t, "odom", "base_footprint", (p[0], p[1], 0.0),
+                     quat(yaw=p[2]), cov6(1e-3, 1e-3, 1e3))
+    return robot, bag.write(tmp_path / "amcl_no_tf"), t_amcl
+
+
+def test_slow_amcl_without_tf_anchors_the_odometry(tmp_path: Path, capsys) -> None:
+    robot, path, t_amcl = _amcl_without_tf(tmp_path, with_odom=True)
+    mx, my, myaw = robot.lasers[0].mount
+    mount = MountConfig(x_m=mx, y_m=my, yaw_deg=math.degrees(myaw))
+    config = Config(sensors=(SensorConfig(name="r", scan_topic="/scan", mount=mount),))
+    [batch] = read_inputs([path], config)
+    assert "skipped" not in capsys.readouterr().err
+    assert batch.n_scans == robot.scans["/scan"][0].size and batch.skipped_scans == 0
+    assert batch.provenance.pose_source == "topic /amcl_pose anchoring odometry /odom"
+    # Oracle: the correction of the latest fix (the first before the first fix) applied to
+    # the odometry, which is what AMCL's map -> odom transform does between updates.
+    t = batch.stamps - T0
+    k = np.clip(np.searchsorted(t_amcl, t, side="right") - 1, 0, t_amcl.size - 1)
+    fix = robot.route.base(t_amcl[k])
+    want = compose(compose(fix, inverse(robot.odometry(t_amcl[k]))), robot.odometry(t))
+    assert_poses(batch, want)
+    # ... far nearer the truth than the odometry (off by up to 0.6 m and 0.15 rad here).
+    truth = robot.route.base(t)[:, :2]
+    odom_error = np.abs(compose(robot.odometry(t), np.asarray(robot.lasers[0].mount))[:, :2]
+                        - robot.laser_pose(robot.lasers[0], t)[:, :2]).max()
+    assert np.abs(batch.poses[:, :2] - truth).max() < 0.3 * odom_error
+
+
+def test_many_skipped_scans_warn_with_reason_and_key(tmp_path: Path, capsys) -> None:
+    # Odometry TF drops out from 3 s to 8 s of a 12 s log: those scans have no pose.
+    robot = one_robot()
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    bag.messages = [m for m in bag.messages if not (
+        m[1] == "/tf" and m[3].transforms[0].child_frame_id == "base_footprint"
+        and T0 + 3.0 < m[0] < T0 + 8.0)]
+    [batch] = read_inputs([bag.write(tmp_path / "gap")], Config())
+    t = robot.scans["/scan"][0]
+    lost = int(np.count_nonzero((t > 3.0) & (t < 8.0)))
+    assert batch.skipped_scans == lost and batch.n_scans == t.size - lost
+    err = " ".join(capsys.readouterr().err.split())
+    assert (f"sensor 'scan': {lost} of {t.size} scans" in err
+            and "no TF odom->base_footprint within max_pose_gap_s" in err
+            and "raise sensors[].max_pose_gap_s" in err)
+    from gpocc.commands.info import provenance_lines
+
+    lines = "\n".join(provenance_lines([batch]))
+    assert (f"skipped {lost}: no TF odom->base_footprint within max_pose_gap_s of the scan "
+            "(config key sensors[].max_pose_gap_s)") in lines
+
+
 @pytest.mark.parametrize("sentinel", [1e3, 1e6, float("nan")])
 def test_do_not_trust_odometry_covariance_uses_the_config(tmp_path: Path, capsys,
                                                           sentinel: float) -> None:
@@ -254,7 +317,6 @@ def test_front_and_back_laser_become_two_sensors(tmp_path: Path) -> None:
 
 
 def test_config_mount_on_top_of_tf_is_an_error(tmp_path: Path) -> None:
-    from gpocc.config import MountConfig
     from gpocc.errors import GpoccError
 
     robot = one_robot()
@@ -265,3 +327,47 @@ def test_config_mount_on_top_of_tf_is_an_error(tmp_path: Path) -> None:
                                           mount=MountConfig(x_m=0.25)),))
     with pytest.raises(GpoccError, match=r"b: sensor 'r': TF already gives the laser's mount"):
         read_inputs([path], config)
+
+
+def _heldout_auc(batch: ScanBatch) -> float:
+    """AUC of a log-odds grid built from 4 of 5 scans, on the held-out 5th scans' points."""
+    from sklearn.metrics import roc_auc_score
+
+    from gpocc.evaluation.grid import observed_extent, occupancy_grid
+    from gpocc.evaluation.split import split_batch
+    from gpocc.gridspec import GridSpec
+
+    config = Config()
+    split = split_batch(batch, SensorConfig(name=batch.sensor), every=5,
+                        rng=np.random.default_rng(0))
+    spec = GridSpec.from_bounds(*observed_extent([split.train], config), 0.1)
+    grid = occupancy_grid([split.train], config, spec)
+    row, col, inside = spec.index_of(split.points)
+    scores = grid.probability[row[inside], col[inside]]
+    seen = np.isfinite(scores)  # cells no training beam reached have no probability
+    assert seen.mean() > 0.8
+    return float(roc_auc_score(split.labels[inside][seen], scores[seen]))
+
+
+def test_heldout_auc_of_the_tf_bag_matches_the_clean_bag(tmp_path: Path) -> None:
+    from gpocc.io.bags import write_bag
+
+    robot = one_robot(duration=20.0)
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    [tf_batch] = read_inputs([bag.write(tmp_path / "tf")], Config())
+    # The clean bag: the same scans with their exact laser poses on a pose topic.
+    clean = clean_batch(tf_batch, robot, robot.lasers[0])
+    write_bag(tmp_path / "clean.mcap", [clean], [("/scan", "/pose")], "mcap")
+    [clean_read] = read_inputs([tmp_path / "clean.mcap"], Config())
+    clean_auc, tf_auc = _heldout_auc(clean_read), _heldout_auc(tf_batch)
+    assert clean_auc > 0.9
+    assert abs(tf_auc - clean_auc) <= 0.005
+    # Mapping in the odometry frame instead (what gpocc did before TF) is measurably worse.
+    odom = dataclasses.replace(
+        tf_batch, poses=compose(compose(inverse(robot.correction(tf_batch.stamps - T0)),
+                                        robot.route.base(tf_batch.stamps - T0)),
+                                np.asarray(robot.lasers[0].mount)))
+    odom_auc = _heldout_auc(odom)
+    print(f"held-out AUC: clean {clean_auc:.4f}, TF {tf_auc:.4f}, odometry frame {odom_auc:.4f}")
+    assert odom_auc < clean_auc - 0.05

@@ -316,6 +316,23 @@ def tf_topics_for(contents: BagContents, scan_topic: str) -> list[str]:
     return out
 
 
+def odometry_topic_for(contents: BagContents, sensor: SensorConfig) -> str | None:
+    """The one Odometry topic in the sensor's (nearest enclosing) namespace to anchor a
+    PoseWithCovarianceStamped pose topic without TF, or None."""
+    pose = contents.topic(sensor.pose_topic or "")
+    if pose is None or pose.msgtype != "geometry_msgs/msg/PoseWithCovarianceStamped":
+        return None
+    ns = namespace(sensor.scan_topic or "")
+    odoms = [t.name for t in contents.topics_of_type("nav_msgs/msg/Odometry")
+             if not namespace(t.name) or ns == namespace(t.name)
+             or ns.startswith(namespace(t.name) + "/")]
+    if not odoms:
+        return None
+    depth = max(len(namespace(t)) for t in odoms)
+    near = [t for t in odoms if len(namespace(t)) == depth]
+    return near[0] if len(near) == 1 else None
+
+
 def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatch]:
     """Read the scans of each sensor from one bag, each with its laser pose and covariance.
 
@@ -342,10 +359,10 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
         for sensor in sensors:
             check_topics(path, contents, sensor)
         scan_acc = {s.scan_topic: _ScanTopic() for s in sensors}
-        pose_acc = {
-            s.pose_topic: PoseCollector(path, s.pose_topic, contents.topic(s.pose_topic).msgtype)
-            for s in sensors if s.pose_topic != TF_POSE
-        }
+        odom_for = {s.name: odometry_topic_for(contents, s) for s in sensors}
+        pose_names = [s.pose_topic for s in sensors if s.pose_topic != TF_POSE]
+        pose_names += [t for t in odom_for.values() if t is not None]
+        pose_acc = {t: PoseCollector(path, t, contents.topic(t).msgtype) for t in pose_names}
         tf_for = {s.name: tf_topics_for(contents, s.scan_topic) if s.position_from_tf else []
                   for s in sensors}
         tf_acc = {t: TfCollector(path) for names in tf_for.values() for t in names}
@@ -364,8 +381,9 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
     batches = []
     for s in sensors:
         tf: TfBuffer | None = merge_buffers([built[t] for t in tf_for[s.name]]) or None
+        odom = series.get(odom_for[s.name]) if odom_for[s.name] else None
         batches.append(laserpose.assemble(path, s, scan_acc[s.scan_topic], tf,
-                                          series.get(s.pose_topic)))
+                                          series.get(s.pose_topic), odom))
     return batches
 
 

@@ -7,6 +7,10 @@ sensor's ``mount`` in the config must stay zero. Without ``map`` the chain start
 ``odom`` with a warning that the map will drift. Without a TF chain, the pose topic's
 poses are interpolated to the scans (the config's ``mount`` then applies).
 
+Without TF, a PoseWithCovarianceStamped ``pose_topic`` (AMCL at its motion-triggered
+cadence) anchors the robot's odometry topic in its namespace when there is one
+(:func:`anchored_poses`), so a slow robot keeps its scans.
+
 Covariance: from ``pose_topic`` when it carries one (PoseWithCovarianceStamped from AMCL
 or SLAM, else Odometry), held or interpolated to each scan up to ``max_covariance_age_s``
 (:func:`gpocc.io.poses.covariance_at`); unknown entries and stale scans use the config's
@@ -192,8 +196,45 @@ def interpolate_poses(
     return out, valid
 
 
+def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """SE(2) ``a (+) b`` row by row, (N, 3)."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1],
+                            a[:, 1] + s * b[:, 0] + c * b[:, 1],
+                            np.angle(np.exp(1j * (a[:, 2] + b[:, 2])))])
+
+
+def _inverse(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], -a[:, 2]])
+
+
+def anchored_poses(fixes: PoseSeries, odom: PoseSeries, stamps: np.ndarray, max_gap_s: float,
+                   max_age_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Odometry anchored to sparse localisation fixes, as AMCL's ``map -> odom`` TF does.
+
+    At each fix ``A_k`` (AMCL publishes only after 0.25 m or 0.2 rad of motion) the
+    correction ``C_k = A_k (-) O(t_k)`` is computed with the odometry ``O`` interpolated to
+    the fix; a scan at ``t`` gets ``C (+) O(t)`` with the latest correction at or before
+    ``t`` (the first one before the first fix), if that fix is at most ``max_age_s`` away.
+
+    Returns:
+        ``(poses (S, 3), valid (S,), stale (S,))``, ``stale`` marking scans too far from a
+        fix; None when no fix falls within the odometry.
+    """
+    o_fix, ok = interpolate_poses(odom.stamps, odom.poses, fixes.stamps, max_gap_s)
+    if not ok.any():
+        return None
+    t_fix = fixes.stamps[ok]
+    correction = _compose(fixes.poses[ok], _inverse(o_fix[ok]))
+    o_scan, valid = interpolate_poses(odom.stamps, odom.poses, stamps, max_gap_s)
+    i = np.clip(np.searchsorted(t_fix, stamps, side="right") - 1, 0, t_fix.size - 1)
+    stale = np.abs(stamps - t_fix[i]) > max_age_s
+    return _compose(correction[i], o_scan), valid & ~stale, stale
+
+
 def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | None,
-             series: PoseSeries | None) -> ScanBatch:
+             series: PoseSeries | None, odometry: PoseSeries | None = None) -> ScanBatch:
     """One sensor's batch: scans sorted by stamp, each with its laser pose and covariance.
 
     Raises:
@@ -260,13 +301,29 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                              "pose_topic")
         if why and tf:
             notes.append(f"poses from {series.topic}: {why}")
-        poses, valid = interpolate_poses(series.stamps, series.poses, stamps,
-                                         sensor.max_pose_gap_s)
-        if not valid.all():
-            skipped = [(f"no pose on {series.topic} within max_pose_gap_s of the scan",
-                        "sensors[].max_pose_gap_s", int(np.count_nonzero(~valid)))]
-        pose_source = f"topic {series.topic} ({series.msgtype.rsplit('/', 1)[-1]})"
-        cov = _covariances(path, sensor, series, stamps, None, None, sensor.max_pose_gap_s)
+        fused = None
+        if odometry is not None and odometry.stamps.size and odometry.topic != series.topic:
+            fused = anchored_poses(series, odometry, stamps, sensor.max_pose_gap_s,
+                                   sensor.max_covariance_age_s)
+        if fused is not None:
+            poses, valid, stale = fused
+            gap = ~valid & ~stale
+            skipped = [r for r in (
+                (f"no odometry on {odometry.topic} within max_pose_gap_s of the scan",
+                 "sensors[].max_pose_gap_s", int(np.count_nonzero(gap))),
+                (f"no fix on {series.topic} within max_covariance_age_s of the scan",
+                 "sensors[].max_covariance_age_s", int(np.count_nonzero(stale)))) if r[2]]
+            pose_source = f"topic {series.topic} anchoring odometry {odometry.topic}"
+            cov_age = sensor.max_covariance_age_s
+        else:
+            poses, valid = interpolate_poses(series.stamps, series.poses, stamps,
+                                             sensor.max_pose_gap_s)
+            if not valid.all():
+                skipped = [(f"no pose on {series.topic} within max_pose_gap_s of the scan",
+                            "sensors[].max_pose_gap_s", int(np.count_nonzero(~valid)))]
+            pose_source = f"topic {series.topic} ({series.msgtype.rsplit('/', 1)[-1]})"
+            cov_age = sensor.max_pose_gap_s
+        cov = _covariances(path, sensor, series, stamps, None, None, cov_age)
         covariances = cov.covariances
         has_cov = bool(cov.from_input[valid].any())
     notes.extend(cov.notes)
