@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from gpocc.errors import GpoccError
-from gpocc.io.tf import checked_quaternion, frame_name, yaw_of
+from gpocc.io.tf import checked_quaternion, frame_name
 
 #: Pose message types, and whether each carries a covariance.
 POSE_TYPES = {
@@ -108,7 +108,10 @@ class PoseCollector:
             self.frame_id = frame_name(msg.header.frame_id)
             self.child_frame_id = frame_name(getattr(msg, "child_frame_id", "") or "")
         self.stamps.append(t)
-        self.poses.append((xy[0], xy[1], float(yaw_of(q))))
+        x, y, z, w = (float(v) for v in q)
+        # math.atan2, not numpy's: bit-identical yaws to earlier gpocc versions.
+        yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        self.poses.append((xy[0], xy[1], yaw))
         if has_cov:
             cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
             self.covariances.append(cov[np.ix_(XY_YAW, XY_YAW)])

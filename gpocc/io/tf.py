@@ -109,7 +109,9 @@ def checked_quaternion(q: tuple[float, float, float, float], where: str) -> tupl
             f"{'not finite' if not np.isfinite(arr).all() else 'all zero'}, so it gives no "
             "rotation; fix the publisher or drop these messages (ros2 bag filter / rosbag filter)"
         )
-    return arr / norm, abs(norm - 1.0) > QUATERNION_TOLERANCE
+    if abs(norm - 1.0) <= QUATERNION_TOLERANCE:
+        return arr, False  # unit to rounding: kept bit for bit, as recorded
+    return arr / norm, True
 
 
 # --------------------------------------------------------------------------- buffer
