@@ -371,3 +371,95 @@ def test_heldout_auc_of_the_tf_bag_matches_the_clean_bag(tmp_path: Path) -> None
     odom_auc = _heldout_auc(odom)
     print(f"held-out AUC: clean {clean_auc:.4f}, TF {tf_auc:.4f}, odometry frame {odom_auc:.4f}")
     assert odom_auc < clean_auc - 0.05
+
+
+def _split_bag(bag: BagWriter, path: Path, at: float) -> Path:
+    """A rosbag2 folder of two storage files (as ``ros2 bag record --max-bag-duration``)."""
+    import yaml
+
+    first, second = BagWriter(bag.fmt), BagWriter(bag.fmt)
+    first.messages = [m for m in bag.messages if m[0] < at]
+    second.messages = [m for m in bag.messages if m[0] >= at]
+    first.write(path)
+    other = second.write(path.parent / (path.name + "_part"))
+    meta_a = yaml.safe_load((path / "metadata.yaml").read_text())
+    meta_b = yaml.safe_load((other / "metadata.yaml").read_text())
+    info_a, info_b = meta_a["rosbag2_bagfile_information"], meta_b["rosbag2_bagfile_information"]
+    [name_b] = info_b["relative_file_paths"]
+    new_name = f"{path.name}_1.mcap"
+    (other / name_b).rename(path / new_name)
+    info_a["relative_file_paths"].append(new_name)
+    info_a["files"] += [{**f, "path": new_name} for f in info_b["files"]]
+    info_a["message_count"] += info_b["message_count"]
+    counts = {t["topic_metadata"]["name"]: t for t in info_a["topics_with_message_count"]}
+    for t in info_b["topics_with_message_count"]:
+        name = t["topic_metadata"]["name"]
+        if name in counts:
+            counts[name]["message_count"] += t["message_count"]
+        else:
+            info_a["topics_with_message_count"].append(t)
+    end = (info_b["starting_time"]["nanoseconds_since_epoch"]
+           + info_b["duration"]["nanoseconds"])
+    info_a["duration"]["nanoseconds"] = end - info_a["starting_time"]["nanoseconds_since_epoch"]
+    (path / "metadata.yaml").write_text(yaml.safe_dump(meta_a))
+    return path
+
+
+def test_split_rosbag2_bag_reads_as_one(tmp_path: Path) -> None:
+    robot = one_robot()
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    path = _split_bag(bag, tmp_path / "split", T0 + 6.0)
+    assert len(list(path.glob("*.mcap"))) == 2
+    [batch] = read_inputs([path], Config())
+    assert batch.n_scans == robot.scans["/scan"][0].size and batch.skipped_scans == 0
+    assert_poses(batch, robot.laser_pose(robot.lasers[0], batch.stamps - T0))
+
+
+def test_info_shows_pose_source_chain_and_covariance(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from gpocc.cli import app
+
+    robot = one_robot()
+    bag = BagWriter("ros1")
+    add_robot(bag, robot)
+    for t in np.arange(0, robot.duration, 0.02):
+        bag.odom("/odom", T0 + t, "odom", "base_footprint", (0.0, 0.0, 0.0), quat(),
+                 cov6(1e-3, 1e-3, 1e6))
+    path = bag.write(tmp_path / "run.bag")
+    result = CliRunner().invoke(app, ["info", str(path)])
+    assert result.exit_code == 0, result.output
+    out = result.stdout
+    n = robot.scans["/scan"][0].size
+    assert f"scan: {n} scans used, 0 skipped" in out
+    assert "run.bag: pose from TF map -> laser" in out
+    assert ("frame chain: map -> odom (/tf) -> base_footprint (/tf) -> base_link (static) -> "
+            "laser (static)") in out
+    assert "covariance: config (sensors[].pose_covariance): /odom" in out
+    assert "covariance_sentinel=1000" in out
+
+
+def test_ambiguous_bag_prints_a_config_that_works(tmp_path: Path) -> None:
+    import re
+
+    import yaml
+
+    from gpocc.config import config_from_dict
+    from gpocc.errors import GpoccError
+
+    # Two pose topics for one laser and no TF: gpocc cannot choose.
+    bag = BagWriter("ros2-mcap")
+    ang = np.linspace(-1, 1, 5)
+    for k in range(5):
+        bag.scan("/scan", "laser", T0 + 0.1 * k, ang, np.full(5, 2.0), 10.0)
+        for topic in ("/amcl_pose", "/slam_pose"):
+            bag.pose_cov(topic, T0 + 0.1 * k, "map", (0.1 * k, 0, 0), quat(),
+                         cov6(0.01, 0.01, 0.001))
+    path = bag.write(tmp_path / "amb")
+    with pytest.raises(GpoccError, match="cannot choose the pose topic") as info:
+        read_inputs([path], Config())
+    text = re.search(r"(sensors: \[.*\])$", str(info.value)).group(1)
+    config = config_from_dict(yaml.safe_load(text))
+    [batch] = read_inputs([path], config)
+    assert batch.n_scans == 5
