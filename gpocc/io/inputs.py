@@ -166,7 +166,7 @@ def _resolve_bag_sensor(summary: InputSummary, sensor: SensorConfig) -> SensorCo
     scan = sensor.scan_topic or _only(path, summary, _scan_topics(summary), "LaserScan",
                                       sensor.name)
     contents = _contents(summary)
-    pose = sensor.pose_topic
+    pose = bags.TF_POSE if sensor.pose_topic in ("tf", bags.TF_POSE) else sensor.pose_topic
     if pose is None and contents.topic(scan) is not None:  # else check_topics names scan
         pose = autodetect.pose_topic_for(contents, scan, path, sensor.name)
     return replace(sensor, scan_topic=scan, pose_topic=pose)
