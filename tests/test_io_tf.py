@@ -432,7 +432,7 @@ def test_info_shows_pose_source_chain_and_covariance(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     out = result.stdout
     n = robot.scans["/scan"][0].size
-    assert f"scan: {n} scans used, 0 skipped" in out
+    assert f"scan: {n} scans used, 0 skipped" in out and "pose covariance from config" in out
     assert "run.bag: pose from TF map -> laser" in out
     assert ("frame chain: map -> odom (/tf) -> base_footprint (/tf) -> base_link (static) -> "
             "laser (static)") in out

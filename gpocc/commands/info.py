@@ -53,8 +53,12 @@ def format_sensors(batches: Sequence[ScanBatch]) -> list[str]:
         used = sum(b.n_scans for b in own)
         skipped = sum(b.skipped_scans for b in own)
         beams = "/".join(str(n) for n in sorted({b.n_beams for b in own}))
-        covariance = "input" if all(b.has_pose_covariance for b in own) else (
-            "config" if not any(b.has_pose_covariance for b in own) else "input and config")
+        # A TF batch always carries per-scan covariances (the config's, carried to the
+        # laser, when the bag has none): its provenance says where they came from.
+        from_input = [b.has_pose_covariance if b.provenance is None
+                      else not b.provenance.covariance_source.startswith("config") for b in own]
+        covariance = "input" if all(from_input) else (
+            "config" if not any(from_input) else "input and config")
         limits = "/".join(sorted({f"{b.range_min:g}..{b.range_max:g}" for b in own}))
         lines.append(
             f"  {name}: {used} scans used, {skipped} skipped, {beams} beams per scan, "
