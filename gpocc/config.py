@@ -56,6 +56,14 @@ class SensorConfig:
     no_return_free_m: float = 5.0
     range_min_m: float | None = None
     range_max_m: float | None = None
+    # Bags with TF (gpocc.io.laserpose): the laser pose is the TF chain map_frame ->
+    # the scan's frame; the covariance comes from pose_topic (held up to
+    # max_covariance_age_s), entries >= covariance_sentinel or NaN meaning "unknown".
+    map_frame: str = "map"
+    position_from_tf: bool = True
+    covariance_sentinel: float = 1e3
+    max_covariance_age_s: float = 30.0
+    repair_pose_covariance: bool = False
 
     @property
     def bearing_variance_rad2(self) -> float:
@@ -261,14 +269,14 @@ class Config:
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "min_noise_variance", "min_label_share", "max_beam_distance_m",
+    "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }
 _POSITIVE_KEYS = {
     "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",
     "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
-    "max_variance_ratio", "max_pgm_pixels",
+    "max_variance_ratio", "max_pgm_pixels", "covariance_sentinel",
     "weight_variance", "bias_variance",
 }
 

@@ -66,8 +66,9 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], str]]:
     """name -> (CLI arguments, expected words), each input wrong in one way."""
     good = tmp_path / "good.mcap"
     write_bag(good, [_batch()], [("/scan", "/pose")], "mcap")
+    # Two pose topics for one laser and no TF to settle it: the user must choose.
     two = tmp_path / "two.mcap"
-    write_bag(two, [_batch(), _batch()], [("/a/scan", "/a/pose"), ("/b/scan", "/b/pose")], "mcap")
+    write_bag(two, [_batch(), _batch()], [("/scan", "/pose"), ("/b_scan", "/amcl_pose")], "mcap")
     (tmp_path / "empty.mcap").write_bytes(b"")
     (tmp_path / "noise.bag").write_bytes(os.urandom(2000))
     (tmp_path / "half.mcap").write_bytes(good.read_bytes()[: good.stat().st_size // 2])
@@ -79,7 +80,10 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], str]]:
         "noise": ([str(tmp_path / "noise.bag")], "noise.bag: cannot read the bag"),
         "half": ([str(tmp_path / "half.mcap")], "half.mcap: cannot read the bag"),
         "carmen": ([str(tmp_path / "bad.log")], "bad.log: line 1:"),
-        "ambiguous": ([str(two)], "two.mcap: cannot choose the LaserScan topic"),
+        "ambiguous": ([str(two)], "two.mcap: cannot choose the pose topic for /b_scan among "
+                      "/amcl_pose, /pose (no TF to settle it); a config for all its lasers: "
+                      "sensors: [{name: b_scan, scan_topic: /b_scan, pose_topic: /amcl_pose}, "
+                      "{name: scan, scan_topic: /scan, pose_topic: /amcl_pose}]"),
         "missing": ([str(good), "--config", str(tmp_path / "missing.yaml")],
                     "good.mcap: topic /front"),
     }

@@ -193,8 +193,9 @@ def test_odometry_at_10hz_interpolated_to_scans(tmp_path: Path) -> None:
     # disturb the yaw. The 6x6 covariance has distinct values everywhere, so picking the
     # wrong rows or columns shows.
     t_pose = [100.0 + 0.1 * k for k in range(31) if not 12 <= k <= 16]
-    cov6 = np.arange(36, dtype=float).reshape(6, 6) * 1e-4
-    cov6 = cov6 + cov6.T
+    # (positive definite: a non-PSD covariance in a bag is an error, tested below)
+    a = np.arange(36, dtype=float).reshape(6, 6) * 0.01 + np.eye(6)
+    cov6 = a @ a.T * 1e-4
     vx, wz = 0.4, 1.5
     poses = [(t, (vx * (t - 100), 0.0, _quat(0.02, -0.03, 3.0 + wz * (t - 100))),
               cov6.reshape(36)) for t in t_pose]

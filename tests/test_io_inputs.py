@@ -103,9 +103,10 @@ def test_default_sensor_for_plain_bag_and_carmen(tmp_path: Path, bags: dict[str,
     assert carmen.sensor == "lab.gfs"
 
 
-def test_ambiguous_topics_need_a_sensors_entry(bags: dict[str, Path]) -> None:
-    with pytest.raises(GpoccError, match=r"both\.bag.*/robot1/scan.*/robot2/scan.*sensors:"):
-        read_inputs([bags["both"]], Config())
+def test_namespaced_robots_pair_without_config(bags: dict[str, Path]) -> None:
+    batches = read_inputs([bags["both"]], Config())
+    assert [(b.sensor, b.n_scans) for b in batches] == [("robot1/scan", 5), ("robot2/scan", 4)]
+    np.testing.assert_allclose(batches[1].poses[:, 0], 10.0 + np.arange(4))
 
 
 def test_missing_topic_names_topic_file_and_topics(bags: dict[str, Path]) -> None:

@@ -56,13 +56,34 @@ def format_sensors(batches: Sequence[ScanBatch]) -> list[str]:
         used = sum(b.n_scans for b in own)
         skipped = sum(b.skipped_scans for b in own)
         beams = "/".join(str(n) for n in sorted({b.n_beams for b in own}))
-        covariance = "input" if all(b.has_pose_covariance for b in own) else (
-            "config" if not any(b.has_pose_covariance for b in own) else "input and config")
+        # A TF batch always carries per-scan covariances (the config's, carried to the
+        # laser, when the bag has none): its provenance says where they came from.
+        from_input = [b.has_pose_covariance if b.provenance is None
+                      else not b.provenance.covariance_source.startswith("config") for b in own]
+        covariance = "input" if all(from_input) else (
+            "config" if not any(from_input) else "input and config")
         limits = "/".join(sorted({f"{b.range_min:g}..{b.range_max:g}" for b in own}))
         lines.append(
             f"  {name}: {used} scans used, {skipped} skipped, {beams} beams per scan, "
             f"range {limits} m, pose covariance from {covariance}"
         )
+        lines += provenance_lines(own)
+    return lines
+
+
+def provenance_lines(batches: Sequence[ScanBatch]) -> list[str]:
+    """Per input of one sensor: pose source, TF chain, covariance source, skips, repairs."""
+    lines = []
+    for b in batches:
+        p = b.provenance
+        if p is None:
+            continue
+        lines.append(f"    {Path(b.source).name}: pose from {p.pose_source}")
+        if p.frame_chain:
+            lines.append(f"      frame chain: {p.frame_chain}")
+        lines.append(f"      covariance: {p.covariance_source}")
+        lines += [f"      skipped {n}: {why} (config key {key})" for why, key, n in p.skipped]
+        lines += [f"      note: {note}" for note in p.notes]
     return lines
 
 

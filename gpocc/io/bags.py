@@ -4,8 +4,15 @@ Reading goes through ``rosbags.highlevel.AnyReader`` with the message definition
 bag carries; bags without any (older ROS2 sqlite3 bags) fall back to the ROS2 Humble
 definitions. Scans come from ``sensor_msgs/msg/LaserScan``; poses from
 ``geometry_msgs/msg/PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry`` or
-``geometry_msgs/msg/PoseStamped`` (no covariance). Times are header stamps in seconds (a
-zero header stamp falls back to the bag's record time).
+``geometry_msgs/msg/PoseStamped`` (no covariance), and TF (``/tf``, ``/tf_static``): see
+:mod:`gpocc.io.laserpose` for how the laser pose and its covariance are chosen. Times are
+header stamps in seconds (a zero header stamp falls back to the bag's record time).
+
+LaserScan messages are checked as read: ``angle_min``, ``angle_max`` and
+``angle_increment`` must be finite and agree with the number of ranges (within two
+increments: drivers differ by one beam), a scan must have ranges, and the beam layout
+must not change within a topic; each is a one-line error naming file, topic, stamp and
+field.
 """
 
 from __future__ import annotations
@@ -16,7 +23,7 @@ import math
 import os
 import tempfile
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,16 +32,17 @@ import yaml
 
 from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
+from gpocc.io import laserpose
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.io.laserpose import ScanTopic as _ScanTopic
+from gpocc.io.laserpose import namespace
+from gpocc.io.poses import POSE_TYPES, XY_YAW, PoseCollector
 from gpocc.io.scans import ScanBatch
+from gpocc.io.tf import TF_TYPES, TfBuffer, TfCollector, frame_name, merge_buffers
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
-#: Pose message types, and whether each carries a covariance.
-POSE_TYPES = {
-    "geometry_msgs/msg/PoseWithCovarianceStamped": True,
-    "nav_msgs/msg/Odometry": True,
-    "geometry_msgs/msg/PoseStamped": False,
-}
+#: ``pose_topic`` value meaning: positions from TF only, covariance from the config.
+TF_POSE = "/tf"
 #: ``write_bag`` formats; also what ``bag_format`` reports.
 FORMATS = ("ros1", "ros2-sqlite3", "ros2-mcap", "mcap")
 FORMAT_NAMES = {
@@ -43,9 +51,6 @@ FORMAT_NAMES = {
     "ros2-mcap": "ROS2 bag (mcap)",
     "mcap": "MCAP file",
 }
-
-# x, y, yaw rows/columns of a 6x6 (x, y, z, roll, pitch, yaw) ROS covariance.
-_XY_YAW = np.array([0, 1, 5])
 
 
 @dataclass(frozen=True)
@@ -179,49 +184,48 @@ def _stamp(msg: Any, record_ns: int) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def _yaw(q: Any) -> float:
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-
-
-@dataclass
-class _ScanTopic:
-    stamps: list[float] = field(default_factory=list)
-    ranges: list[np.ndarray] = field(default_factory=list)
-    geometry: tuple[int, float, float] | None = None
-    range_limits: tuple[float, float] | None = None
-
-
-@dataclass
-class _PoseTopic:
-    stamps: list[float] = field(default_factory=list)
-    poses: list[tuple[float, float, float]] = field(default_factory=list)
-    covariances: list[np.ndarray] = field(default_factory=list)
+def _check_scan_fields(path: Path, topic: str, msg: Any, t: float, n: int) -> None:
+    """LaserScan geometry sanity: a clean error naming file, topic, stamp and field."""
+    where = f"{path}: topic {topic} at t={t:.6f} s"
+    fields = {k: float(getattr(msg, k)) for k in ("angle_min", "angle_max", "angle_increment")}
+    for key, value in fields.items():
+        if not math.isfinite(value):
+            raise GpoccError(f"{where}: field {key} is {value}; the scan's bearings are "
+                             "unknown: fix the driver or drop these messages")
+    if n == 0:
+        raise GpoccError(f"{where}: field ranges is empty; drop these messages or pick "
+                         "another scan_topic")
+    inc = fields["angle_increment"]
+    if n > 1 and (inc == 0.0 or abs(inc) * (n - 1) > 2 * math.pi + 1e-6):
+        raise GpoccError(
+            f"{where}: field angle_increment={inc} with {n} ranges spans "
+            f"{abs(inc) * (n - 1):.3f} rad, not within (0, 2 pi]; fix the driver's settings")
+    expected = fields["angle_min"] + (n - 1) * inc
+    if n > 1 and abs(expected - fields["angle_max"]) > 2 * abs(inc) + 1e-6:
+        raise GpoccError(
+            f"{where}: field angle_max={fields['angle_max']:.6f} disagrees with angle_min + "
+            f"(n - 1) angle_increment = {expected:.6f} for {n} ranges; fix the driver's "
+            "angle settings")
 
 
 def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int) -> None:
     ranges = np.asarray(msg.ranges, dtype=float)
+    t = _stamp(msg, record_ns)
+    _check_scan_fields(path, topic, msg, t, ranges.shape[0])
     geometry = (ranges.shape[0], float(msg.angle_min), float(msg.angle_increment))
     if acc.geometry is None:
         acc.geometry = geometry
         acc.range_limits = (float(msg.range_min), float(msg.range_max))
+        acc.frame_id = frame_name(msg.header.frame_id)
     elif geometry[0] != acc.geometry[0] or not np.allclose(geometry[1:], acc.geometry[1:],
                                                            atol=1e-6):
         raise GpoccError(
             f"{path}: topic {topic} changes its beam layout (from {acc.geometry[0]} beams to "
             f"{geometry[0]}, or a different angle_min/angle_increment) at "
-            f"t={_stamp(msg, record_ns):.3f} s; split the bag at that time"
+            f"t={t:.3f} s; split the bag at that time"
         )
-    acc.stamps.append(_stamp(msg, record_ns))
+    acc.stamps.append(t)
     acc.ranges.append(ranges)
-
-
-def _add_pose(acc: _PoseTopic, msg: Any, msgtype: str, record_ns: int) -> None:
-    pose = msg.pose.pose if POSE_TYPES[msgtype] else msg.pose
-    acc.stamps.append(_stamp(msg, record_ns))
-    acc.poses.append((float(pose.position.x), float(pose.position.y), _yaw(pose.orientation)))
-    if POSE_TYPES[msgtype]:
-        cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
-        acc.covariances.append(cov[np.ix_(_XY_YAW, _XY_YAW)])
 
 
 def interpolate_poses(
@@ -269,74 +273,23 @@ def interpolate_poses(
     return out, cov, valid
 
 
-def _assemble(
-    path: Path, sensor: SensorConfig, scans: _ScanTopic, poses: _PoseTopic, pose_type: str
-) -> ScanBatch:
-    scan_topic, pose_topic = sensor.scan_topic, sensor.pose_topic
-    if not scans.stamps:
-        raise GpoccError(f"{path}: topic {scan_topic} has no messages; pick another scan_topic")
-    if not poses.stamps:
-        raise GpoccError(f"{path}: topic {pose_topic} has no messages; pick another pose_topic")
-    assert scans.geometry is not None and scans.range_limits is not None
-    stamps = np.asarray(scans.stamps)
-    order = np.argsort(stamps, kind="stable")
-    stamps = stamps[order]
-    ranges = np.stack(scans.ranges)[order]
-
-    pstamps = np.asarray(poses.stamps)
-    porder = np.argsort(pstamps, kind="stable")
-    pstamps, first = np.unique(pstamps[porder], return_index=True)
-    keep = porder[first]
-    pose_arr = np.asarray(poses.poses, dtype=float)[keep]
-    from_input = POSE_TYPES[pose_type] and not sensor.override_pose_covariance
-    if from_input:
-        pcov = np.stack(poses.covariances)[keep]
-        # Publishers without an estimate leave the covariance at zero: treat as absent.
-        from_input = bool(np.any(pcov != 0))
-    if not from_input:
-        pcov = np.broadcast_to(sensor.pose_covariance_matrix, (len(keep), 3, 3))
-
-    pose_s, cov_s, valid = interpolate_poses(pstamps, pose_arr, pcov, stamps,
-                                             sensor.max_pose_gap_s)
-    if not valid.any():
-        raise GpoccError(
-            f"{path}: none of the {stamps.size} scans on {scan_topic} "
-            f"({stamps[0]:.3f}..{stamps[-1]:.3f} s) has a pose on {pose_topic} "
-            f"({pstamps[0]:.3f}..{pstamps[-1]:.3f} s) within max_pose_gap_s="
-            f"{sensor.max_pose_gap_s} s; check the topics' stamps or raise "
-            f"sensors[].max_pose_gap_s"
-        )
-    n, angle_min, increment = scans.geometry
-    msg_min, msg_max = scans.range_limits
-    range_min = sensor.range_min_m if sensor.range_min_m is not None else msg_min
-    range_max = sensor.range_max_m if sensor.range_max_m is not None else msg_max
-    if not (math.isfinite(range_min) and math.isfinite(range_max) and
-            0.0 <= range_min < range_max):
-        raise GpoccError(
-            f"{path}: topic {scan_topic} gives range_min={range_min} and range_max={range_max}, "
-            "which are unusable; set sensors[].range_min_m and range_max_m in the config"
-        )
-    return ScanBatch(
-        sensor=sensor.name,
-        source=str(path),
-        stamps=stamps[valid],
-        angles=angle_min + np.arange(n) * increment,
-        ranges=ranges[valid],
-        poses=pose_s[valid],
-        pose_covariances=np.array(cov_s[valid]),
-        range_min=float(range_min),
-        range_max=float(range_max),
-        has_pose_covariance=from_input,
-        skipped_scans=int(np.count_nonzero(~valid)),
-    )
-
-
 def check_topics(path: Path, contents: BagContents, sensor: SensorConfig) -> None:
-    """Raise a GpoccError unless the sensor's scan and pose topics exist with usable types."""
+    """Raise a GpoccError unless the sensor's scan and pose topics exist with usable types.
+
+    ``pose_topic`` may be ``/tf`` (positions from TF, covariance from the config), which
+    needs a TF topic in the bag.
+    """
+    if sensor.pose_topic == TF_POSE and not contents.topics_of_type(*TF_TYPES):
+        raise GpoccError(
+            f"{path}: sensor '{sensor.name}' takes its pose from TF (pose_topic: {TF_POSE}), "
+            f"but the bag has no TF topic; topics present: {contents.listing()}; set pose_topic "
+            "to a pose topic")
     for role, name, types in (
         ("scan_topic", sensor.scan_topic, (SCAN_TYPE,)),
         ("pose_topic", sensor.pose_topic, tuple(POSE_TYPES)),
     ):
+        if role == "pose_topic" and name == TF_POSE:
+            continue
         if name is None:
             raise GpoccError(f"{path}: sensor '{sensor.name}' has no {role}; set it in the config")
         topic = contents.topic(name)
@@ -352,20 +305,52 @@ def check_topics(path: Path, contents: BagContents, sensor: SensorConfig) -> Non
             )
 
 
+def tf_topics_for(contents: BagContents, scan_topic: str) -> list[str]:
+    """The TF topics of a sensor: those in its namespace or any enclosing one (``/tf``)."""
+    ns = namespace(scan_topic)
+    out = []
+    for t in contents.topics_of_type(*TF_TYPES):
+        tns = namespace(t.name)
+        if not tns or ns == tns or ns.startswith(tns + "/"):
+            out.append(t.name)
+    return out
+
+
+def odometry_topic_for(contents: BagContents, sensor: SensorConfig) -> str | None:
+    """The one Odometry topic in the sensor's (nearest enclosing) namespace to anchor a
+    PoseWithCovarianceStamped pose topic without TF, or None."""
+    pose = contents.topic(sensor.pose_topic or "")
+    if pose is None or pose.msgtype != "geometry_msgs/msg/PoseWithCovarianceStamped":
+        return None
+    ns = namespace(sensor.scan_topic or "")
+    odoms = [t.name for t in contents.topics_of_type("nav_msgs/msg/Odometry")
+             if not namespace(t.name) or ns == namespace(t.name)
+             or ns.startswith(namespace(t.name) + "/")]
+    if not odoms:
+        return None
+    depth = max(len(namespace(t)) for t in odoms)
+    near = [t for t in odoms if len(namespace(t)) == depth]
+    return near[0] if len(near) == 1 else None
+
+
 def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatch]:
-    """Read the scans of each sensor from one bag, with poses interpolated to each scan.
+    """Read the scans of each sensor from one bag, each with its laser pose and covariance.
 
     Args:
-        path: a ``.bag`` file, a ROS2 bag folder or a ``.mcap`` file.
-        sensors: config entries with ``scan_topic`` and ``pose_topic`` set.
+        path: a ``.bag`` file, a ROS2 bag folder (one or several storage files, compressed
+            or not) or a ``.mcap`` file.
+        sensors: config entries with ``scan_topic`` and ``pose_topic`` set (``pose_topic``
+            may be ``/tf``).
 
     Returns:
         One batch per sensor, in the order given. Scans are sorted by header stamp;
-        scans without a pose within ``max_pose_gap_s`` are dropped and counted.
+        scans without a pose within ``max_pose_gap_s`` are dropped and counted (see
+        :mod:`gpocc.io.laserpose` for the pose and covariance sources).
 
     Raises:
-        GpoccError: unreadable bag, missing topic or wrong message type, a scan topic
-            that changes its beam layout, or no scan with a pose.
+        GpoccError: unreadable bag, missing topic or wrong message type, a bad message
+            (see :mod:`gpocc.io.poses`, :mod:`gpocc.io.tf` and this module's docs), or no
+            scan with a pose.
     """
     path = Path(path)
     fmt = bag_format(path) or "mcap"
@@ -374,20 +359,32 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
         for sensor in sensors:
             check_topics(path, contents, sensor)
         scan_acc = {s.scan_topic: _ScanTopic() for s in sensors}
-        pose_acc = {s.pose_topic: _PoseTopic() for s in sensors}
-        pose_types = {s.pose_topic: contents.topic(s.pose_topic).msgtype for s in sensors}
-        wanted = [c for c in reader.connections if c.topic in scan_acc or c.topic in pose_acc]
+        odom_for = {s.name: odometry_topic_for(contents, s) for s in sensors}
+        pose_names = [s.pose_topic for s in sensors if s.pose_topic != TF_POSE]
+        pose_names += [t for t in odom_for.values() if t is not None]
+        pose_acc = {t: PoseCollector(path, t, contents.topic(t).msgtype) for t in pose_names}
+        tf_for = {s.name: tf_topics_for(contents, s.scan_topic) if s.position_from_tf else []
+                  for s in sensors}
+        tf_acc = {t: TfCollector(path) for names in tf_for.values() for t in names}
+        wanted = [c for c in reader.connections
+                  if c.topic in scan_acc or c.topic in pose_acc or c.topic in tf_acc]
         for conn, record_ns, raw in reader.messages(connections=wanted):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic in scan_acc:
                 _add_scan(path, conn.topic, scan_acc[conn.topic], msg, record_ns)
             if conn.topic in pose_acc:
-                _add_pose(pose_acc[conn.topic], msg, conn.msgtype, record_ns)
-    return [
-        _assemble(path, s, scan_acc[s.scan_topic], pose_acc[s.pose_topic],
-                  pose_types[s.pose_topic])
-        for s in sensors
-    ]
+                pose_acc[conn.topic].add(msg, record_ns)
+            if conn.topic in tf_acc:
+                tf_acc[conn.topic].add(msg, conn.topic, record_ns)
+    series = {topic: acc.build() for topic, acc in pose_acc.items()}
+    built = {topic: acc.build() for topic, acc in tf_acc.items()}
+    batches = []
+    for s in sensors:
+        tf: TfBuffer | None = merge_buffers([built[t] for t in tf_for[s.name]]) or None
+        odom = series.get(odom_for[s.name]) if odom_for[s.name] else None
+        batches.append(laserpose.assemble(path, s, scan_acc[s.scan_topic], tf,
+                                          series.get(s.pose_topic), odom))
+    return batches
 
 
 # --------------------------------------------------------------------------- writing
@@ -472,7 +469,7 @@ class _Messages:
     def pose(self, batch: ScanBatch, k: int, ns: int) -> bytes:
         x, y, yaw = (float(v) for v in batch.poses[k])
         cov = np.zeros((6, 6))
-        cov[np.ix_(_XY_YAW, _XY_YAW)] = batch.pose_covariances[k]
+        cov[np.ix_(XY_YAW, XY_YAW)] = batch.pose_covariances[k]
         pose = self.Pose(
             position=self.Point(x=x, y=y, z=0.0),
             orientation=self.Quat(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),

@@ -7,9 +7,10 @@ text whose first message is a CARMEN type, a CARMEN log.
 Sensors: each ``sensors`` entry of the config names a robot's laser (``scan_topic``)
 and pose source (``pose_topic``). An entry with ``inputs`` (globs on the file name)
 applies only to matching inputs and its topics must be there; an entry without applies
-to every input that has its scan topic. With no ``sensors`` in the config, an input with
-one LaserScan topic and one pose topic gets a default sensor named after the scan topic
-(a CARMEN log: after the file stem).
+to every input that has its scan topic. With no ``sensors`` in the config, each
+LaserScan topic of a bag becomes a sensor named after it, paired with a pose topic by
+namespace (:mod:`gpocc.io.autodetect`); a CARMEN log gives one sensor named after the
+file stem. An entry without ``pose_topic`` gets one the same way.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from pathlib import Path
 
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
-from gpocc.io import bags, carmen
-from gpocc.io.bags import POSE_TYPES, SCAN_TYPE, BagContents, TopicSummary
+from gpocc.io import autodetect, bags, carmen
+from gpocc.io.bags import SCAN_TYPE, BagContents, TopicSummary
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
 
@@ -123,10 +124,6 @@ def _scan_topics(summary: InputSummary) -> list[str]:
     return [t.name for t in summary.topics if t.msgtype == SCAN_TYPE]
 
 
-def _pose_topics(summary: InputSummary) -> list[str]:
-    return [t.name for t in summary.topics if t.msgtype in POSE_TYPES]
-
-
 def _only(path: Path, summary: InputSummary, names: list[str], what: str,
           sensor: str | None) -> str:
     if len(names) == 1:
@@ -156,15 +153,22 @@ def default_sensor(summary: InputSummary) -> SensorConfig:
     if summary.format == "carmen":
         return SensorConfig(name=path.stem)
     scan = _only(path, summary, _scan_topics(summary), "LaserScan", None)
-    pose = _only(path, summary, _pose_topics(summary), "pose", None)
-    return SensorConfig(name=scan.strip("/") or "scan", scan_topic=scan, pose_topic=pose)
+    pose = autodetect.pose_topic_for(_contents(summary), scan, path)
+    return SensorConfig(name=autodetect.sensor_name(scan), scan_topic=scan, pose_topic=pose)
+
+
+def _contents(summary: InputSummary) -> BagContents:
+    return BagContents(summary.format, summary.topics, summary.start_s, summary.end_s)
 
 
 def _resolve_bag_sensor(summary: InputSummary, sensor: SensorConfig) -> SensorConfig:
     path = summary.path
     scan = sensor.scan_topic or _only(path, summary, _scan_topics(summary), "LaserScan",
                                       sensor.name)
-    pose = sensor.pose_topic or _only(path, summary, _pose_topics(summary), "pose", sensor.name)
+    contents = _contents(summary)
+    pose = bags.TF_POSE if sensor.pose_topic in ("tf", bags.TF_POSE) else sensor.pose_topic
+    if pose is None and contents.topic(scan) is not None:  # else check_topics names scan
+        pose = autodetect.pose_topic_for(contents, scan, path, sensor.name)
     return replace(sensor, scan_topic=scan, pose_topic=pose)
 
 
@@ -177,7 +181,9 @@ def sensors_for_input(summary: InputSummary, config: Config) -> list[SensorConfi
     """
     path = summary.path
     if not config.sensors:
-        return [default_sensor(summary)]
+        if summary.format == "carmen":
+            return [default_sensor(summary)]
+        return autodetect.detect_sensors(_contents(summary), path)
     applicable = [s for s in config.sensors if not s.inputs or _matches(s, path)]
     if not applicable:
         globs = ", ".join(f"{s.name}: {list(s.inputs)}" for s in config.sensors)

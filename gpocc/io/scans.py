@@ -2,11 +2,30 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from gpocc.config import SensorConfig
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Where a batch's poses and covariances came from, for ``gpocc info`` and warnings.
+
+    Attributes:
+        pose_source: e.g. ``TF map->laser`` or ``topic /amcl_pose``.
+        frame_chain: the TF chain used (empty without TF).
+        covariance_source: e.g. ``/amcl_pose (held up to 30 s)`` or ``config``.
+        skipped: (reason, config key, count) of dropped scans.
+        notes: counted repairs and fallbacks.
+    """
+
+    pose_source: str
+    frame_chain: str = ""
+    covariance_source: str = ""
+    skipped: tuple[tuple[str, str, int], ...] = ()
+    notes: tuple[str, ...] = field(default=())
 
 
 @dataclass(frozen=True)
@@ -35,6 +54,7 @@ class ScanBatch:
         sensor_config: the config entry the reader resolved for this sensor (topics
             filled in); None for a batch not made by a reader, which
             :func:`gpocc.samples.beam.sensor_config` then matches by name.
+        provenance: pose and covariance sources of a bag's batch (None: not recorded).
     """
 
     sensor: str
@@ -49,6 +69,7 @@ class ScanBatch:
     has_pose_covariance: bool = True
     skipped_scans: int = 0
     sensor_config: SensorConfig | None = None
+    provenance: Provenance | None = None
 
     @property
     def n_scans(self) -> int:

@@ -1,0 +1,111 @@
+"""Sensors of a bag when the config names none: one per laser, paired by namespace.
+
+Every LaserScan topic becomes a sensor named after the topic (``/robot1/scan`` ->
+``robot1/scan``). Its pose topic is looked for in its own namespace first, then in each
+enclosing one up to the root (``/robot1/front/scan`` looks in ``/robot1/front``, ``/robot1``,
+``/``), so namespaced robots pair with their own topics and several lasers of one robot
+share its pose. Within a namespace the best covariance source wins:
+PoseWithCovarianceStamped (AMCL, SLAM) over Odometry over PoseStamped. With TF reaching
+the laser the pose topic supplies only the covariance, so a tie is settled by name
+(``amcl_pose`` first, then alphabetically) and said in ``gpocc info``; without TF a tie
+is an error that prints a ready-to-paste ``sensors:`` entry. A laser with no pose topic
+but TF takes ``pose_topic: /tf`` (covariance from the config).
+"""
+
+from __future__ import annotations
+
+from gpocc.config import SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.bags import SCAN_TYPE, TF_POSE, BagContents, tf_topics_for
+from gpocc.io.laserpose import namespace
+from gpocc.io.poses import POSE_TYPES
+
+_RANK = {t: i for i, t in enumerate(POSE_TYPES)}
+
+
+def sensor_name(scan_topic: str) -> str:
+    return scan_topic.strip("/") or "scan"
+
+
+def _in_scope(pose_ns: str, scan_ns: str) -> bool:
+    return not pose_ns or pose_ns == scan_ns or scan_ns.startswith(pose_ns + "/")
+
+
+def pose_candidates(contents: BagContents, scan_topic: str) -> list[str]:
+    """The best pose topics for a scan topic: nearest namespace, best type; may tie."""
+    ns = namespace(scan_topic)
+    poses = [t for t in contents.topics if t.msgtype in POSE_TYPES
+             and _in_scope(namespace(t.name), ns)]
+    if not poses:
+        return []
+    depth = max(len(namespace(t.name)) for t in poses)
+    near = [t for t in poses if len(namespace(t.name)) == depth]
+    best = min(_RANK[t.msgtype] for t in near)
+    return sorted(t.name for t in near if _RANK[t.msgtype] == best)
+
+
+def _flow_yaml(entries: list[tuple[str, str, str]]) -> str:
+    """A one-line ``sensors:`` block (YAML flow style) that pastes into a config."""
+    items = ", ".join(f"{{name: {n}, scan_topic: {s}, pose_topic: {p}}}" for n, s, p in entries)
+    return f"sensors: [{items}]"
+
+
+def pose_topic_for(contents: BagContents, scan_topic: str, path: object,
+                   name: str | None = None) -> str:
+    """The pose topic to use with ``scan_topic`` (``/tf`` when only TF gives the pose).
+
+    Raises:
+        GpoccError: no pose topic and no TF, or a tie without TF; the message carries a
+            ready-to-paste ``sensors:`` line.
+    """
+    name = name or sensor_name(scan_topic)
+    cands = pose_candidates(contents, scan_topic)
+    has_tf = bool(tf_topics_for(contents, scan_topic))
+    if len(cands) == 1:
+        return cands[0]
+    if not cands:
+        if has_tf:
+            return TF_POSE
+        raise GpoccError(
+            f"{path}: no pose topic or TF for the laser {scan_topic} (topics: "
+            f"{contents.listing()}); record /tf, or name the pose topic in the config: "
+            f"{_flow_yaml([(name, scan_topic, 'POSE_TOPIC')])}")
+    if has_tf:
+        amcl = [c for c in cands if c.rstrip("/").endswith("amcl_pose")]
+        return (amcl or cands)[0]
+    raise GpoccError(
+        f"{path}: cannot choose the pose topic for {scan_topic} among {', '.join(cands)} "
+        f"(no TF to settle it); put this in the config, keeping the right one: "
+        f"{_flow_yaml([(name, scan_topic, cands[0])])}")
+
+
+def detect_sensors(contents: BagContents, path: object) -> list[SensorConfig]:
+    """One sensor per LaserScan topic, each with its pose topic (see the module docs).
+
+    Raises:
+        GpoccError: no LaserScan topic, or a laser whose pose source cannot be chosen;
+            the message ends with a ``sensors:`` line for every laser, ready to paste.
+    """
+    scans = [t.name for t in contents.topics if t.msgtype == SCAN_TYPE]
+    if not scans:
+        raise GpoccError(
+            f"{path}: cannot choose the LaserScan topic (found: none; all topics: "
+            f"{contents.listing()}); record a sensor_msgs/LaserScan topic")
+    sensors, problems = [], []
+    for scan in scans:
+        try:
+            pose = pose_topic_for(contents, scan, path)
+        except GpoccError as exc:
+            problems.append((scan, str(exc)))
+            continue
+        sensors.append(SensorConfig(name=sensor_name(scan), scan_topic=scan, pose_topic=pose))
+    if problems:
+        entries = []
+        for scan in scans:
+            done = next((s for s in sensors if s.scan_topic == scan), None)
+            cands = pose_candidates(contents, scan)
+            pose = done.pose_topic if done else (cands[0] if cands else "POSE_TOPIC")
+            entries.append((sensor_name(scan), scan, pose))
+        first = problems[0][1].split("; ")[0]
+        raise GpoccError(f"{first}; a config for all its lasers: {_flow_yaml(entries)}")
+    return sensors

@@ -1,0 +1,379 @@
+"""The laser pose and its covariance at each scan stamp of a bag, from the best source.
+
+Position: when TF reaches the scan's ``header.frame_id`` from ``map_frame`` (default
+``map``, also tried under the sensor's namespace, e.g. ``robot1/map``), the laser pose is
+that chain at the scan stamp (see :mod:`gpocc.io.tf`), the static mount included, so the
+sensor's ``mount`` in the config must stay zero. Without ``map`` the chain starts at
+``odom`` with a warning that the map will drift. Without a TF chain, the pose topic's
+poses are interpolated to the scans (the config's ``mount`` then applies).
+
+Without TF, a PoseWithCovarianceStamped ``pose_topic`` (AMCL at its motion-triggered
+cadence) anchors the robot's odometry topic in its namespace when there is one
+(:func:`anchored_poses`), so a slow robot keeps its scans.
+
+Covariance: from ``pose_topic`` when it carries one (PoseWithCovarianceStamped from AMCL
+or SLAM, else Odometry), held or interpolated to each scan up to ``max_covariance_age_s``
+(:func:`gpocc.io.poses.covariance_at`); unknown entries and stale scans use the config's
+``pose_covariance``. With TF, the covariance is rotated from the message frame into the
+map frame and carried from the robot body to the laser through the mount's lever arm.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gpocc.config import MountConfig, SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.poses import (
+    PoseSeries,
+    check_covariances,
+    covariance_at,
+    move_covariances,
+    rotate_covariances,
+)
+from gpocc.io.scans import Provenance, ScanBatch
+from gpocc.io.tf import Chain, TfBuffer
+from gpocc.progress import log
+
+#: A sensor losing more than this share of its scans gets a warning.
+SKIP_WARNING_SHARE = 0.10
+
+
+@dataclass
+class ScanTopic:
+    """One LaserScan topic's messages, as read (validated in gpocc.io.bags)."""
+
+    stamps: list[float] = field(default_factory=list)
+    ranges: list[np.ndarray] = field(default_factory=list)
+    geometry: tuple[int, float, float] | None = None
+    range_limits: tuple[float, float] | None = None
+    frame_id: str = ""
+
+
+def namespace(topic: str) -> str:
+    """``/robot1/front/scan`` -> ``robot1/front``; ``/scan`` -> ``""``."""
+    return topic.strip("/").rpartition("/")[0]
+
+
+def _frame_candidates(frame: str, ns: str) -> list[str]:
+    """``frame`` as given, then under each namespace prefix (``robot1/front/map``, ...)."""
+    parts = ns.split("/") if ns else []
+    out = [frame] + ["/".join(parts[:k] + [frame]) for k in range(len(parts), 0, -1)]
+    return list(dict.fromkeys(out))
+
+
+def find_chain(tf: TfBuffer, sensor: SensorConfig, laser_frame: str) -> tuple[Chain | None, str]:
+    """The chain map_frame -> laser, or odom -> laser with a drift note, or (None, why)."""
+    ns = namespace(sensor.scan_topic or "")
+    for frame in _frame_candidates(sensor.map_frame, ns):
+        chain = tf.chain(frame, laser_frame)
+        if chain is not None:
+            return chain, ""
+    if sensor.map_frame != "odom":
+        for frame in _frame_candidates("odom", ns):
+            chain = tf.chain(frame, laser_frame)
+            if chain is not None:
+                return chain, (
+                    f"TF has no frame '{sensor.map_frame}' connected to '{laser_frame}'; "
+                    f"mapping in '{frame}', which drifts with odometry: the map will drift "
+                    "(set sensors[].map_frame, or record the localisation's TF)")
+    why = [f"no TF chain from '{sensor.map_frame}' to the scan frame '{laser_frame}'"]
+    if laser_frame not in tf.frames():
+        why.append(f"TF has no frame '{laser_frame}'")
+    bad = [f"{c} (parents {p})" for c, p in tf.conflicts.items()]
+    if bad:
+        why.append("frames with two parents: " + "; ".join(bad))
+    return None, "; ".join(why)
+
+
+def _skip_reasons(valid: np.ndarray, missing: np.ndarray) -> list[tuple[str, str, int]]:
+    out = []
+    for label in sorted({str(m) for m in missing[~valid]}):
+        n = int(np.count_nonzero((~valid) & (missing == label)))
+        out.append((f"no TF {label} within max_pose_gap_s of the scan",
+                    "sensors[].max_pose_gap_s", n))
+    return out
+
+
+def _lever(tf: TfBuffer, chain: Chain, body: str, laser_frame: str, stamps: np.ndarray,
+           laser_yaw: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """(S, 2) laser position minus body position in the map frame, metres (0 if unknown)."""
+    inner = tf.chain(body, laser_frame)
+    if inner is None or not inner.steps:
+        return np.zeros((stamps.size, 2))
+    rel = tf.lookup(inner, stamps, max_gap_s)
+    yaw_body = laser_yaw - rel.poses[:, 2]
+    c, s = np.cos(yaw_body), np.sin(yaw_body)
+    x, y = rel.poses[:, 0], rel.poses[:, 1]
+    lever = np.column_stack([c * x - s * y, s * x + c * y])
+    return np.where(rel.valid[:, None], lever, 0.0)
+
+
+@dataclass(frozen=True)
+class _Covariance:
+    covariances: np.ndarray  # (S, 3, 3) in the map frame, at the pose's body
+    from_input: np.ndarray   # (S,) bool
+    source: str
+    notes: tuple[str, ...]
+
+
+def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
+                 stamps: np.ndarray, tf: TfBuffer | None, map_frame: str | None,
+                 max_age_s: float) -> _Covariance:
+    fallback = sensor.pose_covariance_matrix
+    n = stamps.size
+    config_only = _Covariance(np.broadcast_to(fallback, (n, 3, 3)).copy(), np.zeros(n, bool),
+                              "config (sensors[].pose_covariance)", ())
+    if series is None:
+        return config_only
+    if sensor.override_pose_covariance:
+        return _Covariance(config_only.covariances, config_only.from_input,
+                           "config (override_pose_covariance)", ())
+    check = check_covariances(series, path, sensor.covariance_sentinel,
+                              sensor.repair_pose_covariance, "sensors[]")
+    notes = []
+    if check.repaired:
+        notes.append(f"{check.repaired} non-PSD covariances on {series.topic} repaired "
+                     "(negative eigenvalues set to 0)")
+    if not check.known.any():
+        why = check.unknown_reason
+        source = f"config (sensors[].pose_covariance): {series.topic} {why}"
+        if series.has_covariance and why:
+            notes.append(f"{series.topic}: covariance unknown ({why}); the config's "
+                         "pose_covariance is used")
+        return _Covariance(config_only.covariances, config_only.from_input, source,
+                           tuple(notes))
+    cov = check.covariances
+    if tf is not None and map_frame and series.frame_id and series.frame_id != map_frame:
+        # Odometry covariance is given in the odom frame: turn it into the map frame.
+        link = tf.chain(map_frame, series.frame_id)
+        if link is not None:
+            rot = tf.lookup(link, series.stamps, max_age_s)
+            cov = rotate_covariances(cov, np.where(rot.valid, rot.poses[:, 2], 0.0))
+    check = type(check)(cov, check.known, check.unknown_reason, check.repaired)
+    at = covariance_at(stamps, series.stamps, check, fallback, max_age_s)
+    source = f"{series.topic} (held or interpolated up to max_covariance_age_s={max_age_s:g} s)"
+    unknown = int(np.count_nonzero(~check.known))
+    if unknown:
+        notes.append(f"{series.topic}: {unknown} of {check.known.size} covariances unknown "
+                     f"({check.unknown_reason}); the config's pose_covariance stands in")
+    if at.stale:
+        notes.append(f"{at.stale} scans more than max_covariance_age_s={max_age_s:g} s from a "
+                     f"known covariance on {series.topic} use the config's pose_covariance")
+    return _Covariance(at.covariances, at.from_input, source, tuple(notes))
+
+
+def interpolate_poses(
+    pose_stamps: np.ndarray,
+    poses: np.ndarray,
+    stamps: np.ndarray,
+    max_gap_s: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poses at ``stamps``: x, y linear in time, yaw along the shorter arc.
+
+    A stamp is served when it equals a pose stamp, or lies between two poses at most
+    ``max_gap_s`` apart. Returns ``(poses (S, 3), valid (S,) bool)``.
+    """
+    n = pose_stamps.shape[0]
+    right = np.searchsorted(pose_stamps, stamps, side="right")
+    i0 = np.clip(right - 1, 0, n - 1)
+    i1 = np.clip(right, 0, n - 1)
+    exact = (right > 0) & (pose_stamps[i0] == stamps)
+    i1 = np.where(exact, i0, i1)
+    gap = pose_stamps[i1] - pose_stamps[i0]
+    valid = exact | ((right > 0) & (right < n) & (gap <= max_gap_s))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(gap > 0, (stamps - pose_stamps[i0]) / np.where(gap > 0, gap, 1.0), 0.0)
+    w = np.clip(w, 0.0, 1.0)
+    p0, p1 = poses[i0], poses[i1]
+    dyaw = np.angle(np.exp(1j * (p1[:, 2] - p0[:, 2])))
+    out = p0 + w[:, None] * (p1 - p0)
+    out[:, 2] = np.angle(np.exp(1j * (p0[:, 2] + w * dyaw)))
+    return out, valid
+
+
+def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """SE(2) ``a (+) b`` row by row, (N, 3)."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1],
+                            a[:, 1] + s * b[:, 0] + c * b[:, 1],
+                            np.angle(np.exp(1j * (a[:, 2] + b[:, 2])))])
+
+
+def _inverse(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], -a[:, 2]])
+
+
+def anchored_poses(fixes: PoseSeries, odom: PoseSeries, stamps: np.ndarray, max_gap_s: float,
+                   max_age_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Odometry anchored to sparse localisation fixes, as AMCL's ``map -> odom`` TF does.
+
+    At each fix ``A_k`` (AMCL publishes only after 0.25 m or 0.2 rad of motion) the
+    correction ``C_k = A_k (-) O(t_k)`` is computed with the odometry ``O`` interpolated to
+    the fix; a scan at ``t`` gets ``C (+) O(t)`` with the latest correction at or before
+    ``t`` (the first one before the first fix), if that fix is at most ``max_age_s`` away.
+
+    Returns:
+        ``(poses (S, 3), valid (S,), stale (S,))``, ``stale`` marking scans too far from a
+        fix; None when no fix falls within the odometry.
+    """
+    o_fix, ok = interpolate_poses(odom.stamps, odom.poses, fixes.stamps, max_gap_s)
+    if not ok.any():
+        return None
+    t_fix = fixes.stamps[ok]
+    correction = _compose(fixes.poses[ok], _inverse(o_fix[ok]))
+    o_scan, valid = interpolate_poses(odom.stamps, odom.poses, stamps, max_gap_s)
+    i = np.clip(np.searchsorted(t_fix, stamps, side="right") - 1, 0, t_fix.size - 1)
+    stale = np.abs(stamps - t_fix[i]) > max_age_s
+    return _compose(correction[i], o_scan), valid & ~stale, stale
+
+
+def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | None,
+             series: PoseSeries | None, odometry: PoseSeries | None = None) -> ScanBatch:
+    """One sensor's batch: scans sorted by stamp, each with its laser pose and covariance.
+
+    Raises:
+        GpoccError: no scans, no pose source, a config mount on top of a TF mount, no scan
+            with a pose, or unusable range limits.
+    """
+    scan_topic = sensor.scan_topic
+    if not scans.stamps:
+        raise GpoccError(f"{path}: topic {scan_topic} has no messages; pick another scan_topic")
+    assert scans.geometry is not None and scans.range_limits is not None
+    stamps = np.asarray(scans.stamps)
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    ranges = np.stack(scans.ranges)[order]
+    n, angle_min, increment = scans.geometry
+    angles = angle_min + np.arange(n) * increment
+
+    chain, why = (find_chain(tf, sensor, scans.frame_id)
+                  if tf and sensor.position_from_tf and scans.frame_id else (None, ""))
+    notes: list[str] = []
+    skipped: list[tuple[str, str, int]] = []
+    chain_text = ""
+    if chain is not None:
+        mount = sensor.mount
+        if mount != MountConfig():
+            raise GpoccError(
+                f"{path}: sensor '{sensor.name}': TF already gives the laser's mount "
+                f"({chain.describe()}), and the config sets sensors[].mount too; remove mount "
+                "from that entry (or set position_from_tf: false to use the pose topic)")
+        if why:
+            log(f"warning: {path}: sensor '{sensor.name}': {why}")
+            notes.append(why)
+        look = tf.lookup(chain, stamps, sensor.max_pose_gap_s)
+        valid = look.valid
+        poses = look.poses
+        if valid.any():
+            flipped = look.upside_down[valid]
+            if flipped.all():
+                angles = -angles  # an upside-down laser scans clockwise in the map
+                notes.append(f"laser frame '{scans.frame_id}' is upside down: bearings mirrored")
+            elif flipped.any():
+                raise GpoccError(
+                    f"{path}: sensor '{sensor.name}': the laser frame '{scans.frame_id}' turns "
+                    "upside down during the log; check the TF of its mount")
+        skipped = _skip_reasons(valid, look.missing)
+        chain_text = chain.describe()
+        pose_source = f"TF {chain.target} -> {chain.source}"
+        body = (series.child_frame_id if series is not None and series.child_frame_id
+                and series.child_frame_id in tf.frames() else chain.body_frame())
+        cov = _covariances(path, sensor, series, stamps, tf, chain.target,
+                           sensor.max_covariance_age_s)
+        lever = _lever(tf, chain, body, scans.frame_id, stamps, poses[:, 2],
+                       sensor.max_pose_gap_s)
+        covariances = move_covariances(cov.covariances, lever)
+        has_cov = not sensor.override_pose_covariance
+    else:
+        if series is None:
+            raise GpoccError(
+                f"{path}: sensor '{sensor.name}' has no pose: {why or 'the bag has no TF'}, "
+                f"and no pose topic; set sensors[].pose_topic to a pose topic, or "
+                "sensors[].map_frame to a frame TF connects to the laser")
+        if not series.stamps.size:
+            raise GpoccError(f"{path}: topic {series.topic} has no messages; pick another "
+                             "pose_topic")
+        if why and tf:
+            notes.append(f"poses from {series.topic}: {why}")
+        fused = None
+        if odometry is not None and odometry.stamps.size and odometry.topic != series.topic:
+            fused = anchored_poses(series, odometry, stamps, sensor.max_pose_gap_s,
+                                   sensor.max_covariance_age_s)
+        if fused is not None:
+            poses, valid, stale = fused
+            gap = ~valid & ~stale
+            skipped = [r for r in (
+                (f"no odometry on {odometry.topic} within max_pose_gap_s of the scan",
+                 "sensors[].max_pose_gap_s", int(np.count_nonzero(gap))),
+                (f"no fix on {series.topic} within max_covariance_age_s of the scan",
+                 "sensors[].max_covariance_age_s", int(np.count_nonzero(stale)))) if r[2]]
+            pose_source = f"topic {series.topic} anchoring odometry {odometry.topic}"
+            cov_age = sensor.max_covariance_age_s
+        else:
+            poses, valid = interpolate_poses(series.stamps, series.poses, stamps,
+                                             sensor.max_pose_gap_s)
+            if not valid.all():
+                skipped = [(f"no pose on {series.topic} within max_pose_gap_s of the scan",
+                            "sensors[].max_pose_gap_s", int(np.count_nonzero(~valid)))]
+            pose_source = f"topic {series.topic} ({series.msgtype.rsplit('/', 1)[-1]})"
+            cov_age = sensor.max_pose_gap_s
+        cov = _covariances(path, sensor, series, stamps, None, None, cov_age)
+        covariances = cov.covariances
+        has_cov = bool(cov.from_input[valid].any())
+    notes.extend(cov.notes)
+    if series is not None and series.normalised_quaternions:
+        notes.append(f"{series.normalised_quaternions} non-unit quaternions on {series.topic} "
+                     "normalised")
+    if tf is not None and tf.normalised_quaternions and chain is not None:
+        notes.append(f"{tf.normalised_quaternions} non-unit TF quaternions normalised")
+    if tf is not None and tf.repeated_stamps and chain is not None:
+        notes.append(f"{tf.repeated_stamps} repeated TF stamps ignored (first kept, as tf2)")
+
+    if not valid.any():
+        source = pose_source if chain is None else f"TF ({chain.describe()})"
+        raise GpoccError(
+            f"{path}: none of the {stamps.size} scans on {scan_topic} "
+            f"({stamps[0]:.3f}..{stamps[-1]:.3f} s) has a pose from {source} within "
+            f"max_pose_gap_s={sensor.max_pose_gap_s} s; check the topics' stamps or raise "
+            f"sensors[].max_pose_gap_s"
+        )
+    msg_min, msg_max = scans.range_limits
+    range_min = sensor.range_min_m if sensor.range_min_m is not None else msg_min
+    range_max = sensor.range_max_m if sensor.range_max_m is not None else msg_max
+    if not (math.isfinite(range_min) and math.isfinite(range_max) and
+            0.0 <= range_min < range_max):
+        raise GpoccError(
+            f"{path}: topic {scan_topic} gives range_min={range_min} and range_max={range_max}, "
+            "which are unusable; set sensors[].range_min_m and range_max_m in the config"
+        )
+    n_skipped = int(np.count_nonzero(~valid))
+    for note in notes:
+        log(f"note: {path}: sensor '{sensor.name}': {note}")
+    if n_skipped > SKIP_WARNING_SHARE * stamps.size:
+        reason, key, count = max(skipped, key=lambda r: r[2])
+        log(f"warning: {path}: sensor '{sensor.name}': {n_skipped} of {stamps.size} scans "
+            f"({100 * n_skipped / stamps.size:.0f}%) skipped, mostly ({count}) for {reason}; "
+            f"raise {key} if the pose source is just slow")
+    provenance = Provenance(pose_source=pose_source, frame_chain=chain_text,
+                            covariance_source=cov.source, skipped=tuple(skipped),
+                            notes=tuple(notes))
+    return ScanBatch(
+        sensor=sensor.name,
+        source=str(path),
+        stamps=stamps[valid],
+        angles=angles,
+        ranges=ranges[valid],
+        poses=poses[valid],
+        pose_covariances=np.array(covariances[valid]),
+        range_min=float(range_min),
+        range_max=float(range_max),
+        has_pose_covariance=has_cov,
+        skipped_scans=n_skipped,
+        provenance=provenance,
+    )

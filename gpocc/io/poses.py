@@ -1,0 +1,288 @@
+"""Pose messages of a bag as validated time series, and their covariances at scan stamps.
+
+Pose topics carry ``geometry_msgs/msg/PoseWithCovarianceStamped`` (AMCL, SLAM),
+``nav_msgs/msg/Odometry`` or ``geometry_msgs/msg/PoseStamped`` (no covariance). Each
+message is checked as it is read (issue 13, class 4):
+
+* a non-finite position is an error; an all-zero or non-finite orientation quaternion is
+  an error; a quaternion whose norm is not 1 is normalised and counted;
+* two messages with one stamp and different poses (more than 1 mm or 1 mrad apart) are an
+  error naming both: which one is right cannot be told (two publishers on one topic, or a
+  replayed segment); identical repeats are dropped;
+* the covariance's x, y, yaw block: an entry ``>= covariance_sentinel`` (ROS drivers fill
+  unused entries with 1e3..1e6) or NaN, or an all-zero block, means "unknown" and the
+  sensor config's ``pose_covariance`` is used instead; a negative variance or a block that
+  is not positive semi-definite is an error naming file, topic, stamp and field, or with
+  ``repair_pose_covariance: true`` its negative eigenvalues are set to zero and counted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpocc.errors import GpoccError
+from gpocc.io.tf import checked_quaternion, frame_name
+
+#: Pose message types, and whether each carries a covariance.
+POSE_TYPES = {
+    "geometry_msgs/msg/PoseWithCovarianceStamped": True,
+    "nav_msgs/msg/Odometry": True,
+    "geometry_msgs/msg/PoseStamped": False,
+}
+
+# x, y, yaw rows/columns of a 6x6 (x, y, z, roll, pitch, yaw) ROS covariance.
+XY_YAW = np.array([0, 1, 5])
+
+#: Same-stamp messages further apart than this are a conflict, metres / radians.
+DUPLICATE_TOLERANCE = 1e-3
+
+
+def message_stamp(msg: Any, record_ns: int) -> float:
+    """Header stamp in seconds; a zero stamp falls back to the record time."""
+    stamp = msg.header.stamp
+    if stamp.sec == 0 and stamp.nanosec == 0:
+        return record_ns * 1e-9
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+@dataclass(frozen=True)
+class PoseSeries:
+    """One pose topic, sorted by stamp, validated.
+
+    Attributes:
+        stamps: (P,) seconds, strictly increasing.
+        poses: (P, 3) x m, y m, yaw rad in ``frame_id``.
+        covariances: (P, 3, 3) raw x, y, yaw block as recorded (NaN where the type has
+            none); see :func:`covariance_at` for how it is used.
+        frame_id: the frame the poses are given in (``map``, ``odom``).
+        child_frame_id: the frame whose pose it is (Odometry's child; else empty).
+        normalised_quaternions: how many orientations were normalised.
+    """
+
+    topic: str
+    msgtype: str
+    stamps: np.ndarray
+    poses: np.ndarray
+    covariances: np.ndarray
+    frame_id: str
+    child_frame_id: str
+    normalised_quaternions: int = 0
+
+    @property
+    def has_covariance(self) -> bool:
+        return POSE_TYPES[self.msgtype]
+
+
+@dataclass
+class PoseCollector:
+    """Accumulates one pose topic's messages while a bag is read."""
+
+    path: Path
+    topic: str
+    msgtype: str
+    stamps: list[float] = field(default_factory=list)
+    poses: list[tuple[float, float, float]] = field(default_factory=list)
+    covariances: list[np.ndarray] = field(default_factory=list)
+    frame_id: str = ""
+    child_frame_id: str = ""
+    normalised: int = 0
+
+    def add(self, msg: Any, record_ns: int) -> None:
+        has_cov = POSE_TYPES[self.msgtype]
+        pose = msg.pose.pose if has_cov else msg.pose
+        t = message_stamp(msg, record_ns)
+        where = f"{self.path}: topic {self.topic} at t={t:.6f} s"
+        xy = (float(pose.position.x), float(pose.position.y))
+        if not all(math.isfinite(v) for v in xy):
+            raise GpoccError(f"{where}: field pose.position is not finite {xy}; fix the "
+                             "publisher or drop these messages")
+        o = pose.orientation
+        q, repaired = checked_quaternion((o.x, o.y, o.z, o.w), f"{where}, field pose.orientation")
+        self.normalised += int(repaired)
+        if not self.stamps:
+            self.frame_id = frame_name(msg.header.frame_id)
+            self.child_frame_id = frame_name(getattr(msg, "child_frame_id", "") or "")
+        self.stamps.append(t)
+        x, y, z, w = (float(v) for v in q)
+        # math.atan2, not numpy's: bit-identical yaws to earlier gpocc versions.
+        yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        self.poses.append((xy[0], xy[1], yaw))
+        if has_cov:
+            cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+            self.covariances.append(cov[np.ix_(XY_YAW, XY_YAW)])
+
+    def build(self) -> PoseSeries:
+        stamps = np.asarray(self.stamps, dtype=float)
+        poses = np.asarray(self.poses, dtype=float).reshape(-1, 3)
+        covs = (np.asarray(self.covariances, dtype=float).reshape(-1, 3, 3)
+                if self.covariances else np.full((len(stamps), 3, 3), np.nan))
+        order = np.argsort(stamps, kind="stable")
+        stamps, poses, covs = stamps[order], poses[order], covs[order]
+        same = np.flatnonzero(np.diff(stamps) == 0)
+        for i in same:
+            d = poses[i + 1] - poses[i]
+            dyaw = abs(math.remainder(d[2], 2 * math.pi))
+            if math.hypot(d[0], d[1]) > DUPLICATE_TOLERANCE or dyaw > DUPLICATE_TOLERANCE:
+                raise GpoccError(
+                    f"{self.path}: topic {self.topic} has two messages at t={stamps[i]:.6f} s "
+                    f"with different poses ({poses[i, 0]:.3f}, {poses[i, 1]:.3f}) and "
+                    f"({poses[i + 1, 0]:.3f}, {poses[i + 1, 1]:.3f}), field header.stamp; "
+                    "two publishers on one topic? filter the bag to one, or pick another "
+                    "pose_topic"
+                )
+        keep = np.ones(len(stamps), bool)
+        keep[same + 1] = False
+        return PoseSeries(self.topic, self.msgtype, stamps[keep], poses[keep], covs[keep],
+                          self.frame_id, self.child_frame_id, self.normalised)
+
+
+# --------------------------------------------------------------------------- covariance
+
+
+@dataclass(frozen=True)
+class CovarianceCheck:
+    """Which covariances are known, after validation and (optional) repair.
+
+    Attributes:
+        covariances: (P, 3, 3) symmetric PSD where ``known``.
+        known: (P,) bool.
+        unknown_reason: why some are unknown ("" if none are).
+        repaired: how many were not PSD and had negative eigenvalues clipped.
+    """
+
+    covariances: np.ndarray
+    known: np.ndarray
+    unknown_reason: str
+    repaired: int
+
+
+def check_covariances(series: PoseSeries, path: Path, sentinel: float, repair: bool,
+                      key: str) -> CovarianceCheck:
+    """Validate a series' covariances (see the module docs for the rules).
+
+    Args:
+        key: config key prefix for messages (``sensors[0]``).
+
+    Raises:
+        GpoccError: a negative variance or non-PSD covariance, unless ``repair``.
+    """
+    cov = np.array(series.covariances, dtype=float)
+    p = cov.shape[0]
+    if not series.has_covariance:
+        return CovarianceCheck(cov, np.zeros(p, bool), f"{series.msgtype} has no covariance", 0)
+    with np.errstate(invalid="ignore"):
+        sentinel_hit = np.any(cov >= sentinel, axis=(1, 2))
+    nan = np.any(~np.isfinite(cov), axis=(1, 2))
+    zero = np.all(cov == 0, axis=(1, 2))
+    known = ~(sentinel_hit | nan | zero)
+    reasons = []
+    if sentinel_hit.any():
+        reasons.append(f"{int(sentinel_hit.sum())} with entries >= {key}.covariance_sentinel="
+                       f"{sentinel:g}")
+    if nan.any():
+        reasons.append(f"{int(nan.sum())} with NaN entries")
+    if zero.any():
+        reasons.append(f"{int(zero.sum())} all zero")
+    sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    sym[~known] = 0.0
+    eig = np.linalg.eigvalsh(sym)
+    scale = np.maximum(np.abs(eig).max(axis=1), 1e-12)
+    diag = np.diagonal(sym, axis1=1, axis2=2)
+    bad = known & ((diag < 0).any(axis=1) | (eig.min(axis=1) < -1e-9 * scale))
+    repaired = 0
+    if bad.any():
+        if not repair:
+            i = int(np.flatnonzero(bad)[0])
+            what = ("has a negative variance" if (diag[i] < 0).any()
+                    else "is not positive semi-definite")
+            raise GpoccError(
+                f"{path}: topic {series.topic} at t={series.stamps[i]:.6f} s: field "
+                f"pose.covariance (x, y, yaw block {np.round(sym[i], 9).tolist()}) {what} "
+                f"({int(bad.sum())} such messages); fix the publisher, or set "
+                f"{key}.repair_pose_covariance: true to clip its negative eigenvalues"
+            )
+        w, v = np.linalg.eigh(sym[bad])
+        sym[bad] = (v * np.maximum(w, 0.0)[:, None, :]) @ np.swapaxes(v, 1, 2)
+        repaired = int(bad.sum())
+    return CovarianceCheck(sym, known, "; ".join(reasons), repaired)
+
+
+@dataclass(frozen=True)
+class CovarianceAtScans:
+    """Covariances at scan stamps: (S, 3, 3), and which came from the input (S,) bool."""
+
+    covariances: np.ndarray
+    from_input: np.ndarray
+    stale: int
+
+
+def covariance_at(stamps: np.ndarray, cov_stamps: np.ndarray, check: CovarianceCheck,
+                  fallback: np.ndarray, max_age_s: float) -> CovarianceAtScans:
+    """Known covariances at ``stamps``: interpolated, or held, else ``fallback``.
+
+    A stamp between two known covariances at most ``max_age_s`` apart gets the linear
+    interpolation; otherwise the nearest known one (before or after) if it is at most
+    ``max_age_s`` away: AMCL publishes only after the robot has moved 0.25 m or turned
+    0.2 rad, so a slow or stopped robot's last covariance is still its current one.
+    Beyond that the config's ``fallback`` (3, 3) is used and counted as stale.
+
+    Args:
+        stamps: (S,) seconds.
+        cov_stamps: (P,) seconds, increasing.
+        fallback: (3, 3).
+    """
+    s = stamps.shape[0]
+    out = np.broadcast_to(fallback, (s, 3, 3)).copy()
+    t = cov_stamps[check.known]
+    c = check.covariances[check.known]
+    if t.size == 0:
+        return CovarianceAtScans(out, np.zeros(s, bool), 0)
+    n = t.size
+    right = np.searchsorted(t, stamps, side="right")
+    i0 = np.clip(right - 1, 0, n - 1)
+    i1 = np.clip(right, 0, n - 1)
+    before = right > 0
+    after = right < n
+    age0 = np.where(before, stamps - t[i0], np.inf)
+    age1 = np.where(after, t[i1] - stamps, np.inf)
+    gap = t[i1] - t[i0]
+    interp = before & after & (gap <= max_age_s) & (gap > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(interp, (stamps - t[i0]) / np.where(gap > 0, gap, 1.0), 0.0)
+    held = np.where(age0 <= age1, i0, i1)
+    near = np.minimum(age0, age1) <= max_age_s
+    use = interp | near
+    cov = np.where(interp[:, None, None],
+                   (1 - w)[:, None, None] * c[i0] + w[:, None, None] * c[i1], c[held])
+    out[use] = cov[use]
+    return CovarianceAtScans(out, use, int(np.count_nonzero(~use)))
+
+
+def rotate_covariances(cov: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) x, y, yaw covariances expressed in a frame rotated by ``angle`` (S,) rad."""
+    c, s = np.cos(angle), np.sin(angle)
+    j = np.zeros(cov.shape)
+    j[:, 0, 0], j[:, 0, 1], j[:, 1, 0], j[:, 1, 1] = c, -s, s, c
+    j[:, 2, 2] = 1.0
+    return j @ cov @ np.swapaxes(j, 1, 2)
+
+
+def move_covariances(cov: np.ndarray, lever: np.ndarray) -> np.ndarray:
+    """Body (x, y, yaw) covariances (S, 3, 3) carried to a laser mounted on the body.
+
+    The laser sits at ``p_l = p_b + R(yaw_b) m`` with the mount ``m`` in the body frame;
+    ``lever`` (S, 2) is ``R(yaw_b) m``, the laser position minus the body position in the
+    map frame, metres. To first order its covariance is ``J P J^T`` with
+    ``J = [[1, 0, -lever_y], [0, 1, lever_x], [0, 0, 1]]``: the laser also moves when the
+    body turns.
+    """
+    j = np.zeros(cov.shape)
+    j[:, 0, 0] = j[:, 1, 1] = j[:, 2, 2] = 1.0
+    j[:, 0, 2] = -lever[:, 1]
+    j[:, 1, 2] = lever[:, 0]
+    return j @ cov @ np.swapaxes(j, 1, 2)
