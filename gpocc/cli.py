@@ -13,6 +13,7 @@ from typing import Any
 import typer
 
 from gpocc.errors import GpoccError
+from gpocc.lifecycle import command_scope
 
 app = typer.Typer(
     name="gpocc",
@@ -30,7 +31,8 @@ def command(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
         @functools.wraps(fn)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
             try:
-                return fn(*args, **kwargs)
+                with command_scope():  # SIGTERM as Ctrl-C, OSError as one line
+                    return fn(*args, **kwargs)
             except GpoccError as exc:
                 typer.echo(f"gpocc {name}: error: {exc}", err=True)
                 raise typer.Exit(2) from None

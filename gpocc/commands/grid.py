@@ -15,7 +15,7 @@ from gpocc.config import config_to_dict, load_config
 from gpocc.errors import GpoccError
 from gpocc.evaluation.grid import default_grid_spec, occupancy_grid
 from gpocc.evaluation.grid_folder import write_grid_folder
-from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.io.atomic import atomic_directory, atomic_path, prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.progress import log
 
@@ -41,7 +41,7 @@ def grid_command(
     force: bool = typer.Option(False, "--force", help="Replace an existing map folder."),
 ) -> None:
     """Build the classic log-odds occupancy grid (the baseline) and write a map folder."""
-    check_can_write(out, force)
+    prepare_output(out, force)
     cfg = load_config(config)
     res = cfg.map.resolution_m if resolution is None else resolution
     if not (res > 0 and math.isfinite(res)):

@@ -11,7 +11,7 @@ from gpocc.cli import command
 from gpocc.errors import GpoccError
 from gpocc.gp.model import load_model
 from gpocc.gridspec import GridSpec
-from gpocc.io.atomic import atomic_directory, check_can_write
+from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import default_workers
 from gpocc.mapping.mapper import default_spec, make_map, write_metadata
@@ -35,7 +35,7 @@ def map_command(
     force: bool = typer.Option(False, "--force", help="Replace an existing map folder."),
 ) -> None:
     """Sample a trained model at any resolution and write the map folder."""
-    check_can_write(out, force)
+    prepare_output(out, force)
     if not resolution > 0:
         raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
     if workers is not None and workers < 1:

@@ -22,7 +22,7 @@ from gpocc.evaluation.simulate import (
 )
 from gpocc.evaluation.world import WORLD_NAMES
 from gpocc.gridspec import GridSpec
-from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.io.atomic import atomic_directory, atomic_path, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.rasters import write_geotiff
 from gpocc.progress import log
@@ -91,7 +91,7 @@ def simulate_command(
     force: bool = typer.Option(False, "--force", help="Replace an existing folder."),
 ) -> None:
     """Simulate the two-robot experiment: a slow accurate and a fast noisy robot."""
-    check_can_write(out, force)
+    prepare_output(out, force)
     if world not in WORLD_NAMES:
         raise GpoccError(f"--world: unknown world {world!r}; choose one of: "
                          f"{', '.join(WORLD_NAMES)}")

@@ -18,7 +18,7 @@ from gpocc.evaluation.split import (
     topic_prefix,
     train_config,
 )
-from gpocc.io.atomic import atomic_directory, check_can_write
+from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
 from gpocc.progress import log
@@ -46,7 +46,7 @@ def split(
     go to DIR/train.mcap with a config DIR/train.yaml that reads it; the labelled points
     go to DIR/heldout.csv (x,y,label), usable as `gpocc evaluate --ground-truth`.
     """
-    check_can_write(out, force)
+    prepare_output(out, force)
     config = load_config(config_path)
     if every < 2:
         raise GpoccError(f"--every must be at least 2 (every scan would be held out), got {every}")

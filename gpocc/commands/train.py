@@ -12,7 +12,7 @@ import typer
 from gpocc.cli import command
 from gpocc.config import load_config
 from gpocc.gp.model import build_model, kernel_parameters, save_model
-from gpocc.io.atomic import check_can_write
+from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
@@ -35,7 +35,7 @@ def train(
     force: bool = typer.Option(False, "--force", help="Overwrite an existing model file."),
 ) -> None:
     """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
-    check_can_write(out, force)
+    prepare_output(out, force, folder=False)
     cfg = load_config(config)
     if input_noise is not None:
         cfg = dataclasses.replace(
@@ -55,7 +55,7 @@ def train(
         model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs),
                             on_evaluation=advance)
     learn_s = time.perf_counter() - started - read_s - samples_s
-    save_model(model, out)
+    save_model(model, out, force=force)
     seconds = time.perf_counter() - started
     occupied = int((model.samples.labels > 0).sum())
     params = kernel_parameters(model.kernel)
