@@ -192,12 +192,17 @@ class ClassifyConfig:
 
 @dataclass(frozen=True)
 class MapConfig:
-    """Map output defaults. ``epsg``: a projected CRS code, or null for a local frame."""
+    """Map output defaults. ``epsg``: a projected CRS code, or null for a local frame.
+
+    ``max_cells``: the largest raster (map, grid, truth) a command may make; larger
+    requests are refused before allocating (see :mod:`gpocc.limits`).
+    """
 
     resolution_m: float = 0.1
     margin_m: float = 1.0
     epsg: int | None = None
     tile_pixels: int = 4096
+    max_cells: int = 200_000_000
 
 
 @dataclass(frozen=True)
@@ -237,7 +242,7 @@ _POSITIVE_KEYS = {
     "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
     "max_variance_ratio",
-    "weight_variance", "bias_variance",
+    "weight_variance", "bias_variance", "max_cells",
 }
 
 
@@ -323,6 +328,9 @@ def _build(cls: Any, data: dict[str, Any], prefix: str, source: str) -> Any:
 
 
 def _validate(config: Config, source: str) -> Config:
+    if not 0 <= config.seed < 2**32:
+        raise GpoccError(f"{source}: key 'seed' must be an integer in [0, 2^32), got "
+                         f"{config.seed}")
     names = [s.name for s in config.sensors]
     if len(set(names)) != len(names):
         raise GpoccError(f"{source}: sensor names must be unique, got {names}")
@@ -371,7 +379,13 @@ def load_config(path: str | Path | None) -> Config:
     if not p.is_file():
         raise GpoccError(f"{p}: config file not found; check the --config path")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        raise GpoccError(f"{p}: not a text (UTF-8) YAML file; pass the YAML job config "
+                         "with --config") from None
+    except OSError as exc:
+        raise GpoccError(f"{p}: cannot read the config ({exc.strerror or exc}); check "
+                         "its permissions") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

@@ -17,11 +17,8 @@ from gpocc.evaluation.grid import default_grid_spec, occupancy_grid
 from gpocc.evaluation.grid_folder import write_grid_folder
 from gpocc.io.atomic import atomic_directory, atomic_path, prepare_output
 from gpocc.io.inputs import read_inputs
+from gpocc.limits import check_cells, max_cells
 from gpocc.progress import log
-
-#: Refuse grids above this many cells (about 17 bytes each in memory); the GP map
-#: (``gpocc map``) is tiled, the baseline grid is not.
-MAX_CELLS = 100_000_000
 
 
 @command("grid")
@@ -52,11 +49,7 @@ def grid_command(
     n_scans = sum(b.n_scans for b in batches)
     log(f"read {n_scans} scans from {len(inputs)} input(s)")
     spec = default_grid_spec(batches, cfg, res, bounds)
-    if spec.width * spec.height > MAX_CELLS:
-        raise GpoccError(
-            f"the grid would have {spec.width} x {spec.height} cells (more than {MAX_CELLS}); "
-            f"use a coarser --resolution or a smaller --bounds"
-        )
+    check_cells(spec.width, spec.height, res, max_cells(cfg.map.max_cells), "the grid")
     log(f"grid: {spec.width} x {spec.height} cells at {res} m")
     t0 = time.perf_counter()
     grid = occupancy_grid(batches, cfg, spec)

@@ -12,6 +12,7 @@ from gpocc.errors import GpoccError
 from gpocc.gp.model import load_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
+from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import default_workers
 from gpocc.mapping.mapper import default_spec, make_map, write_metadata
@@ -45,6 +46,8 @@ def map_command(
         spec = GridSpec.from_bounds(*bounds, resolution)
     else:
         spec = default_spec(model, resolution, model.config.map.margin_m)
+    check_cells(spec.width, spec.height, resolution,
+                max_cells(model.config.map.max_cells), f"the map of {model_path}")
     n_workers = workers or default_workers()
     cells = block_cells(model.config.model.block_size_m, resolution)
     total = len(plan_blocks(spec, cells))

@@ -19,12 +19,14 @@ from gpocc.evaluation.simulate import (
     sim_config,
     simulate,
     truth_raster,
+    truth_spec,
 )
-from gpocc.evaluation.world import WORLD_NAMES
+from gpocc.evaluation.world import WORLD_NAMES, make_world
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, atomic_path, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.rasters import write_geotiff
+from gpocc.limits import check_cells, max_cells
 from gpocc.progress import log
 
 _CONFIG_HEADER = """\
@@ -97,6 +99,9 @@ def simulate_command(
                          f"{', '.join(WORLD_NAMES)}")
     if not (resolution > 0 and math.isfinite(resolution)):
         raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
+    truth = truth_spec(make_world(world), resolution)
+    check_cells(truth.width, truth.height, resolution, max_cells(), "the truth raster",
+                fix="use a coarser --resolution")
     noise = PoseNoise(*pose_noise) if pose_noise is not None else PoseNoise()
     started = time.perf_counter()
     sim = simulate(world, seed=seed, pose_noise=noise)

@@ -21,6 +21,7 @@ from gpocc.evaluation.split import (
 from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
+from gpocc.limits import MAX_HELDOUT_POINTS
 from gpocc.progress import log
 
 
@@ -57,6 +58,13 @@ def split(
     rng = np.random.default_rng(config.seed if seed is None else seed)
 
     batches = merge_by_sensor(read_inputs([input_path], config))
+    held_beams = sum((b.n_scans // every) * b.n_beams for b in batches)
+    if held_beams * (1 + free_per_beam) > MAX_HELDOUT_POINTS:
+        raise GpoccError(
+            f"{input_path}: {held_beams} held-out beams x (1 + --free-per-beam "
+            f"{free_per_beam}) points is more than {MAX_HELDOUT_POINTS:.0e}; lower "
+            f"--free-per-beam or raise --every"
+        )
     trains, topics, sensors, points, labels = [], [], [], [], []
     n_heldout = 0
     used_prefixes: set[str] = set()

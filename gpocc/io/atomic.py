@@ -242,7 +242,21 @@ def prepare_output(path: str | os.PathLike[str], force: bool, folder: bool = Tru
     target = Path(path)
     if target.parent.is_dir():
         claim_output(target)
+    else:
+        _check_ancestor(target)
     _refuse_existing(target, force, folder)
+
+
+def _check_ancestor(target: Path) -> None:
+    """Fail fast when the missing parent folders of ``target`` cannot be created."""
+    ancestor = target.parent
+    while not (ancestor.exists() or ancestor.is_symlink()) and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise GpoccError(f"{target}: {ancestor} is a file, not a folder; choose another --out")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise GpoccError(f"{target}: cannot create folders in {ancestor} (permission denied); "
+                         f"choose another --out")
 
 
 # --------------------------------------------------------------------------- renaming
@@ -305,6 +319,8 @@ def _install(tmp: Path, target: Path, force: bool) -> None:
 
 
 def _prepare(target: Path) -> None:
+    if not target.parent.is_dir():
+        _check_ancestor(target)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
