@@ -304,7 +304,7 @@ def _check_range(name: str, value: Any, key: str, source: str) -> None:
 def _build(cls: Any, data: dict[str, Any], prefix: str, source: str) -> Any:
     hints = typing.get_type_hints(cls)
     known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - known)
+    unknown = sorted(set(data) - known, key=str)  # YAML keys may be numbers or null
     if unknown:
         where = f"under '{prefix}'" if prefix else "at top level"
         raise GpoccError(

@@ -65,7 +65,7 @@ def _finite_number(value: Any, what: str, positive: bool = False) -> float:
 
 def _kernel(meta: dict[str, Any]) -> Any:
     name = meta.get("kernel_name")
-    if name not in _KERNELS:
+    if not isinstance(name, str) or name not in _KERNELS:
         raise _Damaged(f"kernel_name is {name!r}, not one of {sorted(_KERNELS)}")
     cls = _KERNELS[name]
     params = meta.get("kernel")
