@@ -61,3 +61,9 @@ def check_cells(width: float, height: float, resolution: float, limit: int, what
         f"(about {17 * limit / 1e9:.1f} GB); {fix}, or raise map.max_cells in the config "
         f"(or {ENV_MAX_CELLS})"
     )
+
+
+def check_seed(seed: int | None, option: str = "--seed") -> None:
+    """Refuse a seed the random generators reject (they take [0, 2^32))."""
+    if seed is not None and not 0 <= seed < 2**32:
+        raise GpoccError(f"{option} must be an integer in [0, 2^32), got {seed}")

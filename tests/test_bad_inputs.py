@@ -148,6 +148,8 @@ CASES = [
                           "--out", "{root}/out.npz"], "seed_float.yaml", "out.npz"),
     ("config-seed-huge", ["train", "{root}/ok.mcap", "--config", "{root}/seed_huge.yaml",
                           "--out", "{root}/out.npz"], "seed_huge.yaml", "out.npz"),
+    ("train-negative-seed", ["train", "{root}/ok.mcap", "--seed", "-1",
+                             "--out", "{root}/out.npz"], "--seed", "out.npz"),
     ("config-is-a-folder", ["train", "{root}/ok.mcap", "--config", "{root}/user_dir",
                             "--out", "{root}/out.npz"], "user_dir", "out.npz"),
 ] + [

@@ -26,7 +26,7 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, atomic_path, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.rasters import write_geotiff
-from gpocc.limits import check_cells, max_cells
+from gpocc.limits import check_cells, check_seed, max_cells
 from gpocc.progress import log
 
 _CONFIG_HEADER = """\
@@ -99,6 +99,7 @@ def simulate_command(
                          f"{', '.join(WORLD_NAMES)}")
     if not (resolution > 0 and math.isfinite(resolution)):
         raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
+    check_seed(seed)
     truth = truth_spec(make_world(world), resolution)
     check_cells(truth.width, truth.height, resolution, max_cells(), "the truth raster",
                 fix="use a coarser --resolution")

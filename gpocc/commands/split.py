@@ -21,7 +21,7 @@ from gpocc.evaluation.split import (
 from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
-from gpocc.limits import MAX_HELDOUT_POINTS
+from gpocc.limits import MAX_HELDOUT_POINTS, check_seed
 from gpocc.progress import log
 
 
@@ -55,6 +55,7 @@ def split(
         raise GpoccError("--keep-every and --beam-every must be at least 1")
     if free_per_beam < 0:
         raise GpoccError(f"--free-per-beam must not be negative, got {free_per_beam}")
+    check_seed(seed)
     rng = np.random.default_rng(config.seed if seed is None else seed)
 
     batches = merge_by_sensor(read_inputs([input_path], config))

@@ -14,6 +14,7 @@ from gpocc.config import load_config
 from gpocc.gp.model import build_model, kernel_parameters, save_model
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
+from gpocc.limits import check_seed
 from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
 
@@ -41,6 +42,7 @@ def train(
         cfg = dataclasses.replace(
             cfg, model=dataclasses.replace(cfg.model, input_noise=input_noise is Switch.on)
         )
+    check_seed(seed)
     if seed is not None:
         cfg = dataclasses.replace(cfg, seed=seed)
     started = time.perf_counter()

@@ -107,7 +107,8 @@ def run_blocks(
     if scheduler:
         yield from _run_dask(model, spec, chunks, scheduler, on_done)
         return
-    if workers <= 1 or len(chunks) <= 1:
+    workers = min(workers, len(chunks))  # --workers 10000 must not start 10000 processes
+    if workers <= 1:
         for chunk in chunks:
             yield from compute_chunk(model, spec, chunk)
             if on_done:
