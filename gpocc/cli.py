@@ -23,6 +23,7 @@ from gpocc.commands import config as config_cmd
 from gpocc.commands import evaluate, grid, info, simulate, split, train
 from gpocc.commands import map as map_cmd
 from gpocc.errors import GpoccError
+from gpocc.lifecycle import command_scope
 
 #: (name, function) of every ``gpocc`` subcommand, in help order.
 COMMANDS: tuple[tuple[str, Callable[..., Any]], ...] = (
@@ -78,7 +79,8 @@ def register(name: str, fn: Callable[..., Any]) -> None:
         progress.set_verbosity(progress.QUIET if quiet else
                                progress.VERBOSE if verbose else progress.NORMAL)
         try:
-            return fn(*args, **kwargs)
+            with command_scope():  # SIGTERM as Ctrl-C, OSError as one line
+                return fn(*args, **kwargs)
         except GpoccError as exc:
             typer.echo(f"gpocc {name}: error: {exc}", err=True)
             raise typer.Exit(2) from None

@@ -229,6 +229,8 @@ class MapConfig:
     sample the variance already exceeds ``classify.max_variance_ratio`` of the prior (the
     cells are unsure), so no classified cell is lost, and with the coverage raster's
     0.24 m error every cell more than 2 m from a beam is nodata (docs/results.md).
+    ``max_cells``: the largest raster (map, grid, truth) a command may make; larger
+    requests are refused before allocating (see :mod:`gpocc.limits`).
     """
 
     resolution_m: float = 0.1
@@ -238,6 +240,7 @@ class MapConfig:
     tile_pixels: int = 4096
     max_pgm_pixels: int | None = None
     max_beam_distance_m: float | None = 1.5
+    max_cells: int = 200_000_000
 
 
 @dataclass(frozen=True)
@@ -277,7 +280,7 @@ _POSITIVE_KEYS = {
     "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
     "max_variance_ratio", "max_pgm_pixels", "covariance_sentinel",
-    "weight_variance", "bias_variance",
+    "weight_variance", "bias_variance", "max_cells",
 }
 
 
@@ -339,7 +342,7 @@ def _check_range(name: str, value: Any, key: str, source: str) -> None:
 def _build(cls: Any, data: dict[str, Any], prefix: str, source: str) -> Any:
     hints = typing.get_type_hints(cls)
     known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - known)
+    unknown = sorted(set(data) - known, key=str)  # YAML keys may be numbers or null
     if unknown:
         where = f"under '{prefix}'" if prefix else "at top level"
         raise GpoccError(
@@ -363,6 +366,9 @@ def _build(cls: Any, data: dict[str, Any], prefix: str, source: str) -> Any:
 
 
 def _validate(config: Config, source: str) -> Config:
+    if not 0 <= config.seed < 2**32:
+        raise GpoccError(f"{source}: key 'seed' must be an integer in [0, 2^32), got "
+                         f"{config.seed}")
     names = [s.name for s in config.sensors]
     if len(set(names)) != len(names):
         raise GpoccError(f"{source}: sensor names must be unique, got {names}")
@@ -423,7 +429,13 @@ def load_config(path: str | Path | None) -> Config:
     if not p.is_file():
         raise GpoccError(f"{p}: config file not found; check the path")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        raise GpoccError(f"{p}: not a text (UTF-8) YAML file; pass the YAML job config "
+                         "with --config") from None
+    except OSError as exc:
+        raise GpoccError(f"{p}: cannot read the config ({exc.strerror or exc}); check "
+                         "its permissions") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

@@ -39,6 +39,10 @@ class GridSpec:
         cls, x_min: float, y_min: float, x_max: float, y_max: float, resolution: float
     ) -> GridSpec:
         """The smallest grid of ``resolution`` anchored at (x_min, y_min) covering the box."""
+        if not all(math.isfinite(v) for v in (x_min, y_min, x_max, y_max)):
+            raise GpoccError(
+                f"bounds must be finite numbers of metres, got {x_min} {y_min} {x_max} {y_max}"
+            )
         if not (x_max > x_min and y_max > y_min):
             raise GpoccError(
                 f"bounds must satisfy XMIN < XMAX and YMIN < YMAX, got "
@@ -46,8 +50,14 @@ class GridSpec:
             )
         if not (resolution > 0 and math.isfinite(resolution)):
             raise GpoccError(f"resolution must be a positive number of metres, got {resolution}")
-        width = max(1, int(math.ceil((x_max - x_min) / resolution - 1e-9)))
-        height = max(1, int(math.ceil((y_max - y_min) / resolution - 1e-9)))
+        across = ((x_max - x_min) / resolution, (y_max - y_min) / resolution)
+        if not all(math.isfinite(v) and v < 2.0**62 for v in across):
+            raise GpoccError(
+                f"bounds {x_min} {y_min} {x_max} {y_max} at {resolution} m give more cells "
+                f"than can be counted; use a coarser resolution or smaller bounds"
+            )
+        width = max(1, int(math.ceil(across[0] - 1e-9)))
+        height = max(1, int(math.ceil(across[1] - 1e-9)))
         return cls(float(x_min), float(y_min), float(resolution), width, height)
 
     @property

@@ -233,8 +233,15 @@ def test_existing_out_is_refused_without_force(tmp_path, maps):
     assert refused.exit_code == 2
     assert "--force" in refused.stderr and "Traceback" not in refused.output
     assert (out / "keep.txt").read_text() == "mine"
+    # --force replaces only a previous gpocc output, never a folder of the user's (#12).
     forced = _invoke(str(folder), "--ground-truth", str(truth), "--out", str(out), "--force")
-    assert forced.exit_code == 0, forced.output
+    assert forced.exit_code == 2 and "not one" in forced.stderr
+    assert (out / "keep.txt").read_text() == "mine"
+    out = tmp_path / "eval2"
+    for _ in range(2):
+        forced = _invoke(str(folder), "--ground-truth", str(truth), "--out", str(out),
+                         "--force")
+        assert forced.exit_code == 0, forced.output
     assert sorted(p.name for p in out.iterdir()) == [
         "results.json", "results.md", "roc.csv", "roc.png",
     ]

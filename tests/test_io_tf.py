@@ -333,7 +333,7 @@ def _heldout_auc(batch: ScanBatch) -> float:
     """AUC of a log-odds grid built from 4 of 5 scans, on the held-out 5th scans' points."""
     from sklearn.metrics import roc_auc_score
 
-    from gpocc.evaluation.grid import observed_extent, occupancy_grid
+    from gpocc.baselines.grid import observed_extent, occupancy_grid
     from gpocc.evaluation.split import split_batch
     from gpocc.gridspec import GridSpec
 

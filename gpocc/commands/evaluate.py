@@ -17,7 +17,7 @@ from gpocc.evaluation.report import (
     write_outputs,
 )
 from gpocc.evaluation.truth import load_truth
-from gpocc.io.atomic import check_can_write
+from gpocc.io.atomic import prepare_output
 from gpocc.progress import log
 
 
@@ -40,7 +40,7 @@ def evaluate(
     map covered.
     """
     if out is not None:
-        check_can_write(out, force)
+        prepare_output(out, force)
     located = [probability_raster(p) for p in maps]
     names = unique_names([n for n, _ in located], list(maps))
     points, labels = load_truth(ground_truth)

@@ -10,18 +10,14 @@ import typer
 from gpocc.baselines.grid import default_grid_spec, occupancy_grid
 from gpocc.commands.options import Bounds, ConfigFile, Force, Inputs, OutFolder, check_resolution
 from gpocc.config import config_to_dict, load_config
-from gpocc.errors import GpoccError
 from gpocc.gp.classify import classify
-from gpocc.io.atomic import atomic_directory, check_can_write
+from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.io.rasters import BERNOULLI_VARIANCE_BAND
+from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.folder import MapFolder, folder_metadata, write_metadata
 from gpocc.progress import log
-
-#: Refuse grids above this many cells (about 17 bytes each in memory); the GP map
-#: (``gpocc map``) is tiled, the baseline grid is not.
-MAX_CELLS = 100_000_000
 
 
 def grid_command(
@@ -35,7 +31,7 @@ def grid_command(
     force: Force = False,
 ) -> None:
     """Build the classic log-odds occupancy grid (the baseline) and write a map folder."""
-    check_can_write(out, force)
+    prepare_output(out, force)
     cfg = load_config(config)
     res = cfg.map.resolution_m if resolution is None else check_resolution(resolution)
     started = time.perf_counter()
@@ -44,11 +40,7 @@ def grid_command(
     n_scans = sum(b.n_scans for b in batches)
     log(f"read {n_scans} scans from {len(inputs)} input(s)")
     spec = default_grid_spec(batches, cfg, res, bounds)
-    if spec.width * spec.height > MAX_CELLS:
-        raise GpoccError(
-            f"the grid would have {spec.width} x {spec.height} cells (more than {MAX_CELLS}); "
-            f"use a coarser --resolution or a smaller --bounds"
-        )
+    check_cells(spec.width, spec.height, res, max_cells(cfg.map.max_cells), "the grid")
     check_map_server_size(spec, cfg.map.max_pgm_pixels)  # before any work
     log(f"grid: {spec.width} x {spec.height} cells at {res} m")
     t0 = time.perf_counter()

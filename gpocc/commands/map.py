@@ -10,7 +10,8 @@ import typer
 from gpocc.commands.options import Bounds, Force, OutFolder, check_at_least, check_resolution
 from gpocc.gp.model import kernel_parameters, load_model
 from gpocc.gridspec import GridSpec
-from gpocc.io.atomic import atomic_directory, check_can_write
+from gpocc.io.atomic import atomic_directory, prepare_output
+from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.executors import default_workers
 from gpocc.mapping.folder import write_metadata
@@ -32,7 +33,7 @@ def map_command(
     force: Force = False,
 ) -> None:
     """Sample a trained model at any resolution and write the map folder."""
-    check_can_write(out, force)
+    prepare_output(out, force)
     check_resolution(resolution)
     if workers is not None:
         check_at_least("--workers", workers, 1)
@@ -44,6 +45,8 @@ def map_command(
         spec = GridSpec.from_bounds(*bounds, resolution)
     else:
         spec = default_spec(model, resolution, model.config.map.margin_m)
+    check_cells(spec.width, spec.height, resolution,
+                max_cells(model.config.map.max_cells), f"the map of {model_path}")
     n_workers = workers or default_workers()
     cells = block_cells(model.config.model.block_size_m, resolution)
     total = len(plan_blocks(spec, cells))

@@ -19,12 +19,14 @@ from gpocc.evaluation.simulate import (
     sim_config,
     simulate,
     truth_raster,
+    truth_spec,
 )
-from gpocc.evaluation.world import WORLD_NAMES
+from gpocc.evaluation.world import WORLD_NAMES, make_world
 from gpocc.gridspec import GridSpec
-from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.io.atomic import atomic_directory, atomic_path, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.rasters import TRUTH_BAND, write_geotiff
+from gpocc.limits import check_cells, check_seed, max_cells
 from gpocc.progress import log
 
 _CONFIG_HEADER = """\
@@ -90,7 +92,7 @@ def simulate_command(
     force: Force = False,
 ) -> None:
     """Simulate the two-robot experiment: a slow accurate and a fast noisy robot."""
-    check_can_write(out, force)
+    prepare_output(out, force)
     if world not in WORLD_NAMES:
         raise GpoccError(f"--world: unknown world {world!r}; choose one of: "
                          f"{', '.join(WORLD_NAMES)}")
@@ -98,6 +100,10 @@ def simulate_command(
     if pose_noise is not None and not all(v >= 0 and math.isfinite(v) for v in pose_noise):
         raise GpoccError(f"--pose-noise needs two non-negative numbers (SIGMA_XY metres, "
                          f"SIGMA_YAW degrees), got {pose_noise[0]} {pose_noise[1]}")
+    check_seed(seed)
+    truth = truth_spec(make_world(world), resolution)
+    check_cells(truth.width, truth.height, resolution, max_cells(), "the truth raster",
+                fix="use a coarser --resolution")
     noise = PoseNoise(*pose_noise) if pose_noise is not None else PoseNoise()
     started = time.perf_counter()
     sim = simulate(world, seed=seed, pose_noise=noise)

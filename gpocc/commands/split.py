@@ -17,9 +17,10 @@ from gpocc.evaluation.split import (
     topic_prefix,
     train_config,
 )
-from gpocc.io.atomic import atomic_directory, check_can_write
+from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
+from gpocc.limits import MAX_HELDOUT_POINTS, check_seed
 from gpocc.progress import log
 from gpocc.samples import beam
 
@@ -45,15 +46,23 @@ def split(
     go to DIR/train.mcap with a config DIR/train.yaml that reads it; the labelled points
     go to DIR/heldout.csv (x,y,label), usable as `gpocc evaluate --ground-truth`.
     """
-    check_can_write(out, force)
+    prepare_output(out, force)
     config = load_config(config_path)
     check_at_least("--every", every, 2, " (every scan would be held out)")
     check_at_least("--keep-every", keep_every, 1)
     check_at_least("--beam-every", beam_every, 1)
     check_at_least("--free-per-beam", free_per_beam, 0)
+    check_seed(seed)
     rng = np.random.default_rng(config.seed if seed is None else seed)
 
     batches = merge_by_sensor(read_inputs([input_path], config))
+    held_beams = sum((b.n_scans // every) * b.n_beams for b in batches)
+    if held_beams * (1 + free_per_beam) > MAX_HELDOUT_POINTS:
+        raise GpoccError(
+            f"{input_path}: {held_beams} held-out beams x (1 + --free-per-beam "
+            f"{free_per_beam}) points is more than {MAX_HELDOUT_POINTS:.0e}; lower "
+            f"--free-per-beam or raise --every"
+        )
     trains, topics, sensors, points, labels = [], [], [], [], []
     n_heldout = 0
     used_prefixes: set[str] = set()

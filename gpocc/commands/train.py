@@ -12,8 +12,9 @@ import typer
 from gpocc.commands.options import ConfigFile, Force, Inputs
 from gpocc.config import load_config
 from gpocc.gp.model import build_model, kernel_parameters, save_model
-from gpocc.io.atomic import check_can_write
+from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
+from gpocc.limits import check_seed
 from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
 from gpocc.samples.coverage import beam_coverage
@@ -35,12 +36,13 @@ def train(
     force: Force = False,
 ) -> None:
     """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
-    check_can_write(out, force)
+    prepare_output(out, force, folder=False)
     cfg = load_config(config)
     if input_noise is not None:
         cfg = dataclasses.replace(
             cfg, model=dataclasses.replace(cfg.model, input_noise=input_noise is Switch.on)
         )
+    check_seed(seed)
     if seed is not None:
         cfg = dataclasses.replace(cfg, seed=seed)
     started = time.perf_counter()
@@ -59,7 +61,7 @@ def train(
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
     model = dataclasses.replace(model, training={**model.training, "timings_s": timings})
-    save_model(model, out)
+    save_model(model, out, force=force)
     seconds = time.perf_counter() - started
     occupied = int((model.samples.labels > 0).sum())
     params = kernel_parameters(model.kernel)

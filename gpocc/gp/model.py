@@ -19,12 +19,13 @@ from typing import Any
 import numpy as np
 
 from gpocc.blas import single_threaded_blas
-from gpocc.config import Config, config_from_dict, config_to_dict
+from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier, fit_classifier
 from gpocc.gp.kernels import Kernel, make_kernel
+from gpocc.gp.modelfile import validate_contents
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
-from gpocc.io.atomic import atomic_path
+from gpocc.io.atomic import atomic_output_file
 from gpocc.samples.coverage import Coverage
 from gpocc.samples.sampleset import SampleSet
 from gpocc.versions import software_versions
@@ -114,8 +115,12 @@ def build_model(
     )
 
 
-def save_model(model: GPModel, path: str | Path) -> None:
-    """Write ``model`` to ``path`` (.npz) atomically."""
+def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:
+    """Write ``model`` to ``path`` (.npz) atomically.
+
+    An existing ``path`` is replaced only with ``force``, and only if it is a model file
+    (see :func:`gpocc.io.atomic.atomic_output_file`).
+    """
     meta = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -136,7 +141,7 @@ def save_model(model: GPModel, path: str | Path) -> None:
         meta["coverage"] = {"x0": cov.x0, "y0": cov.y0, "cell_m": cov.cell_m,
                             "step_m": cov.step_m, "shape": list(cov.covered.shape)}
         arrays["coverage"] = np.packbits(cov.covered, axis=None)
-    with atomic_path(path) as tmp:
+    with atomic_output_file(path, force=force) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, metadata=np.frombuffer(json.dumps(meta).encode(), np.uint8),
                                 **arrays)
@@ -156,29 +161,23 @@ def load_model(path: str | Path) -> GPModel:
             EOFError, UnicodeDecodeError):
         raise GpoccError(f"{p}: not a gpocc model file or corrupt; re-create it with "
                          "`gpocc train`") from None
-    if meta.get("format") != FORMAT_NAME:
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise GpoccError(f"{p}: not a gpocc model file; re-create it with `gpocc train`")
     version = meta.get("format_version")
-    if not isinstance(version, int) or version > FORMAT_VERSION:
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise GpoccError(f"{p}: damaged model file: format_version is {version!r}; "
+                         "re-create it with `gpocc train`")
+    if version > FORMAT_VERSION:
         raise GpoccError(
             f"{p}: model format version {version} is newer than this gpocc understands "
             f"({FORMAT_VERSION}); upgrade gpocc or re-train with this version"
         )
-    config = config_from_dict(meta["config"], f"{p} (embedded config)")
-    params = {k: (tuple(v) if isinstance(v, list) else v)
-              for k, v in meta["kernel"].items() if k != "class"}
-    kernel_cls = type(make_kernel(meta["kernel_name"], config.model.hyperparameters))
-    kernel = kernel_cls(**params)
+    parts = validate_contents(meta, arrays, p)
     return GPModel(
-        kernel=kernel,
-        noise_variance=float(meta["noise_variance"]),
-        classifier=PlattClassifier(**meta["classifier"]),
-        samples=SampleSet(**arrays, sensor_names=tuple(meta.get("sensor_names", ()))),
-        config=config,
-        input_noise=bool(meta["input_noise"]),
-        training=meta.get("training", {}),
-        inputs=tuple(meta.get("inputs", ())),
-        versions=dict(meta.get("versions", {})),
+        kernel=parts.kernel, noise_variance=parts.noise_variance,
+        classifier=parts.classifier, samples=parts.samples, config=parts.config,
+        input_noise=parts.input_noise, training=parts.training, inputs=parts.inputs,
+        versions=parts.versions,
         coverage=_coverage(meta.get("coverage"), coverage_bits, p),
     )
 

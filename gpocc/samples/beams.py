@@ -18,6 +18,7 @@ import numpy as np
 from gpocc.config import Config, SamplesConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
+from gpocc.limits import MAX_SAMPLES_PER_SCAN
 from gpocc.samples import beam
 from gpocc.samples.sampleset import SampleSet
 from gpocc.samples.unscented import matrix_sqrt, unscented_transform
@@ -187,6 +188,22 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     return samples.subset(np.sort(order[first]))
 
 
+def _check_scan_sizes(batch: ScanBatch, per_scan: np.ndarray, hits: np.ndarray,
+                      spacing: float) -> None:
+    """Refuse scans that would give more than MAX_SAMPLES_PER_SCAN samples (absurd ranges)."""
+    if per_scan.size == 0 or per_scan.max() <= MAX_SAMPLES_PER_SCAN:
+        return
+    worst = int(np.argmax(per_scan))
+    longest = float(hits.max()) if hits.size else float(batch.range_max)
+    raise GpoccError(
+        f"{batch.source}: sensor '{batch.sensor}' scan {worst} would give "
+        f"{per_scan[worst]:.3g} training samples (ranges up to {longest:.3g} m, range_max "
+        f"{batch.range_max:.3g} m, a free sample every {spacing:g} m), more than "
+        f"{MAX_SAMPLES_PER_SCAN:.0e}; set range_max_m for this sensor in the config to the "
+        f"laser's real maximum range (check that ranges are in metres)"
+    )
+
+
 def _batch_samples(
     batch: ScanBatch,
     sensor: SensorConfig,
@@ -211,7 +228,11 @@ def _batch_samples(
     gap = max(cfg.hit_gap_m, cfg.hit_gap_sigmas * float(np.sqrt(sensor.range_variance_m2)))
     limit = np.where(is_hit, ranges - gap, np.where(no_return, no_return_limit, 0.0))
     limit = np.where(np.isfinite(limit), limit, 0.0)
-    n_free = np.floor(np.maximum(limit, 0.0) / cfg.free_spacing_m + _COUNT_SLACK).astype(np.int64)
+    # Counted in floats first: a range of 1e20 m would overflow an integer count.
+    n_free_f = np.floor(np.maximum(limit, 0.0) / cfg.free_spacing_m + _COUNT_SLACK)
+    per_scan_f = is_hit.sum(axis=1) + n_free_f.sum(axis=1)
+    _check_scan_sizes(batch, per_scan_f, ranges[is_hit], cfg.free_spacing_m)
+    n_free = n_free_f.astype(np.int64)
 
     per_scan = is_hit.sum(axis=1) + n_free.sum(axis=1)
     if per_scan.sum() == 0:

@@ -1,0 +1,194 @@
+"""Validation of a model file's contents, once, where it is read.
+
+A model file is data from outside (copied, edited, truncated, written by another
+version): every field of its JSON metadata and every array's dtype, shape, finiteness
+and consistency is checked here, so that prediction code can trust a loaded model. Any
+problem is one :class:`GpoccError` naming the file and saying to re-create it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpocc.config import Config, config_from_dict
+from gpocc.errors import GpoccError
+from gpocc.gp.classify import PlattClassifier
+from gpocc.gp.kernels import Kernel, NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.samples.sampleset import SampleSet
+
+_KERNELS = {"nn": NeuralNetworkKernel, "se": SquaredExponentialKernel}
+
+#: name -> (dtype it is stored as, shape after the sample axis N)
+ARRAY_LAYOUT: dict[str, tuple[type, tuple[int, ...]]] = {
+    "means": (np.float64, (2,)),
+    "covariances": (np.float64, (2, 2)),
+    "labels": (np.float64, ()),
+    "scan_ids": (np.int64, ()),
+    "pose_factors": (np.float64, (2, 3)),
+    "sensor_ids": (np.int16, ()),
+}
+
+
+@dataclass(frozen=True)
+class ModelContents:
+    """The validated pieces of a model file, ready to build a ``GPModel``."""
+
+    kernel: Kernel
+    noise_variance: float
+    classifier: PlattClassifier
+    samples: SampleSet
+    config: Config
+    input_noise: bool
+    training: dict[str, Any]
+    inputs: tuple[str, ...]
+    versions: dict[str, str]
+
+
+class _Damaged(Exception):
+    """One problem found in the file (turned into a GpoccError naming the file)."""
+
+
+def _finite_number(value: Any, what: str, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _Damaged(f"{what} is {value!r}, not a number")
+    if not math.isfinite(value):
+        raise _Damaged(f"{what} is {value!r}")
+    if positive and value <= 0:
+        raise _Damaged(f"{what} is {value!r}, not positive")
+    return float(value)
+
+
+def _kernel(meta: dict[str, Any]) -> Any:
+    name = meta.get("kernel_name")
+    if not isinstance(name, str) or name not in _KERNELS:
+        raise _Damaged(f"kernel_name is {name!r}, not one of {sorted(_KERNELS)}")
+    cls = _KERNELS[name]
+    params = meta.get("kernel")
+    if not isinstance(params, dict):
+        raise _Damaged("the kernel parameters are missing")
+    if params.get("class") != cls.__name__:
+        raise _Damaged(f"kernel class {params.get('class')!r} does not match kernel_name "
+                       f"{name!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    given = set(params) - {"class"}
+    if given != set(fields):
+        missing, unknown = sorted(set(fields) - given), sorted(given - set(fields))
+        raise _Damaged(f"kernel parameters: missing {missing}, unknown {unknown}")
+    values: dict[str, Any] = {}
+    for key in fields:
+        value = params[key]
+        if isinstance(value, list):
+            if len(value) != 2:
+                raise _Damaged(f"kernel parameter {key!r} must have 2 entries, got {value!r}")
+            values[key] = tuple(_finite_number(v, f"kernel parameter {key!r}", True)
+                                for v in value)
+        else:
+            values[key] = _finite_number(value, f"kernel parameter {key!r}", True)
+    default = cls()  # pair-valued parameters (per axis) must be pairs, scalars scalars
+    for key in fields:
+        if isinstance(getattr(default, key), tuple) != isinstance(values[key], tuple):
+            raise _Damaged(f"kernel parameter {key!r} has the wrong form: {params[key]!r}")
+    return cls(**values)
+
+
+def _samples(arrays: dict[str, np.ndarray]) -> SampleSet:
+    n = None
+    checked: dict[str, np.ndarray] = {}
+    for name, (dtype, tail) in ARRAY_LAYOUT.items():
+        array = arrays[name]
+        if array.dtype.kind not in "fiu" or array.dtype.itemsize > 8:
+            raise _Damaged(f"array {name!r} has dtype {array.dtype}, not a number type")
+        if array.ndim != 1 + len(tail) or tuple(array.shape[1:]) != tail:
+            want = "(N" + "".join(f", {d}" for d in tail) + ")"
+            raise _Damaged(f"array {name!r} has shape {array.shape}, expected {want}")
+        if n is None:
+            n = array.shape[0]
+        elif array.shape[0] != n:
+            raise _Damaged(f"array {name!r} has {array.shape[0]} rows but 'means' has {n}")
+        if array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise _Damaged(f"array {name!r} holds NaN or infinite values")
+        converted = array.astype(dtype)
+        if dtype is not np.float64 and not np.array_equal(converted, array):
+            raise _Damaged(f"array {name!r} holds values that are not {np.dtype(dtype)}")
+        checked[name] = converted
+    if not n:
+        raise _Damaged("it holds no training samples")
+    if not np.isin(checked["labels"], (-1.0, 1.0)).all():
+        raise _Damaged("array 'labels' holds values other than +1 and -1")
+    cov = checked["covariances"]
+    if (cov[:, 0, 0] < 0).any() or (cov[:, 1, 1] < 0).any() or \
+            not np.allclose(cov[:, 0, 1], cov[:, 1, 0], rtol=1e-6, atol=1e-12):
+        raise _Damaged("array 'covariances' holds matrices that are not covariances")
+    if (checked["sensor_ids"] < 0).any():
+        raise _Damaged("array 'sensor_ids' holds negative values")
+    return SampleSet(**checked)
+
+
+def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelContents:
+    if not isinstance(meta, dict):
+        raise _Damaged("its metadata is not a JSON object")
+    if not isinstance(meta.get("config"), dict):
+        raise _Damaged("the embedded config is missing")
+    config = config_from_dict(meta["config"], f"{source} (embedded config)")
+    kernel = _kernel(meta)
+    noise = _finite_number(meta.get("noise_variance"), "noise_variance", positive=True)
+    classifier = meta.get("classifier")
+    if not isinstance(classifier, dict) or set(classifier) != {"a", "b"}:
+        raise _Damaged(f"the classifier must hold exactly 'a' and 'b', got {classifier!r}")
+    a = _finite_number(classifier["a"], "classifier 'a'", positive=True)
+    b = _finite_number(classifier["b"], "classifier 'b'")
+    input_noise = meta.get("input_noise")
+    if not isinstance(input_noise, bool):
+        raise _Damaged(f"input_noise is {input_noise!r}, not true or false")
+    training = meta.get("training", {})
+    if not isinstance(training, dict):
+        raise _Damaged("the training record is not a JSON object")
+    inputs = meta.get("inputs", [])
+    if not isinstance(inputs, list) or not all(isinstance(i, str) for i in inputs):
+        raise _Damaged("inputs is not a list of file names")
+    names = meta.get("sensor_names", [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise _Damaged("sensor_names is not a list of names")
+    versions = meta.get("versions", {})
+    if not isinstance(versions, dict) or not all(isinstance(v, str) for v in versions.values()):
+        raise _Damaged("versions is not a mapping of package names to versions")
+    samples = _samples(arrays)
+    if names and (samples.sensor_ids >= len(names)).any():
+        raise _Damaged(f"array 'sensor_ids' names sensors beyond the {len(names)} in "
+                       "sensor_names")
+    return ModelContents(
+        kernel=kernel, noise_variance=noise, classifier=PlattClassifier(a, b),
+        samples=dataclasses.replace(samples, sensor_names=tuple(names)), config=config,
+        input_noise=input_noise, training=training, inputs=tuple(inputs),
+        versions=dict(versions),
+    )
+
+
+def validate_contents(meta: Any, arrays: dict[str, np.ndarray], path: str | Path) -> ModelContents:
+    """Check a model file's metadata and arrays; return them as typed pieces.
+
+    Args:
+        meta: the decoded JSON metadata (format and version already checked).
+        arrays: name -> array for every name in :data:`ARRAY_LAYOUT`.
+        path: the model file, for messages.
+
+    Raises:
+        GpoccError: naming ``path`` and what is wrong, and saying to re-train.
+    """
+    try:
+        return _contents(meta, arrays, str(path))
+    except _Damaged as exc:
+        raise GpoccError(
+            f"{path}: damaged model file: {exc}; re-create it with `gpocc train`"
+        ) from None
+    except GpoccError as exc:
+        # The embedded config or a kernel constructor: the fix is re-training, not a config.
+        raise GpoccError(
+            f"{path}: damaged model file ({exc}); re-create it with `gpocc train`"
+        ) from None

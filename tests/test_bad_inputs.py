@@ -1,0 +1,179 @@
+"""A corpus of bad inputs run through the real CLI (``python -m gpocc`` in a subprocess).
+
+Each case must give: a non-zero exit, exactly one stderr line with ``error:`` that names
+the file at fault, no traceback, and nothing left at ``--out`` (no temporaries either).
+Classes (issue 13): unbounded sizes, OS errors, tampered model files, config edge cases
+(races and signals need two processes or a signal: tests/test_faults.py).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpocc.config import Config, ModelConfig, TrainingConfig
+from gpocc.gp.model import build_model, save_model
+from gpocc.io.bags import write_bag
+from gpocc.io.scans import ScanBatch
+from gpocc.samples.sampleset import SampleSet
+
+
+def _room() -> SampleSet:
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 1, 30, endpoint=False)
+    walls = np.vstack([np.column_stack([-2 + 4 * t, np.full_like(t, s)]) for s in (-1.5, 1.5)])
+    free = rng.uniform([-1.8, -1.3], [1.8, 1.3], size=(80, 2))
+    means = np.vstack([walls, free])
+    n = len(means)
+    return SampleSet(means, np.einsum("n,ij->nij", np.full(n, 0.001), np.eye(2)),
+                     np.concatenate([np.ones(len(walls)), -np.ones(len(free))]),
+                     np.arange(n, dtype=np.int64), np.zeros((n, 2, 3)),
+                     np.zeros(n, dtype=np.int16))
+
+
+def _batch(ranges: float, range_max: float) -> ScanBatch:
+    n_scans, n_beams = 3, 8
+    return ScanBatch(
+        sensor="robot", source="memory", stamps=np.arange(n_scans) * 0.1 + 100.0,
+        angles=np.linspace(-1.0, 1.0, n_beams), ranges=np.full((n_scans, n_beams), ranges),
+        poses=np.zeros((n_scans, 3)),
+        pose_covariances=np.broadcast_to(np.diag([1e-3, 1e-3, 1e-4]), (n_scans, 3, 3)).copy(),
+        range_min=0.1, range_max=range_max,
+    )
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory) -> Path:
+    """The inputs the cases refer to by name."""
+    root = tmp_path_factory.mktemp("corpus")
+    model = build_model(_room(), Config(model=ModelConfig(
+        neighbours=40, training=TrainingConfig(learn=False, patches=1, patch_size=30))))
+    save_model(model, root / "good.npz")
+    write_bag(root / "far.mcap", [_batch(1e6, 1e7)], [("/scan", "/pose")], "mcap")
+    write_bag(root / "huge.mcap", [_batch(1e20, 1e30)], [("/scan", "/pose")], "mcap")
+    write_bag(root / "ok.mcap", [_batch(3.0, 30.0)], [("/scan", "/pose")], "mcap")
+    (root / "binary.yaml").write_bytes(bytes(range(256)) * 4)
+    (root / "seed_float.yaml").write_text("seed: 1e23\n")
+    (root / "seed_huge.yaml").write_text("seed: 100000000000000000000000\n")
+    (root / "a_file").write_text("not a folder\n")
+    (root / "user_dir").mkdir()
+    (root / "user_dir" / "notes.txt").write_text("mine\n")
+    for name, edit in TAMPERING.items():
+        _tamper(root / "good.npz", root / f"{name}.npz", edit)
+    return root
+
+
+def _tamper(src: Path, dst: Path, edit: Callable[[dict, dict], None]) -> None:
+    with np.load(src) as data:
+        arrays = dict(data)
+    meta = json.loads(bytes(arrays.pop("metadata")).decode())
+    edit(meta, arrays)
+    np.savez(dst, metadata=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+
+
+def _set(path: str, value) -> Callable[[dict, dict], None]:
+    def edit(meta: dict, arrays: dict) -> None:
+        *parents, last = path.split(".")
+        node = meta
+        for key in parents:
+            node = node[key]
+        if value is _DELETE:
+            del node[last]
+        else:
+            node[last] = value
+    return edit
+
+
+def _arrays(fn: Callable[[dict], None]) -> Callable[[dict, dict], None]:
+    return lambda meta, arrays: fn(arrays)
+
+
+_DELETE = object()
+
+TAMPERING: dict[str, Callable[[dict, dict], None]] = {
+    "no_kernel": _set("kernel", _DELETE),
+    "unknown_parameter": _set("kernel.smoothness", 2.0),
+    "nan_hyperparameter": _set("kernel.signal_variance", math.nan),
+    "empty_classifier": _set("classifier", {}),
+    "bad_kernel_name": _set("kernel_name", "rbf"),
+    "lengths_disagree": _arrays(lambda a: a.update(labels=a["labels"][:-3])),
+    "nan_means": _arrays(lambda a: a["means"].__setitem__((0, 0), np.nan)),
+    "zero_samples": _arrays(lambda a: a.update({k: v[:0] for k, v in a.items()})),
+    "one_d_means": _arrays(lambda a: a.update(means=a["means"][:, 0])),
+    "text_labels": _arrays(lambda a: a.update(labels=np.array(["x"] * len(a["labels"])))),
+    "missing_array": _arrays(lambda a: a.pop("pose_factors")),
+    "huge_extent": _arrays(lambda a: a.update(means=a["means"] * 5e6)),
+}
+
+# (case id, argv with {root} placeholders, what the error line must name (parts separated
+# by a backquote), the --out that must not appear)
+CASES = [
+    # Unbounded sizes
+    ("map-fine-resolution", ["map", "{root}/good.npz", "--resolution", "0.00002",
+                             "--out", "{root}/out"], "good.npz", "out"),
+    ("map-huge-bounds", ["map", "{root}/good.npz", "--resolution", "0.1", "--bounds",
+                         "-1e7", "-1e7", "1e7", "1e7", "--out", "{root}/out"], "good.npz", "out"),
+    ("map-tiny-resolution", ["map", "{root}/good.npz", "--resolution", "1e-300",
+                             "--out", "{root}/out"], "1e-300", "out"),
+    ("map-model-spans-1e7-m", ["map", "{root}/huge_extent.npz", "--resolution", "0.1",
+                               "--out", "{root}/out"], "huge_extent.npz", "out"),
+    ("simulate-fine-resolution", ["simulate", "--resolution", "1e-5", "--out", "{root}/out"],
+     "truth raster", "out"),
+    ("split-free-per-beam", ["split", "{root}/ok.mcap", "--every", "2", "--free-per-beam",
+                             "100000000", "--out", "{root}/out"], "ok.mcap", "out"),
+    ("train-ranges-1e6", ["train", "{root}/far.mcap", "--out", "{root}/out.npz"],
+     "far.mcap", "out.npz"),
+    ("train-ranges-1e20", ["train", "{root}/huge.mcap", "--out", "{root}/out.npz"],
+     "huge.mcap", "out.npz"),
+    ("grid-huge-bounds", ["grid", "{root}/ok.mcap", "--resolution", "0.001", "--bounds",
+                          "-1e4", "-1e4", "1e4", "1e4", "--out", "{root}/out"], "grid", "out"),
+    # OS errors
+    ("map-out-under-a-file", ["map", "{root}/good.npz", "--resolution", "0.3",
+                              "--out", "{root}/a_file/out"], "a_file", "a_file/out"),
+    ("train-out-existing-dir-force", ["train", "{root}/ok.mcap", "--out", "{root}/user_dir",
+                                      "--force"], "user_dir", None),
+    ("map-force-over-user-files", ["map", "{root}/good.npz", "--resolution", "0.3",
+                                   "--out", "{root}/user_dir", "--force"], "user_dir", None),
+    # Config edge cases
+    ("config-binary", ["train", "{root}/ok.mcap", "--config", "{root}/binary.yaml",
+                       "--out", "{root}/out.npz"], "binary.yaml", "out.npz"),
+    ("config-seed-1e23", ["train", "{root}/ok.mcap", "--config", "{root}/seed_float.yaml",
+                          "--out", "{root}/out.npz"], "seed_float.yaml", "out.npz"),
+    ("config-seed-huge", ["train", "{root}/ok.mcap", "--config", "{root}/seed_huge.yaml",
+                          "--out", "{root}/out.npz"], "seed_huge.yaml", "out.npz"),
+    ("train-negative-seed", ["train", "{root}/ok.mcap", "--seed", "-1",
+                             "--out", "{root}/out.npz"], "--seed", "out.npz"),
+    ("config-is-a-folder", ["train", "{root}/ok.mcap", "--config", "{root}/user_dir",
+                            "--out", "{root}/out.npz"], "user_dir", "out.npz"),
+] + [
+    # Tampered model files ("huge_extent" is valid data: the size guard handles it above)
+    (f"model-{name}", ["map", f"{{root}}/{name}.npz", "--resolution", "0.3",
+                       "--out", "{root}/out"], f"{name}.npz`re-create it with `gpocc train", "out")
+    for name in TAMPERING if name != "huge_extent"
+]
+
+
+@pytest.mark.parametrize("argv, names, out", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_input_is_one_clean_error(corpus, argv, names, out):
+    args = [a.replace("{root}", str(corpus)) for a in argv]
+    before = sorted(p.name for p in corpus.iterdir())
+    run = subprocess.run([sys.executable, "-m", "gpocc", *args], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode != 0, run.stdout + run.stderr
+    assert "Traceback" not in run.stderr, run.stderr
+    errors = [line for line in run.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1, run.stderr
+    for name in names.split("`"):  # the file, and for model files the fix
+        assert name in errors[0], errors[0]
+    if out is not None:
+        assert not (corpus / out).exists()
+    # Nothing new beside the inputs: no output, no temporary, no claim file.
+    assert sorted(p.name for p in corpus.iterdir()) == before
+    assert (corpus / "user_dir" / "notes.txt").read_text() == "mine\n"
