@@ -22,6 +22,8 @@ an independent check of the quadrature.
 from __future__ import annotations
 
 import functools
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -168,7 +170,7 @@ def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansio
     zero = np.abs(covariances).reshape(n, 4).max(axis=1) <= ZERO_VARIANCE_M2
     unit, w = gauss_hermite(level, 2)
     if zero.all() or unit.shape[0] == 1:
-        return _Expansion(means, np.ones(n), np.arange(n + 1, dtype=np.intp), 1)
+        return _Expansion(means.copy(), np.ones(n), np.arange(n + 1, dtype=np.intp), 1)
     if not zero.any():
         nodes, w = gaussian_nodes(means, covariances, level)
         # (M, 2) with contiguous columns: what the kernels read fastest.
@@ -218,6 +220,34 @@ def _nparams(kernel: Kernel) -> int:
 
 
 # --------------------------------------------------------------------------- expected kernels
+
+
+# Node sets never depend on the hyperparameters, and training evaluates the same patches a
+# hundred times: the last few node sets are kept, keyed by a digest of their inputs (a hash
+# of a few kB, microseconds). Mapping never repeats a problem; it only pays the digest.
+_NODE_CACHE: OrderedDict[bytes, object] = OrderedDict()
+_NODE_CACHE_ENTRIES = 24
+
+
+def _cached(kind: str, build, *arrays: np.ndarray):
+    digest = hashlib.blake2b(kind.encode(), digest_size=20)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        digest.update(str((a.dtype.str, a.shape)).encode())
+        digest.update(a.data)
+    key = digest.digest()
+    hit = _NODE_CACHE.get(key)
+    if hit is not None:
+        _NODE_CACHE.move_to_end(key)
+        return hit
+    value = build()
+    for a in vars(value).values() if isinstance(value, _Expansion) else (value,):
+        if isinstance(a, np.ndarray):
+            a.setflags(write=False)  # shared between calls: nobody may change it
+    _NODE_CACHE[key] = value
+    while len(_NODE_CACHE) > _NODE_CACHE_ENTRIES:
+        _NODE_CACHE.popitem(last=False)
+    return value
 
 
 def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -282,8 +312,12 @@ def _correlated_values(
         ii, jj = i.astype(np.intp), j.astype(np.intp)
         for lo in range(0, i.shape[0], max(1, _PAIR_CHUNK // w.shape[0])):
             hi = lo + max(1, _PAIR_CHUNK // w.shape[0])
-            nodes = fused.correlated_nodes(means, covariances, pose_factors, ii[lo:hi],
-                                           jj[lo:hi], unit)
+            nodes = _cached(
+                "pairs",
+                functools.partial(fused.correlated_nodes, means, covariances, pose_factors,
+                                  ii[lo:hi], jj[lo:hi], unit),
+                means, covariances, pose_factors, ii[lo:hi], jj[lo:hi], unit,
+            )
             fused.nn_node_pairs(nodes, np.ascontiguousarray(w), kernel.root_two_s,
                                 kernel.arcsin_scale, out[:, lo:hi], with_gradient)
         return out[0].copy(), (out if with_gradient else None)
@@ -369,7 +403,8 @@ def expected_kernel_matrix(
         K (N, N) symmetric, or (K, dK) with dK (P, N, N), P = len(kernel.theta).
     """
     means, covariances = _check_inputs(means, covariances)
-    ex = _expand(means, covariances, level)
+    ex = _cached("expand", functools.partial(_expand, means, covariances, level), means,
+                 covariances, np.array([level]))
     n = ex.size
     nparams = _nparams(kernel)
     k = np.empty((n, n))
