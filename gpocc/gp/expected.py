@@ -15,6 +15,11 @@ only (the expected matrix is symmetric): a handful of vectorised kernel calls in
 for a little over half of the kernel evaluations (arcsin for the NN kernel, the cost that
 dominates) and blocks that stay in cache. Points whose covariance is zero get one node.
 
+For the NN kernel the same sums run in compiled loops (:mod:`gpocc.gp.fused`: arcsin,
+quadrature reduction and the 4 x 4 roots of same-scan pairs fused, no node-pair
+temporaries); the numpy code here is their reference (``USE_FUSED = False``) and serves the
+SE kernel. Node sets are cached for repeated calls on the same inputs (training).
+
 :func:`expected_se_closed_form` is Girard's closed form for the squared exponential, used as
 an independent check of the quadrature.
 """
