@@ -173,68 +173,95 @@ def nn_cross(q: np.ndarray, u: np.ndarray, weights: np.ndarray, starts: np.ndarr
 # --------------------------------------------------------------------------- same-scan pairs
 
 
+@_inline
+def _rot(app, aqq, apq, x1p, x1q, x2p, x2q, v0p, v0q, v1p, v1q, v2p, v2q, v3p, v3q):
+    """One Jacobi rotation zeroing a_pq (Numerical Recipes' update): x1, x2 are the other
+    two rows of columns p, q, v the eigenvector columns p, q."""
+    theta = (aqq - app) / (2.0 * apq)
+    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+    t = -t if theta < 0.0 else t
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    s = t * c
+    tau = s / (1.0 + c)
+    return (app - t * apq, aqq + t * apq,
+            x1p - s * (x1q + tau * x1p), x1q + s * (x1p - tau * x1q),
+            x2p - s * (x2q + tau * x2p), x2q + s * (x2p - tau * x2q),
+            v0p - s * (v0q + tau * v0p), v0q + s * (v0p - tau * v0q),
+            v1p - s * (v1q + tau * v1p), v1q + s * (v1p - tau * v1q),
+            v2p - s * (v2q + tau * v2p), v2q + s * (v2p - tau * v2q),
+            v3p - s * (v3q + tau * v3p), v3q + s * (v3p - tau * v3q))
+
+
 @_jit
 def sqrt_psd4(s: np.ndarray) -> np.ndarray:
     """R (4, 4, P) with R R' = s for P symmetric 4 x 4 matrices s (4, 4, P), pair-minor.
 
     As ``expected.sqrt_psd``: cyclic Jacobi rotations (to rounding) give the eigenpairs,
-    eigenvalues below 1e-13 of the largest are zeroed and R = V sqrt(L). Every rotation is
-    applied to all P matrices in one loop over the last axis, which vectorises. Eigenvector
-    signs and order may differ from LAPACK's, which leaves the tensor Gauss-Hermite rule
-    unchanged: its unit nodes are symmetric under every coordinate reflection and
-    permutation, with equal weights (for distinct eigenvalues; with a repeated one, any
-    rule in its eigenspace is as valid). ``s`` is overwritten.
+    eigenvalues below 1e-13 of the largest are zeroed and R = V sqrt(L). Each matrix is
+    diagonalised in registers (its 10 entries and 16 eigenvector entries are scalars).
+    Eigenvector signs and order may differ from LAPACK's, which leaves the tensor
+    Gauss-Hermite rule unchanged: its unit nodes are symmetric under every coordinate
+    reflection and permutation, with equal weights (for distinct eigenvalues; with a
+    repeated one, any rule in its eigenspace is as valid).
     """
     size = s.shape[2]
-    vec = np.zeros((4, 4, size))
-    for r in range(4):
-        vec[r, r, :] = 1.0
-    tiny = np.empty(size)
-    for _sweep in range(30):  # converges in 4-6 sweeps
-        # Off-diagonal entries below 1e-18 of the largest diagonal one move no eigenvalue by
-        # more than that (eigenvalues under 1e-13 of it are zeroed anyway): treated as 0.
-        busy = False
-        for m in range(size):
-            top = max(max(abs(s[0, 0, m]), abs(s[1, 1, m])),
-                      max(abs(s[2, 2, m]), abs(s[3, 3, m])))
-            tiny[m] = 1e-18 * top
-            for p in range(3):
-                for q in range(p + 1, 4):
-                    if abs(s[p, q, m]) > tiny[m]:
-                        busy = True
-        if not busy:
-            break
-        for p in range(3):
-            for q in range(p + 1, 4):
-                for m in range(size):
-                    apq = s[p, q, m]
-                    rotate = abs(apq) > tiny[m]
-                    theta = (s[q, q, m] - s[p, p, m]) / (2.0 * apq if rotate else 1.0)
-                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                    t = -t if theta < 0.0 else t
-                    t = t if rotate else 0.0
-                    c = 1.0 / math.sqrt(t * t + 1.0)
-                    sn = t * c
-                    for k in range(4):
-                        skp, skq = s[k, p, m], s[k, q, m]
-                        s[k, p, m] = c * skp - sn * skq
-                        s[k, q, m] = sn * skp + c * skq
-                    for k in range(4):
-                        spk, sqk = s[p, k, m], s[q, k, m]
-                        s[p, k, m] = c * spk - sn * sqk
-                        s[q, k, m] = sn * spk + c * sqk
-                    for k in range(4):
-                        vkp, vkq = vec[k, p, m], vec[k, q, m]
-                        vec[k, p, m] = c * vkp - sn * vkq
-                        vec[k, q, m] = sn * vkp + c * vkq
     out = np.empty((4, 4, size))
     for m in range(size):
-        top = max(max(s[0, 0, m], s[1, 1, m]), max(s[2, 2, m], s[3, 3, m]))
-        for c in range(4):
-            lam = s[c, c, m]
-            root = 0.0 if lam < 1e-13 * top else math.sqrt(lam)
-            for r in range(4):
-                out[r, c, m] = vec[r, c, m] * root
+        a00, a11, a22, a33 = s[0, 0, m], s[1, 1, m], s[2, 2, m], s[3, 3, m]
+        a01, a02, a03 = s[0, 1, m], s[0, 2, m], s[0, 3, m]
+        a12, a13, a23 = s[1, 2, m], s[1, 3, m], s[2, 3, m]
+        v00, v01, v02, v03 = 1.0, 0.0, 0.0, 0.0
+        v10, v11, v12, v13 = 0.0, 1.0, 0.0, 0.0
+        v20, v21, v22, v23 = 0.0, 0.0, 1.0, 0.0
+        v30, v31, v32, v33 = 0.0, 0.0, 0.0, 1.0
+        for _sweep in range(30):  # converges in 4-6 sweeps
+            # Off-diagonal entries below 1e-18 of the largest diagonal one move no
+            # eigenvalue by more than that (those under 1e-13 of it are zeroed anyway).
+            tiny = 1e-18 * max(max(abs(a00), abs(a11)), max(abs(a22), abs(a33)))
+            if max(max(max(abs(a01), abs(a02)), max(abs(a03), abs(a12))),
+                   max(abs(a13), abs(a23))) <= tiny:
+                break
+            if abs(a01) > tiny:
+                (a00, a11, a02, a12, a03, a13, v00, v01, v10, v11, v20, v21, v30,
+                 v31) = _rot(a00, a11, a01, a02, a12, a03, a13, v00, v01, v10, v11, v20,
+                             v21, v30, v31)
+                a01 = 0.0
+            if abs(a02) > tiny:
+                (a00, a22, a01, a12, a03, a23, v00, v02, v10, v12, v20, v22, v30,
+                 v32) = _rot(a00, a22, a02, a01, a12, a03, a23, v00, v02, v10, v12, v20,
+                             v22, v30, v32)
+                a02 = 0.0
+            if abs(a03) > tiny:
+                (a00, a33, a01, a13, a02, a23, v00, v03, v10, v13, v20, v23, v30,
+                 v33) = _rot(a00, a33, a03, a01, a13, a02, a23, v00, v03, v10, v13, v20,
+                             v23, v30, v33)
+                a03 = 0.0
+            if abs(a12) > tiny:
+                (a11, a22, a01, a02, a13, a23, v01, v02, v11, v12, v21, v22, v31,
+                 v32) = _rot(a11, a22, a12, a01, a02, a13, a23, v01, v02, v11, v12, v21,
+                             v22, v31, v32)
+                a12 = 0.0
+            if abs(a13) > tiny:
+                (a11, a33, a01, a03, a12, a23, v01, v03, v11, v13, v21, v23, v31,
+                 v33) = _rot(a11, a33, a13, a01, a03, a12, a23, v01, v03, v11, v13, v21,
+                             v23, v31, v33)
+                a13 = 0.0
+            if abs(a23) > tiny:
+                (a22, a33, a02, a03, a12, a13, v02, v03, v12, v13, v22, v23, v32,
+                 v33) = _rot(a22, a33, a23, a02, a03, a12, a13, v02, v03, v12, v13, v22,
+                             v23, v32, v33)
+                a23 = 0.0
+        top = max(max(a00, a11), max(a22, a33))
+        r0 = 0.0 if a00 < 1e-13 * top else math.sqrt(a00)
+        r1 = 0.0 if a11 < 1e-13 * top else math.sqrt(a11)
+        r2 = 0.0 if a22 < 1e-13 * top else math.sqrt(a22)
+        r3 = 0.0 if a33 < 1e-13 * top else math.sqrt(a33)
+        for r, (c0, c1, c2, c3) in enumerate(((v00, v01, v02, v03), (v10, v11, v12, v13),
+                                               (v20, v21, v22, v23), (v30, v31, v32, v33))):
+            out[r, 0, m] = c0 * r0
+            out[r, 1, m] = c1 * r1
+            out[r, 2, m] = c2 * r2
+            out[r, 3, m] = c3 * r3
     return out
 
 
