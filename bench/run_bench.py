@@ -148,8 +148,9 @@ def campus(work: Path) -> None:
                       str(local_out), "--force", "--workers", "2"])
     cells = re.search(r"^cells: (\d+) x (\d+)", mapped.stdout, re.MULTILINE)
     octo = run_octomap(logs, config, 0.1)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster:
+    # Loopback only, dashboard on a free port: nothing leaves this machine.
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0") as cluster:
         on_dask = measure([*GPOCC, "map", str(model), "--resolution", "0.1", "--out",
                            str(dask_out), "--force", "--scheduler", cluster.scheduler_address])
     identical = same_rasters(local_out, dask_out)
