@@ -28,7 +28,13 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check gpocc tests bench
 
-bench: $(STAMP)
+BENCH_STAMP := $(VENV)/.bench-stamp
+
+$(BENCH_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q -e '.[test,bench]'
+	touch $(BENCH_STAMP)
+
+bench: $(BENCH_STAMP)
 	$(BIN)/python bench/run_bench.py
 
 experiment: $(STAMP)

@@ -1,9 +1,15 @@
-"""Benchmark harness: wall time, CPU time and peak memory of each stage on the Intel log.
+"""Benchmark harness: wall time, CPU time and peak memory of each stage on the Intel log,
+against OctoMap on the same scans, and a campus-sized case.
 
-Run ``make bench`` (or ``.venv/bin/python bench/run_bench.py [--quick]``). Each command
-runs as its own process, as a user would run it; peak memory is the sampled maximum of the
-summed resident set of the process and its children (map workers included). Prints
-markdown tables for docs/benchmarks.md.
+Run ``make bench`` (or ``.venv/bin/python bench/run_bench.py [--quick] [--no-campus]``).
+Each command runs as its own process, as a user would run it; peak memory is the sampled
+maximum of the summed resident set of the process and its children (map workers
+included). The OctoMap rows (``bench/octomap_build.py``, pyoctomap from the ``bench``
+extra) are measured in the same run and give the ratio columns. The campus case
+(``bench/campus.py``) is mapped with local worker processes and again on a Dask
+LocalCluster of 2 workers, whose output must be identical. Prints markdown tables for
+docs/benchmarks.md. ``GPOCC_CARMEN_DIR`` overrides where the CARMEN logs are
+(default ``../shared/data/carmen``).
 """
 
 from __future__ import annotations
@@ -19,10 +25,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-INTEL = ROOT.parent / "shared" / "data" / "carmen" / "intel.gfs.log"
+sys.path.insert(0, str(ROOT / "bench"))
+from campus import write_campus  # noqa: E402
+
+CARMEN = Path(os.environ.get("GPOCC_CARMEN_DIR", ROOT.parent / "shared" / "data" / "carmen"))
+INTEL = CARMEN / "intel.gfs.log"
 BASE_CONFIG = ROOT / "configs" / "carmen_intel.yaml"
 GPOCC = [sys.executable, "-m", "gpocc"]
 _PAGE = os.sysconf("SC_PAGE_SIZE")
@@ -107,6 +118,62 @@ def run_method(work: Path, method: str, config: Path, resolution: float) -> list
     return [("train", train, stage_times(train.stdout)), ("map", mapped, "")]
 
 
+def run_octomap(logs: list[Path], config: Path, resolution: float) -> Measurement:
+    """OctoMap (pyoctomap) built from the same logs with gpocc's reader, as its own process."""
+    return measure([sys.executable, str(ROOT / "bench" / "octomap_build.py"), "--config",
+                    str(config), "--resolution", str(resolution), *map(str, logs)])
+
+
+def same_rasters(a: Path, b: Path) -> bool:
+    """Whether every GeoTIFF under map folders ``a`` and ``b`` holds the same array."""
+    import tifffile
+
+    files = sorted(p.relative_to(a) for p in a.rglob("*.tif"))
+    if not files or files != sorted(p.relative_to(b) for p in b.rglob("*.tif")):
+        return False
+    return all(np.array_equal(tifffile.imread(a / f), tifffile.imread(b / f), equal_nan=True)
+               for f in files)
+
+
+def campus(work: Path) -> None:
+    """The campus case: train, map with local processes and on a Dask LocalCluster."""
+    from dask.distributed import LocalCluster
+
+    logs, config, scans = write_campus(work / "campus")
+    model = work / "campus.npz"
+    train = measure([*GPOCC, "train", *map(str, logs), "--config", str(config), "--out",
+                     str(model), "--force"])
+    local_out, dask_out = work / "campus-map", work / "campus-map-dask"
+    mapped = measure([*GPOCC, "map", str(model), "--resolution", "0.1", "--out",
+                      str(local_out), "--force", "--workers", "2"])
+    cells = re.search(r"^cells: (\d+) x (\d+)", mapped.stdout, re.MULTILINE)
+    octo = run_octomap(logs, config, 0.1)
+    # Loopback only, dashboard on a free port: nothing leaves this machine.
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0") as cluster:
+        on_dask = measure([*GPOCC, "map", str(model), "--resolution", "0.1", "--out",
+                           str(dask_out), "--force", "--scheduler", cluster.scheduler_address])
+    identical = same_rasters(local_out, dask_out)
+    total = train.wall_s + mapped.wall_s
+    rows = [
+        ["gp", "train", f"{train.wall_s:.1f}", f"{train.cpu_s:.1f}", f"{train.peak_mib:.0f}",
+         stage_times(train.stdout)],
+        ["gp", "map (2 processes)", f"{mapped.wall_s:.1f}", f"{mapped.cpu_s:.1f}",
+         f"{mapped.peak_mib:.0f}", f"{cells.group(1)} x {cells.group(2)} cells" if cells
+         else ""],
+        ["gp", "map (Dask LocalCluster, 2 workers)", f"{on_dask.wall_s:.1f}", "",
+         f"{on_dask.peak_mib:.0f}", f"identical output: {'yes' if identical else 'NO'}"],
+        ["octomap", "build", f"{octo.wall_s:.1f}", f"{octo.cpu_s:.1f}", f"{octo.peak_mib:.0f}",
+         stage_times(octo.stdout)],
+        ["gp", "**train + map**", f"{total:.1f}", "", "",
+         f"{total / octo.wall_s:.1f} x OctoMap"],
+    ]
+    print(f"\n## Campus: {len(logs)} buildings, {scans} scans, 0.1 m\n")
+    print("Dask CPU time and memory are the client's only (the cluster runs in the bench's "
+          "own process tree).\n")
+    print(table(rows, ["method", "stage", "wall s", "CPU s", "peak MiB", "detail"]))
+
+
 def table(rows: list[list[str]], header: list[str]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
@@ -116,6 +183,7 @@ def table(rows: list[list[str]], header: list[str]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="skip the scaling tables")
+    parser.add_argument("--no-campus", action="store_true", help="skip the campus case")
     args = parser.parse_args()
     if not INTEL.is_file():
         raise SystemExit(f"{INTEL} not found: the benchmark needs ../shared/data/carmen/")
@@ -130,11 +198,18 @@ def main() -> None:
                 rows.append([method, stage, f"{m.wall_s:.1f}", f"{m.cpu_s:.1f}",
                              f"{m.peak_mib:.0f}", detail])
                 totals[method] = totals.get(method, 0.0) + m.wall_s
-        for method in ("grid", "gp-no-noise", "gp"):
+        octo = run_octomap([INTEL], base, 0.1)
+        rows.append(["octomap", "build", f"{octo.wall_s:.1f}", f"{octo.cpu_s:.1f}",
+                     f"{octo.peak_mib:.0f}", stage_times(octo.stdout)])
+        totals["octomap"] = octo.wall_s
+        for method in ("grid", "gp-no-noise", "gp", "octomap"):
             rows.append([method, "**total**", f"{totals[method]:.1f}", "", "",
-                         f"{totals[method] / totals['grid']:.1f} x grid"])
+                         f"{totals[method] / totals['grid']:.1f} x grid, "
+                         f"{totals[method] / totals['octomap']:.1f} x OctoMap"])
         print("\n## Intel, 0.1 m, all scans\n")
         print(table(rows, ["method", "stage", "wall s", "CPU s", "peak MiB", "detail"]))
+        if not args.no_campus:
+            campus(work)
         if args.quick:
             return
         rows = []

@@ -290,8 +290,10 @@ def test_zero_covariance_is_plain_kernel():
         plain = kernel(means, means)
         np.testing.assert_allclose(k, plain, rtol=1e-15, atol=1e-15)
         np.testing.assert_allclose(np.diag(k), kernel.diag(means), rtol=1e-15)
+        # To rounding: the compiled NN path has its own arcsin (<= 2 ulp from numpy's).
         np.testing.assert_allclose(
-            expected_kernel_cross(kernel, means[:4], means, zero, 5), plain[:4], rtol=1e-15
+            expected_kernel_cross(kernel, means[:4], means, zero, 5), plain[:4], rtol=1e-14,
+            atol=1e-15,
         )
 
 
@@ -375,3 +377,60 @@ def test_bad_shapes_are_rejected():
             NN, np.zeros((3, 2)), np.zeros((3, 2, 2)), 3,
             scan_ids=np.zeros(3), pose_factors=np.zeros((3, 2, 2)),
         )
+
+
+# --------------------------------------------------------------------------- compiled NN path
+
+
+def test_compiled_arcsin_matches_numpy_to_two_ulp():
+    from gpocc.gp import fused
+
+    x = np.concatenate([np.linspace(-1.0, 1.0, 20_001), [0.5, -0.5, 0.975, 1e-300, -0.0],
+                        np.random.default_rng(20).uniform(-1.0, 1.0, 20_000)])
+    ref = np.arcsin(x)
+    ulp = np.spacing(np.maximum(np.abs(ref), 1e-300))
+    assert np.all(np.abs(fused.asin_array(x) - ref) <= 2 * ulp)
+
+
+def test_compiled_root_of_joint_covariance_reproduces_it():
+    from gpocc.gp import fused
+
+    means, covs, scan_ids, factors, _ = _scan_problem(21, n=30)
+    i, j = ex._correlated_pairs(covs, scan_ids, factors)
+    joint = np.empty((i.shape[0], 4, 4))
+    joint[:, :2, :2], joint[:, 2:, 2:] = covs[i], covs[j]
+    joint[:, :2, 2:] = factors[i] @ factors[j].transpose(0, 2, 1)
+    joint[:, 2:, :2] = joint[:, :2, 2:].transpose(0, 2, 1)
+    root = fused.sqrt_psd4(np.ascontiguousarray(joint.transpose(1, 2, 0))).transpose(2, 0, 1)
+    np.testing.assert_allclose(root @ root.transpose(0, 2, 1), joint, atol=1e-15)
+    # Columns are orthogonal (R = V sqrt(L)), with the same eigenvalues as LAPACK's.
+    gram = root.transpose(0, 2, 1) @ root
+    lam = np.sort(np.diagonal(gram, axis1=1, axis2=2), axis=1)
+    np.testing.assert_allclose(lam, np.linalg.eigvalsh(joint), rtol=1e-9, atol=1e-16)
+    off = gram - np.einsum("pi,ij->pij", np.diagonal(gram, axis1=1, axis2=2), np.eye(4))
+    assert np.abs(off).max() < 1e-15
+
+
+@pytest.mark.parametrize("level", [1, 2, 3])
+def test_compiled_nn_path_matches_numpy_reference(level, monkeypatch):
+    """Fused numba loops against the numpy path: values, gradients, cross, correlated pairs,
+    points with zero covariance (one node) among others."""
+    means, covs, scan_ids, factors, _ = _scan_problem(22, n=40)
+    covs[::5] = 0.0
+    factors[::5] = 0.0
+    kernel = NeuralNetworkKernel(3.7, 50.0, (40.0, 60.0))
+    queries = np.random.default_rng(23).uniform(-1.2, 1.2, (25, 2))
+
+    def run():
+        k = expected_kernel_matrix(kernel, means, covs, level, scan_ids=scan_ids,
+                                   pose_factors=factors)
+        kg, dk = expected_kernel_matrix(kernel, means, covs, level, scan_ids=scan_ids,
+                                        pose_factors=factors, with_gradient=True)
+        return k, kg, dk, expected_kernel_cross(kernel, queries, means, covs, level)
+
+    fused = run()
+    monkeypatch.setattr(ex, "USE_FUSED", False)
+    reference = run()
+    assert ex._correlated_pairs(covs, scan_ids, factors)[0].shape[0] > 50
+    for got, want in zip(fused, reference, strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)

@@ -15,6 +15,11 @@ only (the expected matrix is symmetric): a handful of vectorised kernel calls in
 for a little over half of the kernel evaluations (arcsin for the NN kernel, the cost that
 dominates) and blocks that stay in cache. Points whose covariance is zero get one node.
 
+For the NN kernel the same sums run in compiled loops (:mod:`gpocc.gp.fused`: arcsin,
+quadrature reduction and the 4 x 4 roots of same-scan pairs fused, no node-pair
+temporaries); the numpy code here is their reference (``USE_FUSED = False``) and serves the
+SE kernel. Node sets are cached for repeated calls on the same inputs (training).
+
 :func:`expected_se_closed_form` is Girard's closed form for the squared exponential, used as
 an independent check of the quadrature.
 """
@@ -22,12 +27,19 @@ an independent check of the quadrature.
 from __future__ import annotations
 
 import functools
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.polynomial.hermite_e import hermegauss
 
-from gpocc.gp.kernels import Kernel, SquaredExponentialKernel
+from gpocc.gp.kernels import Kernel, NeuralNetworkKernel, SquaredExponentialKernel
+
+try:  # compiled loops for the default (NN) kernel; the numpy path below is the reference
+    from gpocc.gp import fused as _fused_module
+except ImportError:  # pragma: no cover - numba is a declared dependency
+    _fused_module = None
 
 #: Smallest share of a point's covariance trace due to the shared pose error for its
 #: same-scan pairs to get the correlated 4-D rule.
@@ -41,6 +53,17 @@ ZERO_VARIANCE_M2 = 1e-24
 # level 3, single-threaded), and the node-pair chunk (float64 per temporary).
 _BLOCK_NODES = 192
 _PAIR_CHUNK = 1 << 19
+
+#: Use the compiled loops of :mod:`gpocc.gp.fused` for the NN kernel. Tests switch it off to
+#: compare against the numpy path.
+USE_FUSED = True
+
+
+def _fused(kernel: Kernel):
+    """The fused-loop module when it applies to ``kernel`` (the NN kernel), else None."""
+    if USE_FUSED and _fused_module is not None and isinstance(kernel, NeuralNetworkKernel):
+        return _fused_module
+    return None
 
 
 # --------------------------------------------------------------------------- quadrature rules
@@ -152,15 +175,15 @@ def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansio
     zero = np.abs(covariances).reshape(n, 4).max(axis=1) <= ZERO_VARIANCE_M2
     unit, w = gauss_hermite(level, 2)
     if zero.all() or unit.shape[0] == 1:
-        return _Expansion(means, np.ones(n), np.arange(n + 1), 1)
+        return _Expansion(means.copy(), np.ones(n), np.arange(n + 1, dtype=np.intp), 1)
     if not zero.any():
         nodes, w = gaussian_nodes(means, covariances, level)
         # (M, 2) with contiguous columns: what the kernels read fastest.
         flat = np.transpose(nodes, (2, 0, 1)).reshape(2, -1).T
-        starts = np.arange(n + 1) * w.shape[0]
+        starts = np.arange(n + 1, dtype=np.intp) * w.shape[0]
         return _Expansion(flat, np.tile(w, n), starts, w.shape[0])
     counts = np.where(zero, 1, w.shape[0])
-    starts = np.concatenate([[0], np.cumsum(counts)])
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
     nodes = np.empty((starts[-1], 2))
     weights = np.empty(starts[-1])
     first = starts[:-1]
@@ -202,6 +225,34 @@ def _nparams(kernel: Kernel) -> int:
 
 
 # --------------------------------------------------------------------------- expected kernels
+
+
+# Node sets never depend on the hyperparameters, and training evaluates the same patches a
+# hundred times: the last few node sets are kept, keyed by a digest of their inputs (a hash
+# of a few kB, microseconds). Mapping never repeats a problem; it only pays the digest.
+_NODE_CACHE: OrderedDict[bytes, object] = OrderedDict()
+_NODE_CACHE_ENTRIES = 24
+
+
+def _cached(kind: str, build, *arrays: np.ndarray):
+    digest = hashlib.blake2b(kind.encode(), digest_size=20)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        digest.update(str((a.dtype.str, a.shape)).encode())
+        digest.update(a.data)
+    key = digest.digest()
+    hit = _NODE_CACHE.get(key)
+    if hit is not None:
+        _NODE_CACHE.move_to_end(key)
+        return hit
+    value = build()
+    for a in vars(value).values() if isinstance(value, _Expansion) else (value,):
+        if isinstance(a, np.ndarray):
+            a.setflags(write=False)  # shared between calls: nobody may change it
+    _NODE_CACHE[key] = value
+    while len(_NODE_CACHE) > _NODE_CACHE_ENTRIES:
+        _NODE_CACHE.popitem(last=False)
+    return value
 
 
 def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -257,6 +308,24 @@ def _correlated_values(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """E[k(x_i, x_j)] under the joint 4-D Gaussian of each pair: (Pp,) and (P, Pp)."""
     unit, w = gauss_hermite(level, 4)
+    fused = _fused(kernel)
+    if fused is not None:
+        # Joint covariance, its square root, the nodes and the arcsin in one compiled loop:
+        # no (pairs x nodes) temporaries and no per-matrix LAPACK call for the 4 x 4 roots.
+        out = np.empty((_nparams(kernel) if with_gradient else 1, i.shape[0]))
+        unit = np.ascontiguousarray(unit)
+        ii, jj = i.astype(np.intp), j.astype(np.intp)
+        for lo in range(0, i.shape[0], max(1, _PAIR_CHUNK // w.shape[0])):
+            hi = lo + max(1, _PAIR_CHUNK // w.shape[0])
+            nodes = _cached(
+                "pairs",
+                functools.partial(fused.correlated_nodes, means, covariances, pose_factors,
+                                  ii[lo:hi], jj[lo:hi], unit),
+                means, covariances, pose_factors, ii[lo:hi], jj[lo:hi], unit,
+            )
+            fused.nn_node_pairs(nodes, np.ascontiguousarray(w), kernel.root_two_s,
+                                kernel.arcsin_scale, out[:, lo:hi], with_gradient)
+        return out[0].copy(), (out if with_gradient else None)
     values = np.empty(i.shape[0])
     grads = np.empty((_nparams(kernel), i.shape[0])) if with_gradient else None
     step = max(1, _PAIR_CHUNK // w.shape[0])
@@ -339,14 +408,24 @@ def expected_kernel_matrix(
         K (N, N) symmetric, or (K, dK) with dK (P, N, N), P = len(kernel.theta).
     """
     means, covariances = _check_inputs(means, covariances)
-    ex = _expand(means, covariances, level)
+    ex = _cached("expand", functools.partial(_expand, means, covariances, level), means,
+                 covariances, np.array([level]))
     n = ex.size
     nparams = _nparams(kernel)
     k = np.empty((n, n))
     dk = np.empty((nparams, n, n)) if with_gradient else None
+    fused = _fused(kernel)
+    if fused is not None:
+        # Off-diagonal entries straight from the scaled nodes, no node-pair temporaries.
+        u = kernel.scaled_columns(ex.nodes)
+        if dk is None:
+            fused.nn_matrix(u, ex.weights, ex.starts, kernel.arcsin_scale, k)
+        else:
+            fused.nn_matrix_gradient(u, ex.weights, ex.starts, kernel.arcsin_scale, dk)
+            k[...] = dk[0]
     # Upper triangle only. Values: one call per row group against every later point (fewest
     # calls); gradients hold P values per entry, so square blocks that stay in cache.
-    groups = _groups(ex)
+    groups = [] if fused is not None else _groups(ex)
     for gi, (r0, r1) in enumerate(groups):
         rows = ex.rows(r0, r1)
         for c0, c1 in groups[gi:] if with_gradient else [(r0, n)]:
@@ -417,6 +496,12 @@ def expected_kernel_cross(
     q = queries.shape[0]
     out = np.empty((q, ex.size))
     dout = np.empty((_nparams(kernel), q, ex.size)) if with_gradient else None
+    fused = _fused(kernel)
+    if fused is not None and dout is None:
+        u = kernel.scaled_columns(ex.nodes)
+        fused.nn_cross(kernel.scaled_columns(queries), u, ex.weights, ex.starts,
+                       kernel.arcsin_scale, out)
+        return out
     step = max(1, _PAIR_CHUNK // max(1, ex.nodes.shape[0]))
     for lo in range(0, q, step):
         chunk = queries[lo : lo + step]

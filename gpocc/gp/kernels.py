@@ -140,7 +140,7 @@ class NeuralNetworkKernel:
         the whole Gram matrix into one BLAS product. Built column by column in a (3, N)
         buffer (returned transposed): row-wise work on (N, 3) arrays is several times slower.
         """
-        root = np.sqrt(2.0 * np.array([self.bias_variance, *self.weight_variance]))
+        root = self.root_two_s
         ut = np.empty((3, x.shape[0]))
         np.multiply(x[:, 0], root[1], out=ut[1])
         np.multiply(x[:, 1], root[2], out=ut[2])
@@ -153,6 +153,20 @@ class NeuralNetworkKernel:
         ut[1] *= inv
         ut[2] *= inv
         return ut.T
+
+    def scaled_columns(self, x: np.ndarray) -> np.ndarray:
+        """(3, N) C-contiguous u' with ``k(a, b) = arcsin_scale * arcsin(u_a . u_b)``."""
+        return np.ascontiguousarray(self._scaled(_points(x, "x")).T)
+
+    @property
+    def root_two_s(self) -> np.ndarray:
+        """(3,) ``sqrt(2 S)``: the per-coordinate factors of :meth:`scaled_inputs`."""
+        return np.sqrt(2.0 * np.array([self.bias_variance, *self.weight_variance]))
+
+    @property
+    def arcsin_scale(self) -> float:
+        """``signal_variance * 2 / pi``: the factor in front of the arcsin."""
+        return self.signal_variance * _TWO_OVER_PI
 
     def _arcsin(self, z: np.ndarray) -> np.ndarray:
         """k from z, in place (z is always a fresh temporary)."""
