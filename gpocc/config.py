@@ -142,7 +142,9 @@ class TrainingConfig:
     ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
     input-induced noise, and without a floor the likelihood of a few patches can drive
     the label noise to zero and interpolate the accurate samples' labels exactly.
-    ``learn: false`` keeps the initial values.
+    ``learn: false`` keeps the initial values. ``classifier_holdout``: how the Platt
+    classifier's training labels are held out, ``scan`` (leave one scan out, default) or
+    ``sample`` (leave one sample out, the method as published); see gpocc.gp.classify.
     """
 
     learn: bool = True
@@ -152,6 +154,7 @@ class TrainingConfig:
     lbfgs_maxiter: int = 40
     log_bounds_width: float = 4.0
     min_noise_variance: float = 0.01
+    classifier_holdout: str = "scan"
 
 
 @dataclass(frozen=True)
@@ -348,6 +351,11 @@ def _validate(config: Config, source: str) -> Config:
     if config.model.kernel not in ("nn", "se"):
         raise GpoccError(
             f"{source}: key 'model.kernel' must be 'nn' or 'se', got {config.model.kernel!r}"
+        )
+    if config.model.training.classifier_holdout not in ("scan", "sample"):
+        raise GpoccError(
+            f"{source}: key 'model.training.classifier_holdout' must be 'scan' or 'sample', "
+            f"got {config.model.training.classifier_holdout!r}"
         )
     if config.model.quadrature_level > 10:
         raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")
