@@ -101,6 +101,10 @@ class SamplesConfig:
     0.1 suits long real logs with moving people (configs/carmen_*.yaml). On the static
     simulated world it removes the noisy platform's scattered hits, which is what the
     input-noise model is there to handle (docs/results.md).
+
+    ``free_range_variance``: free samples of a beam that hit carry that beam's range
+    variance, like its hit (false: free samples carry no range variance, as published);
+    see gpocc.samples.beams.build_samples.
     """
 
     free_spacing_m: float = 0.4
@@ -110,6 +114,7 @@ class SamplesConfig:
     scan_stride: int = 1
     thin_cell_m: float = 0.15
     min_label_share: float = 0.0
+    free_range_variance: bool = False
     unscented: UnscentedConfig = field(default_factory=UnscentedConfig)
 
 

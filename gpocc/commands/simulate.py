@@ -20,7 +20,7 @@ from gpocc.evaluation.simulate import (
     simulate,
     truth_raster,
 )
-from gpocc.evaluation.world import WORLD_NAMES
+from gpocc.evaluation.world import WORLD_NAMES, is_world_name
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
 from gpocc.io.bags import write_bag
@@ -81,7 +81,9 @@ def simulate_command(
     ),
     seed: int = typer.Option(0, "--seed", help="Random seed of all noise."),
     world: str = typer.Option(
-        "default", "--world", help=f"Ground-truth world: {', '.join(WORLD_NAMES)}."
+        "default", "--world",
+        help=f"Ground-truth world: {', '.join(WORLD_NAMES)}, or grown-<seed> (a random "
+        f"corridor building grown from that seed).",
     ),
     pose_noise: tuple[float, float] | None = typer.Option(
         None, "--pose-noise", metavar="SIGMA_XY SIGMA_YAW_DEG",
@@ -92,9 +94,9 @@ def simulate_command(
 ) -> None:
     """Simulate the two-robot experiment: a slow accurate and a fast noisy robot."""
     check_can_write(out, force)
-    if world not in WORLD_NAMES:
+    if not is_world_name(world):
         raise GpoccError(f"--world: unknown world {world!r}; choose one of: "
-                         f"{', '.join(WORLD_NAMES)}")
+                         f"{', '.join(WORLD_NAMES)}, or grown-<seed>")
     if not (resolution > 0 and math.isfinite(resolution)):
         raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
     noise = PoseNoise(*pose_noise) if pose_noise is not None else PoseNoise()
