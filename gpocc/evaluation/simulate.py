@@ -298,15 +298,15 @@ def perturb_poses(poses: np.ndarray, covariances: np.ndarray,
 
 
 def region_truth(labels: np.ndarray, spec: GridSpec, quiet: tuple[RobotRun, ...]) -> np.ndarray:
-    """The truth ``labels`` (H, W) restricted to cells no ``quiet`` run's rays crossed.
+    """The truth ``labels`` (H, W) restricted to cells no ``quiet`` run's rays reached.
 
     With the quiet (accurate) platform's runs, this is the area seen only by the noisy
     platform: where a map must rely on noisy inputs alone. Other cells become 255.
     """
     seen = np.zeros(spec.shape, dtype=bool)
     for run in quiet:
-        visited, _ = observed_cells(spec, run)
-        seen |= visited
+        visited, hit = observed_cells(spec, run)
+        seen |= visited | hit
     out = labels.copy()
     out[seen] = 255
     return out
