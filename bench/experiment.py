@@ -164,6 +164,7 @@ def run_sim(work: Path, variant: str, worlds: list[str], seed: int) -> list[dict
         for scope, t in (("all", truth), ("noisy-only", region)):
             result = evaluate(maps, t, vdir / f"evaluation-{scope}")
             cases.append({"case": f"{world} (seed {seed})", "kind": "sim", "region": scope,
+                          "folder": str(vdir), "truth": str(t),
                           "methods": {m: scores(result[m]) for m in METHODS},
                           "gp_seconds": seconds})
     return cases
@@ -225,8 +226,72 @@ def run_real(work: Path, variant: str, logs: list[str], seed: int) -> list[dict]
         result = evaluate([split.parent / "grid", vdir / "gp-no-input-noise",
                            vdir / "gp-input-noise"], split / "heldout.csv", vdir / "evaluation")
         cases.append({"case": f"{log} (dense, pose noise by stretch)", "kind": "real",
-                      "region": "all", "methods": {m: scores(result[m]) for m in METHODS},
+                      "region": "all", "folder": str(vdir),
+                      "truth": str(split / "heldout.csv"),
+                      "methods": {m: scores(result[m]) for m in METHODS},
                       "gp_seconds": seconds})
+    return cases
+
+
+def reclassified(model_path: Path, folder: Path, holdout: str) -> Path:
+    """``folder``'s map with the classifier re-fitted by ``holdout``, same GP.
+
+    The latent mean is recovered from the stored p and variance by inverting
+    p = Phi((a mu + b) / sqrt(1 + a^2 var)); the new classifier is fitted exactly as
+    ``gpocc train`` does (same patches, seed + 1). Writes ``<folder>-<holdout>-cv``.
+    """
+    from scipy.special import ndtr, ndtri
+
+    from gpocc.gp.classify import fit_classifier
+    from gpocc.gp.model import load_model
+    from gpocc.gp.train import make_patches
+    from gpocc.io.rasters import read_raster, write_geotiff
+
+    out = folder.with_name(f"{folder.name}-{holdout}-cv")
+    out.mkdir(exist_ok=True)
+    model = load_model(model_path)
+    cfg = model.config.model
+    patches = make_patches(model.samples, cfg.training, model.config.seed + 1)
+    new = fit_classifier(model.kernel, model.noise_variance, patches, cfg.quadrature_level,
+                         holdout)
+    old = model.classifier
+    p, spec, _ = read_raster(folder / "probability.tif")
+    v, _, _ = read_raster(folder / "variance.tif")
+    p, v = p.astype(float), v.astype(float)
+    z = ndtri(np.clip(p, 1e-12, 1 - 1e-12))
+    mu = (z * np.sqrt(1 + old.a**2 * v) - old.b) / old.a
+    q = ndtr((new.a * mu + new.b) / np.sqrt(1 + new.a**2 * v)).astype(np.float32)
+    write_geotiff(out / "probability.tif", q, spec, nodata=np.nan)
+    (out / "classifier.json").write_text(json.dumps(
+        {"from": {"a": old.a, "b": old.b}, "to": {"a": new.a, "b": new.b}}) + "\n")
+    return out
+
+
+def run_reclassify(work: Path, variant: str, holdout: str) -> list[dict]:
+    """The finished cases of ``variant`` with their GP classifiers re-fitted by ``holdout``."""
+    cases = []
+    for summary in sorted(work.glob(f"summary-{variant}-*.json")):
+        if "reclassify" in summary.name:
+            continue
+        for case in json.loads(summary.read_text()):
+            if "folder" not in case:  # summaries written before these keys existed
+                world = case["case"].split(" ")[0]
+                sim = f"{world}-s{case['case'].split('seed ')[1].rstrip(')')}"
+                case["folder"] = str(work / variant / "sim" / sim)
+                name = "truth.tif" if case["region"] == "all" else "truth-noisy-only.tif"
+                case["truth"] = str(work / "sim" / sim / name)
+            vdir = Path(case["folder"])
+            maps = [vdir / m for m in METHODS[1:]]
+            new = [reclassified(m.with_suffix(".npz"), m, holdout) for m in maps]
+            result = evaluate(new, Path(case["truth"]), vdir / f"evaluation-{holdout}-cv-"
+                              f"{case['region']}")
+            row = dict(case)
+            row["methods"] = {m: scores(result[n.name]) for m, n in zip(METHODS[1:], new,
+                                                                          strict=True)}
+            row["methods"]["grid"] = case["methods"]["grid"]
+            row["classifiers"] = {m: json.loads((n / "classifier.json").read_text())
+                                  for m, n in zip(METHODS[1:], new, strict=True)}
+            cases.append(row)
     return cases
 
 
@@ -258,7 +323,7 @@ def run_loop(work: Path) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("what", nargs="*", default=["sim", "real", "loop"],
-                        choices=["sim", "real", "loop"])
+                        choices=["sim", "real", "loop", "reclassify"])
     parser.add_argument("--work", type=Path, default=ROOT / "out" / "experiment")
     parser.add_argument("--variant", default="scan-cv", choices=list(VARIANTS))
     parser.add_argument("--worlds", nargs="*", default=list(WORLDS))
@@ -271,6 +336,8 @@ def main() -> None:
         cases += run_sim(args.work, args.variant, args.worlds, args.seed)
     if "real" in args.what:
         cases += run_real(args.work, args.variant, args.logs, args.seed)
+    if "reclassify" in args.what:
+        cases += run_reclassify(args.work, args.variant, "sample")
     if cases:
         summary = args.work / f"summary-{args.variant}-{'-'.join(args.what)}.json"
         summary.write_text(json.dumps(cases, indent=2) + "\n")
