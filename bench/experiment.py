@@ -267,31 +267,45 @@ def reclassified(model_path: Path, folder: Path, holdout: str) -> Path:
     return out
 
 
-def run_reclassify(work: Path, variant: str, holdout: str) -> list[dict]:
-    """The finished cases of ``variant`` with their GP classifiers re-fitted by ``holdout``."""
-    cases = []
-    for summary in sorted(work.glob(f"summary-{variant}-*.json")):
-        if "reclassify" in summary.name:
+def case_truths(work: Path, case_dir: Path) -> dict[str, Path]:
+    """Scope name -> truth file of a finished case folder (sim or real)."""
+    if case_dir.parent.name == "sim":
+        sim = work / "sim" / case_dir.name
+        return {"all": sim / "truth.tif", "noisy-only": sim / "truth-noisy-only.tif"}
+    return {"all": work / "real" / case_dir.name / "split" / "heldout.csv"}
+
+
+def run_reclassify(work: Path, variant: str, holdout: str) -> None:
+    """Every finished case of ``variant`` with its GP classifiers re-fitted by ``holdout``:
+    ``<case>/evaluation-<holdout>-cv-<scope>``."""
+    for case_dir in sorted((work / variant).glob("*/*")):
+        maps = [case_dir / m for m in METHODS[1:]]
+        if not all((m / "probability.tif").is_file() for m in maps):
             continue
-        for case in json.loads(summary.read_text()):
-            if "folder" not in case:  # summaries written before these keys existed
-                world = case["case"].split(" ")[0]
-                sim = f"{world}-s{case['case'].split('seed ')[1].rstrip(')')}"
-                case["folder"] = str(work / variant / "sim" / sim)
-                name = "truth.tif" if case["region"] == "all" else "truth-noisy-only.tif"
-                case["truth"] = str(work / "sim" / sim / name)
-            vdir = Path(case["folder"])
-            maps = [vdir / m for m in METHODS[1:]]
-            new = [reclassified(m.with_suffix(".npz"), m, holdout) for m in maps]
-            result = evaluate(new, Path(case["truth"]), vdir / f"evaluation-{holdout}-cv-"
-                              f"{case['region']}")
-            row = dict(case)
-            row["methods"] = {m: scores(result[n.name]) for m, n in zip(METHODS[1:], new,
-                                                                          strict=True)}
-            row["methods"]["grid"] = case["methods"]["grid"]
-            row["classifiers"] = {m: json.loads((n / "classifier.json").read_text())
-                                  for m, n in zip(METHODS[1:], new, strict=True)}
-            cases.append(row)
+        new = [reclassified(m.with_suffix(".npz"), m, holdout) for m in maps]
+        grid = work / case_dir.parent.name / case_dir.name / "grid"
+        for scope, truth in case_truths(work, case_dir).items():
+            evaluate([grid, *new], truth, case_dir / f"evaluation-{holdout}-cv-{scope}")
+
+
+def collect(work: Path, variant: str, classifier: str) -> list[dict]:
+    """Scores of every finished case of ``variant``; ``classifier``: ``scan`` (the
+    evaluation written by the run) or ``sample`` (the re-fitted one)."""
+    cases = []
+    for case_dir in sorted((work / variant).glob("*/*")):
+        for scope in case_truths(work, case_dir):
+            if classifier == "sample":
+                folder = case_dir / f"evaluation-sample-cv-{scope}"
+            elif case_dir.parent.name == "sim":
+                folder = case_dir / f"evaluation-{scope}"
+            else:
+                folder = case_dir / "evaluation"
+            if not (folder / "results.json").is_file():
+                continue
+            rows = json.loads((folder / "results.json").read_text())["maps"]
+            by = {r["name"].replace(f"-{classifier}-cv", ""): r for r in rows}
+            cases.append({"case": case_dir.name, "kind": case_dir.parent.name, "region": scope,
+                          "methods": {m: scores(by[m]) for m in METHODS}})
     return cases
 
 
@@ -304,12 +318,17 @@ def tables(cases: list[dict]) -> str:
             lines.append(f"| {c['case']} | {c['region']} | {m} | {s['auc']:.4f} | "
                          f"{s['fpr_at_tpr97']:.3f} | {s['brier']:.4f} | {s['log_loss']:.3f} | "
                          f"{s['ece']:.3f} |")
-    whole = [c for c in cases if c["region"] == "all"]
-    if whole:
-        diff = np.array([c["methods"]["gp-input-noise"]["auc"]
-                         - c["methods"]["gp-no-input-noise"]["auc"] for c in whole])
-        lines += ["", f"Input noise vs none, whole cases: AUC wins {int((diff > 0).sum())}/"
-                      f"{diff.size}, mean {diff.mean():+.4f}, worst {diff.min():+.4f}."]
+    for region in ("all", "noisy-only"):
+        chosen = [c for c in cases if c["region"] == region]
+        if not chosen:
+            continue
+        on = [c["methods"]["gp-input-noise"] for c in chosen]
+        off = [c["methods"]["gp-no-input-noise"] for c in chosen]
+        diff = np.array([a["auc"] - b["auc"] for a, b in zip(on, off, strict=True)])
+        lines += ["", f"Region {region}: input noise vs none over {diff.size} cases: AUC wins "
+                      f"{int((diff > 0).sum())}/{diff.size}, mean {diff.mean():+.4f}, worst "
+                      f"{diff.min():+.4f}; mean Brier {np.mean([a['brier'] for a in on]):.4f} "
+                      f"vs {np.mean([b['brier'] for b in off]):.4f}."]
     return "\n".join(lines)
 
 
@@ -323,7 +342,7 @@ def run_loop(work: Path) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("what", nargs="*", default=["sim", "real", "loop"],
-                        choices=["sim", "real", "loop", "reclassify"])
+                        choices=["sim", "real", "loop", "reclassify", "report"])
     parser.add_argument("--work", type=Path, default=ROOT / "out" / "experiment")
     parser.add_argument("--variant", default="scan-cv", choices=list(VARIANTS))
     parser.add_argument("--worlds", nargs="*", default=list(WORLDS))
@@ -337,7 +356,11 @@ def main() -> None:
     if "real" in args.what:
         cases += run_real(args.work, args.variant, args.logs, args.seed)
     if "reclassify" in args.what:
-        cases += run_reclassify(args.work, args.variant, "sample")
+        run_reclassify(args.work, args.variant, "sample")
+    if "report" in args.what:
+        for classifier in ("sample", "scan"):
+            print(f"\n## Variant {args.variant}, {classifier} classifier\n")
+            print(tables(collect(args.work, args.variant, classifier)), flush=True)
     if cases:
         summary = args.work / f"summary-{args.variant}-{'-'.join(args.what)}.json"
         summary.write_text(json.dumps(cases, indent=2) + "\n")
