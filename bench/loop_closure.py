@@ -166,3 +166,42 @@ def loop_closure_experiment(work: Path, carmen: Path, gpocc: Callable[..., str])
                      f"{s['mean_gradient_per_m']:.3f} |")
     lines += ["", f"Figure: {work / 'loop_closure.png'}"]
     return "\n".join(lines)
+
+
+def near_data_stats(work: Path, names: list[str], within_m: float = 0.3) -> dict[str, dict]:
+    """map_stats of each map folder ``work/<name>`` over the cells within ``within_m`` of
+    a training sample of ``work/after.npz`` and covered by every map, plus the mean
+    latent variance relative to the model's mean prior variance over a 1 m block
+    (latent variances of models with different signal variances are not comparable)."""
+    from scipy.spatial import cKDTree
+
+    from gpocc.gp.model import load_model
+    from gpocc.io.rasters import read_raster
+
+    after = load_model(work / "after.npz")
+    p, spec, _ = read_raster(work / names[0] / "probability.tif")
+    rows, cols = np.indices(p.shape)
+    x0, _, _, y1 = spec.bounds
+    xy = np.column_stack((x0 + (cols.ravel() + 0.5) * spec.resolution,
+                          y1 - (rows.ravel() + 0.5) * spec.resolution))
+    distance, _ = cKDTree(after.samples.means).query(xy)
+    common = (distance < within_m).reshape(p.shape)
+    for name in names:
+        common &= map_stats(work / name)[1]
+    offsets = np.linspace(-0.5, 0.5, 21)
+    block = np.array([(a, b) for a in offsets for b in offsets])
+    out = {}
+    for name in names:
+        stats, _ = map_stats(work / name, common)
+        prior = float(load_model(work / f"{name}.npz").kernel.diag(block).mean())
+        stats["mean_variance_over_prior"] = stats["mean_variance"] / prior
+        out[name] = stats
+    return out
+
+
+if __name__ == "__main__":
+    import sys
+
+    folder = Path(sys.argv[1])
+    for map_name, values in near_data_stats(folder, sys.argv[2:]).items():
+        print(map_name, {k: round(v, 4) for k, v in values.items()})
