@@ -344,7 +344,7 @@ def main() -> None:
     parser.add_argument("what", nargs="*", default=["sim", "real", "loop"],
                         choices=["sim", "real", "loop", "reclassify", "report"])
     parser.add_argument("--work", type=Path, default=ROOT / "out" / "experiment")
-    parser.add_argument("--variant", default="scan-cv", choices=list(VARIANTS))
+    parser.add_argument("--variant", default="published", choices=list(VARIANTS))
     parser.add_argument("--worlds", nargs="*", default=list(WORLDS))
     parser.add_argument("--logs", nargs="*", default=list(REAL_LOGS))
     parser.add_argument("--seed", type=int, default=0, help="noise seed of worlds and logs")
