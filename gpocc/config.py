@@ -109,6 +109,10 @@ class SamplesConfig:
     0.1 suits long real logs with moving people (configs/carmen_*.yaml). On the static
     simulated world it removes the noisy platform's scattered hits, which is what the
     input-noise model is there to handle (docs/results.md).
+
+    ``free_range_variance``: free samples of a beam that hit carry that beam's range
+    variance, like its hit (false: free samples carry no range variance, as published);
+    see gpocc.samples.beams.build_samples.
     """
 
     free_spacing_m: float = 0.4
@@ -118,6 +122,7 @@ class SamplesConfig:
     scan_stride: int = 1
     thin_cell_m: float = 0.15
     min_label_share: float = 0.0
+    free_range_variance: bool = False
     unscented: UnscentedConfig = field(default_factory=UnscentedConfig)
 
 
@@ -150,7 +155,10 @@ class TrainingConfig:
     ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
     input-induced noise, and without a floor the likelihood of a few patches can drive
     the label noise to zero and interpolate the accurate samples' labels exactly.
-    ``learn: false`` keeps the initial values.
+    ``learn: false`` keeps the initial values. ``classifier_holdout``: how the Platt
+    classifier's training labels are held out, ``sample`` (leave one sample out, the method
+    as published, default) or ``scan`` (leave one scan out); see gpocc.gp.classify and
+    docs/results.md (leave-one-scan-out measured worse calibrated on held-out data).
     """
 
     learn: bool = True
@@ -160,6 +168,7 @@ class TrainingConfig:
     lbfgs_maxiter: int = 40
     log_bounds_width: float = 4.0
     min_noise_variance: float = 0.01
+    classifier_holdout: str = "sample"
 
 
 @dataclass(frozen=True)
@@ -406,6 +415,11 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'map.georef.epsg' must be a projected EPSG code (e.g. 32633 for "
             f"UTM 33N), got {georef.epsg}"
+        )
+    if config.model.training.classifier_holdout not in ("scan", "sample"):
+        raise GpoccError(
+            f"{source}: key 'model.training.classifier_holdout' must be 'scan' or 'sample', "
+            f"got {config.model.training.classifier_holdout!r}"
         )
     if config.model.quadrature_level > 10:
         raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")

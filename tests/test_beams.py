@@ -325,3 +325,20 @@ def test_min_label_share_drops_labels_a_cell_rarely_saw():
     expected = thinned.subset(share >= 0.25)
     assert 0 < len(expected) < len(thinned)
     _assert_same_rows(_rows(filtered), _rows(expected))
+
+
+def test_free_range_variance_gives_free_samples_of_hit_beams_the_range_variance():
+    """With the option, free samples of a hit beam are spread along the beam like the hit;
+    a no-return beam's free samples are not (its range carries no information)."""
+    sensor = replace(NOISELESS, range_variance_m2=0.09)
+    batch = _batch([[2.0, np.inf]], [0.0, 0.5], [[0.0, 0.0, 0.0]])
+    cfg = _config(sensor, free_spacing_m=0.5, hit_gap_m=0.0, hit_gap_sigmas=0.0)
+    cfg = replace(cfg, samples=replace(cfg.samples, free_range_variance=True))
+    samples = build_samples([batch], cfg)
+    direction = np.array([math.cos(math.pi / 6), math.sin(math.pi / 6)])  # mount yaw 30 deg
+    along = 0.09 * np.outer(direction, direction)
+    free = samples.covariances[samples.labels < 0]
+    spread = np.array([np.allclose(c, along, atol=1e-12) for c in free])
+    exact = np.array([np.allclose(c, 0.0, atol=1e-15) for c in free])
+    assert spread.sum() == 4  # 0.5 .. 2.0 m on the hit beam
+    assert exact.sum() == len(free) - 4 > 0  # the no-return beam

@@ -41,6 +41,8 @@ def test_defaults_and_round_trip():
         ("sensors:\n  - name: a\n  - name: a\n", "sensor names must be unique"),
         ("classify:\n  occupied: 0.3\n  free: 0.6\n", "free <= occupied"),
         ("model:\n  kernel: matern\n", "'model.kernel' must be 'nn' or 'se'"),
+        ("model:\n  training:\n    classifier_holdout: beam\n",
+         "'model.training.classifier_holdout' must be 'scan' or 'sample'"),
         ("map:\n  resolution_m: 0\n", "'map.resolution_m' must be positive"),
         ("samples:\n  free_spacing_m: .nan\n", "must be finite"),
         ("samples: [1, 2]\n", "'samples' must be a mapping"),

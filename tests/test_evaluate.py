@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from sklearn.metrics import roc_auc_score
+from sklearn.metrics import brier_score_loss, log_loss, roc_auc_score
 from typer.testing import CliRunner
 
 from gpocc.cli import app
@@ -94,6 +94,13 @@ def test_csv_truth_auc_matches_sklearn_and_outputs_are_written(tmp_path, maps):
         scores, covered = _sampled_with_rasterio(tif, points)
         assert by_name[name]["auc"] == pytest.approx(roc_auc_score(labels, scores), abs=1e-9)
         assert by_name[name]["coverage"] == pytest.approx(covered.mean())
+        # Calibration of the same scores (uncovered points at 0.5), scikit-learn as oracle.
+        assert by_name[name]["brier"] == pytest.approx(brier_score_loss(labels, scores),
+                                                       rel=1e-9)
+        clip = summary["calibration"]["log_loss_clip"]
+        assert by_name[name]["log_loss"] == pytest.approx(
+            log_loss(labels, np.clip(scores, clip, 1 - clip)), rel=1e-9)
+        assert 0.0 <= by_name[name]["ece"] <= 1.0
         assert 0.5 < covered.mean() < 1.0  # the fixture does put points outside / on holes
         # The table on stdout shows the same numbers.
         row = next(line for line in result.stdout.splitlines() if line.startswith(name))
@@ -101,6 +108,7 @@ def test_csv_truth_auc_matches_sklearn_and_outputs_are_written(tmp_path, maps):
     assert summary["n_occupied"] == labels.sum() and summary["n_free"] == (1 - labels).sum()
 
     assert (out / "roc.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "reliability.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = (out / "roc.csv").read_text().splitlines()
     assert rows[0] == "map,fpr,tpr"
     curve = np.array([r.split(",")[1:] for r in rows[1:] if r.startswith("gp_map")], dtype=float)
@@ -243,7 +251,7 @@ def test_existing_out_is_refused_without_force(tmp_path, maps):
                          "--force")
         assert forced.exit_code == 0, forced.output
     assert sorted(p.name for p in out.iterdir()) == [
-        "results.json", "results.md", "roc.csv", "roc.png",
+        "reliability.png", "results.json", "results.md", "roc.csv", "roc.png",
     ]
 
 

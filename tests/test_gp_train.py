@@ -104,3 +104,59 @@ def test_probability_formula_and_classes():
     np.testing.assert_allclose(clf.probability(mean, var), expected)
     p = np.array([0.1, 0.5, 0.9, np.nan])
     np.testing.assert_array_equal(classify(p, 0.65, 0.35), [0, 2, 1, 255])
+
+
+def _scan_case(seed: int, n: int = 90, scans: int = 9, noisy: bool = True):
+    rng = np.random.default_rng(seed)
+    means = rng.uniform(-3, 3, (n, 2))
+    labels = np.where(np.abs(means[:, 0]) > 2.0, 1.0, -1.0)
+    scan_ids = rng.integers(0, scans, n)
+    if noisy:
+        covs = np.einsum("n,ij->nij", rng.uniform(0.001, 0.03, n), np.eye(2))
+        factors = rng.normal(0, 0.05, (n, 2, 3))
+    else:
+        covs, factors = None, None
+    return samples_from(means, labels, covs, scan_ids, factors)
+
+
+@pytest.mark.parametrize("noisy", [False, True])
+def test_leave_one_scan_out_matches_brute_force_refit(noisy):
+    from gpocc.gp.classify import leave_one_scan_out
+    from gpocc.gp.local import LocalProblem, predict_local
+
+    samples = _scan_case(3, noisy=noisy)
+    patch = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(len(samples)))
+    kernel = NeuralNetworkKernel(1.5, 1.0, (2.0, 2.5))
+    mean, var, mask = leave_one_scan_out(kernel, 0.05, patch, 3)
+    assert mask.all()
+    for scan in np.unique(samples.scan_ids):
+        held = samples.scan_ids == scan
+        rest = samples.subset(~held)
+        refit = LocalProblem(centre=np.zeros(2), samples=rest, index=np.flatnonzero(~held))
+        oracle = predict_local(kernel, 0.05, refit, samples.means[held], 3)
+        np.testing.assert_allclose(mean[held], oracle.mean, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(var[held], oracle.variance, rtol=1e-6, atol=1e-8)
+
+
+def test_scan_holdout_classifier_maximises_held_out_log_probability():
+    from gpocc.gp.classify import holdout_predictions
+
+    samples = _scan_case(4, n=200, scans=12)
+    patches = make_patches(samples, TrainingConfig(patches=2, patch_size=100), seed=0)
+    kernel = NeuralNetworkKernel(1.0, 1.0, (2.0, 2.0))
+    fitted = fit_classifier(kernel, 0.1, patches, 3, holdout="scan")
+    mu, var, y = holdout_predictions(kernel, 0.1, patches, 3, "scan")
+    best = loo_log_probability(fitted.a, fitted.b, mu, var, y)
+    grid = max(loo_log_probability(a, b, mu, var, y)
+               for a in np.linspace(0.05, 10, 60) for b in np.linspace(-3, 3, 61))
+    assert best >= grid - 1e-6
+
+
+def test_one_scan_patch_cannot_be_held_out():
+    from gpocc.gp.classify import leave_one_scan_out
+    from gpocc.gp.local import LocalProblem
+
+    samples = _scan_case(5, n=30, scans=1)
+    patch = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(30))
+    _, _, mask = leave_one_scan_out(NeuralNetworkKernel(1.0, 1.0, (2.0, 2.0)), 0.1, patch, 2)
+    assert not mask.any()

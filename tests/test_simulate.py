@@ -291,3 +291,65 @@ def test_simulate_command_unknown_world(tmp_path: Path):
                                       "--world", "moon"])
     assert result.exit_code == 2 and "default" in result.stderr
     assert not (tmp_path / "x").exists()
+
+
+# --------------------------------------------------------------------------- grown worlds
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 5, 8])
+def test_grown_worlds_keep_routes_in_free_space_and_differ(seed):
+    world = make_world(f"grown-{seed}")
+    assert world.name == f"grown-{seed}"
+    x0, y0, x1, y1 = world.bounds
+    for route in world.routes:
+        legs = [a + np.linspace(0, 1, 200)[:, None] * (b - a)
+                for a, b in zip(route[:-1], route[1:], strict=True)]
+        pts = np.concatenate(legs)
+        assert world.clearance(pts).min() >= 0.4
+        assert np.all((pts > [x0, y0]) & (pts < [x1, y1]))
+    again = make_world(f"grown-{seed}")
+    np.testing.assert_array_equal(world.segments, again.segments)
+    other = make_world(f"grown-{seed + 100}")
+    assert world.segments.shape != other.segments.shape or not np.allclose(
+        world.segments, other.segments)
+
+
+def test_grown_world_platform_two_sees_a_region_platform_one_never_does():
+    from gpocc.evaluation.simulate import region_truth
+
+    sim = simulate("grown-2", seed=1)
+    labels, spec = truth_raster(sim.world, sim.runs)
+    only_2 = region_truth(labels, spec, sim.runs[:1])
+    seen_by_1 = truth_raster(sim.world, sim.runs[:1])[0] != 255
+    kept = only_2 != 255
+    # The region is the truth minus everything platform I's rays crossed, labels intact.
+    assert kept.sum() > 0.1 * (labels != 255).sum()
+    assert not (kept & seen_by_1).any()
+    np.testing.assert_array_equal(only_2[kept], labels[kept])
+    assert (only_2 == 1).any() and (only_2 == 0).any()
+
+
+def test_bad_grown_world_name_is_a_clear_error():
+    with pytest.raises(GpoccError, match="grown-<seed>"):
+        make_world("grown-x")
+
+
+def test_stretch_pose_noise_is_honest_per_stretch():
+    from gpocc.evaluation.simulate import perturb_poses, stretch_covariances
+
+    levels = (PoseNoise(0.02, 0.5), PoseNoise(0.2, 4.0))
+    cov = stretch_covariances(40_000, 100, levels)
+    assert cov.shape == (40_000, 3, 3)
+    np.testing.assert_allclose(cov[:100], np.broadcast_to(levels[0].covariance, (100, 3, 3)))
+    np.testing.assert_allclose(cov[100:200], np.broadcast_to(levels[1].covariance, (100, 3, 3)))
+    poses = np.zeros((40_000, 3))
+    poses[:, 2] = 3.0  # near the wrap: errors must be measured modulo 2 pi
+    out = perturb_poses(poses, cov, np.random.default_rng(0))
+    err = out - poses
+    err[:, 2] = np.angle(np.exp(1j * err[:, 2]))
+    assert np.all(np.abs(out[:, 2]) <= np.pi)
+    for k, level in enumerate(levels):
+        stretch = ((np.arange(40_000) // 100) % 2) == k
+        n = stretch.sum()
+        np.testing.assert_allclose(err[stretch].var(axis=0), np.diag(level.covariance),
+                                   rtol=4 * math.sqrt(2 / n))

@@ -1,4 +1,4 @@
-"""``gpocc evaluate``: ROC, AUC and FPR at TPR 0.97 of maps against a ground truth."""
+"""``gpocc evaluate``: ROC, AUC, FPR at TPR 0.97 and calibration of maps against a ground truth."""
 
 from __future__ import annotations
 
@@ -29,11 +29,12 @@ def evaluate(
         ..., "--ground-truth", help="GeoTIFF (1/0/no-data), map_server YAML, or x,y,label file."
     ),
     out: Path | None = typer.Option(
-        None, "--out", help="Folder for roc.png, roc.csv, results.json and results.md."
+        None, "--out",
+        help="Folder for roc.png, reliability.png, roc.csv, results.json and results.md.",
     ),
     force: Force = False,
 ) -> None:
-    """Score maps against a ground truth: AUC, FPR at TPR 0.97, coverage.
+    """Score maps against a ground truth: AUC, FPR at TPR 0.97, Brier, log-loss, ECE.
 
     Each map's probability is taken at the truth points (nearest cell); points outside a
     map or on no-data cells count as p = 0.5, and the coverage column says how many the
@@ -58,4 +59,4 @@ def evaluate(
     typer.echo(results_table(results))
     if out is not None:
         write_outputs(out, force, results, list(maps), ground_truth, labels)
-        log(f"wrote {out}/roc.png, roc.csv, results.json, results.md")
+        log(f"wrote {out}/roc.png, reliability.png, roc.csv, results.json, results.md")

@@ -21,7 +21,7 @@ from gpocc.evaluation.simulate import (
     truth_raster,
     truth_spec,
 )
-from gpocc.evaluation.world import WORLD_NAMES, make_world
+from gpocc.evaluation.world import WORLD_NAMES, is_world_name, make_world
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, atomic_path, prepare_output
 from gpocc.io.bags import write_bag
@@ -82,7 +82,9 @@ def simulate_command(
     ),
     seed: int = typer.Option(0, "--seed", help="Random seed of all noise."),
     world: str = typer.Option(
-        "default", "--world", help=f"Ground-truth world: {', '.join(WORLD_NAMES)}."
+        "default", "--world",
+        help=f"Ground-truth world: {', '.join(WORLD_NAMES)}, or grown-<seed> (a random "
+        f"corridor building grown from that seed).",
     ),
     pose_noise: tuple[float, float] | None = typer.Option(
         None, "--pose-noise", metavar="SIGMA_XY SIGMA_YAW_DEG",
@@ -93,9 +95,9 @@ def simulate_command(
 ) -> None:
     """Simulate the two-robot experiment: a slow accurate and a fast noisy robot."""
     prepare_output(out, force)
-    if world not in WORLD_NAMES:
+    if not is_world_name(world):
         raise GpoccError(f"--world: unknown world {world!r}; choose one of: "
-                         f"{', '.join(WORLD_NAMES)}")
+                         f"{', '.join(WORLD_NAMES)}, or grown-<seed>")
     check_resolution(resolution)
     if pose_noise is not None and not all(v >= 0 and math.isfinite(v) for v in pose_noise):
         raise GpoccError(f"--pose-noise needs two non-negative numbers (SIGMA_XY metres, "

@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from gpocc.errors import GpoccError
+from gpocc.evaluation.calibration import CALIBRATION_BINS, LOG_LOSS_CLIP
 from gpocc.evaluation.roc import RocResult, evaluate_scores
 from gpocc.io.atomic import atomic_directory
 from gpocc.io.rasters import read_raster, sample_raster
-from gpocc.mapping.render import render_roc
+from gpocc.mapping.render import render_reliability, render_roc
 
 _MAP_FILES = ("probability.tif", "probability.vrt")
 _RASTER_SUFFIXES = {".tif", ".tiff", ".vrt"}
@@ -59,13 +60,15 @@ def evaluate_map(
 
 
 def results_table(results: list[RocResult]) -> str:
-    """An aligned plain-text table: map, AUC, FPR at TPR 0.97, coverage."""
-    header = ("map", "AUC", "FPR@TPR0.97", "coverage")
+    """An aligned plain-text table: map, AUC, FPR at TPR 0.97, Brier, log-loss, ECE, coverage."""
+    header = ("map", "AUC", "FPR@TPR0.97", "Brier", "log-loss", "ECE", "coverage")
     rows = [
-        (r.name, f"{r.auc:.4f}", f"{r.fpr_at_tpr97:.4f}", f"{100 * r.coverage:.1f}%")
+        (r.name, f"{r.auc:.4f}", f"{r.fpr_at_tpr97:.4f}", f"{r.calibration.brier:.4f}",
+         f"{r.calibration.log_loss:.4f}", f"{r.calibration.ece:.4f}",
+         f"{100 * r.coverage:.1f}%")
         for r in results
     ]
-    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(4)]
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
     lines = []
     for row in [header, *rows]:
         numbers = zip(row[1:], widths[1:], strict=True)
@@ -74,18 +77,29 @@ def results_table(results: list[RocResult]) -> str:
     return "\n".join(lines)
 
 
+#: How the calibration columns are computed, for the report files.
+CALIBRATION_NOTE = (
+    f"Brier: mean (p - label)^2. Log-loss: mean negative log-likelihood in nats, p clipped "
+    f"to [{LOG_LOSS_CLIP:g}, 1 - {LOG_LOSS_CLIP:g}]. ECE: point-weighted mean "
+    f"|fraction occupied - mean p| over {CALIBRATION_BINS} equal-width p bins. Points a map "
+    f"does not cover count as p = 0.5 in every column."
+)
+
+
 def results_markdown(results: list[RocResult], truth: Path, n_occupied: int, n_free: int) -> str:
     """The results as a markdown table, with the ground truth named above it."""
     lines = [
         f"Ground truth: `{truth}` ({n_occupied} occupied, {n_free} free points)",
         "",
-        "| map | AUC | FPR at TPR 0.97 | coverage |",
-        "|:----|----:|----:|----:|",
+        "| map | AUC | FPR at TPR 0.97 | Brier | log-loss | ECE | coverage |",
+        "|:----|----:|----:|----:|----:|----:|----:|",
     ]
     lines += [
-        f"| {r.name} | {r.auc:.4f} | {r.fpr_at_tpr97:.4f} | {100 * r.coverage:.1f}% |"
+        f"| {r.name} | {r.auc:.4f} | {r.fpr_at_tpr97:.4f} | {r.calibration.brier:.4f} | "
+        f"{r.calibration.log_loss:.4f} | {r.calibration.ece:.4f} | {100 * r.coverage:.1f}% |"
         for r in results
     ]
+    lines += ["", CALIBRATION_NOTE]
     return "\n".join(lines) + "\n"
 
 
@@ -97,11 +111,16 @@ def write_outputs(
     truth: Path,
     labels: np.ndarray,
 ) -> None:
-    """roc.png, roc.csv, results.json and results.md in a new folder, atomically."""
+    """roc.png, reliability.png, roc.csv, results.json and results.md in a new folder,
+    atomically."""
     n_occupied = int(np.count_nonzero(labels == 1))
     n_free = int(labels.size - n_occupied)
     with atomic_directory(out, force=force) as tmp:
         render_roc(tmp / "roc.png", [(r.name, r.fpr, r.tpr, r.auc) for r in results])
+        render_reliability(tmp / "reliability.png", [
+            (r.name, r.calibration.bin_mean_p, r.calibration.bin_fraction_occupied,
+             r.calibration.brier, r.calibration.ece) for r in results
+        ])
         with (tmp / "roc.csv").open("w", newline="") as fh:
             writer = csv.writer(fh)
             writer.writerow(["map", "fpr", "tpr"])
@@ -115,6 +134,8 @@ def write_outputs(
             "n_occupied": n_occupied,
             "n_free": n_free,
             "unknown_score": 0.5,
+            "calibration": {"log_loss_clip": LOG_LOSS_CLIP, "ece_bins": CALIBRATION_BINS,
+                            "binning": "equal-width in p", "note": CALIBRATION_NOTE},
             "maps": [
                 {
                     "name": r.name,
@@ -123,6 +144,14 @@ def write_outputs(
                     "fpr_at_tpr97": r.fpr_at_tpr97,
                     "coverage": r.coverage,
                     "n_points": r.n_points,
+                    "brier": r.calibration.brier,
+                    "log_loss": r.calibration.log_loss,
+                    "ece": r.calibration.ece,
+                    "reliability": {
+                        "mean_p": r.calibration.bin_mean_p.tolist(),
+                        "fraction_occupied": r.calibration.bin_fraction_occupied.tolist(),
+                        "count": r.calibration.bin_counts.tolist(),
+                    },
                 }
                 for r, p in zip(results, paths, strict=True)
             ],

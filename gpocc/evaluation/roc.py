@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gpocc.evaluation.calibration import Calibration, calibration
+
 #: Score given to truth points the map does not cover: the uninformative prior.
 UNKNOWN_SCORE = 0.5
 
@@ -118,6 +120,9 @@ class RocResult:
         n_points: number of truth points.
         fpr: (T,) curve false-positive rates.
         tpr: (T,) curve true-positive rates.
+        calibration: Brier score, log-loss, ECE and reliability bins of the same scores
+            (uncovered points at :data:`UNKNOWN_SCORE`), see
+            :mod:`gpocc.evaluation.calibration`.
     """
 
     name: str
@@ -127,6 +132,7 @@ class RocResult:
     n_points: int
     fpr: np.ndarray
     tpr: np.ndarray
+    calibration: Calibration
 
 
 def evaluate_scores(
@@ -136,7 +142,8 @@ def evaluate_scores(
 
     A point the map does not cover (``inside`` False, or a NaN score: no data) is scored
     :data:`UNKNOWN_SCORE`, as a map that says nothing about it would be, so a map is not
-    rewarded for covering less; ``coverage`` reports how many were covered.
+    rewarded for covering less; ``coverage`` reports how many were covered. The
+    calibration scores use the same filled scores.
 
     Args:
         name: the map's name.
@@ -156,4 +163,5 @@ def evaluate_scores(
         n_points=int(s.size),
         fpr=fpr,
         tpr=tpr,
+        calibration=calibration(labels, filled),
     )

@@ -270,6 +270,49 @@ def simulate_run(
                     route=np.asarray(waypoints, dtype=float))
 
 
+def stretch_covariances(n_scans: int, stretch_scans: int,
+                        levels: tuple[PoseNoise, ...]) -> np.ndarray:
+    """(S, 3, 3) pose covariances that change between stretches of a log.
+
+    Scan ``k`` belongs to stretch ``k // stretch_scans`` and gets the covariance of
+    ``levels[stretch % len(levels)]``: e.g. quiet, noisy, very noisy, quiet, ... like
+    a localiser that loses and regains its map.
+    """
+    if stretch_scans < 1 or not levels:
+        raise GpoccError("pose-noise stretches need at least one level and one scan each")
+    which = (np.arange(n_scans) // stretch_scans) % len(levels)
+    return np.stack([levels[i].covariance for i in which]) if n_scans else np.zeros((0, 3, 3))
+
+
+def perturb_poses(poses: np.ndarray, covariances: np.ndarray,
+                  rng: np.random.Generator) -> np.ndarray:
+    """Poses (S, 3) plus independent N(0, covariances[k]) errors, yaw wrapped to (-pi, pi].
+
+    The covariances (S, 3, 3) are then the honest covariances of the perturbed poses
+    around the given ones (one draw of 3 standard normals per scan, in scan order).
+    """
+    z = rng.standard_normal((len(poses), 3))
+    roots = np.linalg.cholesky(covariances + 1e-18 * np.eye(3))
+    out = np.asarray(poses, dtype=float) + np.einsum("sij,sj->si", roots, z)
+    out[:, 2] = np.angle(np.exp(1j * out[:, 2]))
+    return out
+
+
+def region_truth(labels: np.ndarray, spec: GridSpec, quiet: tuple[RobotRun, ...]) -> np.ndarray:
+    """The truth ``labels`` (H, W) restricted to cells no ``quiet`` run's rays reached.
+
+    With the quiet (accurate) platform's runs, this is the area seen only by the noisy
+    platform: where a map must rely on noisy inputs alone. Other cells become 255.
+    """
+    seen = np.zeros(spec.shape, dtype=bool)
+    for run in quiet:
+        visited, hit = observed_cells(spec, run)
+        seen |= visited | hit
+    out = labels.copy()
+    out[seen] = 255
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Simulation:
     """A simulated multi-robot log: the world, the seed and one run per platform."""

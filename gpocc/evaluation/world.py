@@ -9,6 +9,11 @@ explorer's and a fast traverser's (see :mod:`gpocc.evaluation.simulate`). Named 
   route 2 runs the whole corridor and the east rooms, which route 1 never enters.
 * ``office``: a 24 x 14 m office floor: a corridor, small offices with desks and bins.
 * ``warehouse``: a 30 x 20 m hall with rows of shelves, pillars and a corner office.
+* ``grown-<seed>`` (e.g. ``grown-7``): a building grown from the seed by
+  :func:`grow_world`: a corridor of random width and position with rooms of random
+  widths and depths on both sides, doors, boxes and pillars, optionally turned
+  north-south and mirrored. The explorer visits the rooms of the west (or south) part,
+  the traverser runs the whole corridor and visits the others.
 
 Coordinates are metres in the map frame, x east, y north.
 """
@@ -282,21 +287,146 @@ def _warehouse() -> World:
                  parts, circles, [explorer, traverser])
 
 
+_GROWN = "grown-"
+
+
+def _route_clear(world: World, route: np.ndarray, margin: float) -> bool:
+    """True when every point of the polyline (every 0.1 m) is ``margin`` m from obstacles."""
+    pts = [route[:1]]
+    for a, b in zip(route[:-1], route[1:], strict=True):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / 0.1)))
+        pts.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return bool(world.clearance(np.concatenate(pts)).min() >= margin)
+
+
+def _leg_clear(segments: np.ndarray, circles: np.ndarray, leg: np.ndarray) -> bool:
+    """True when a candidate obstacle keeps 0.6 m from a room's route leg."""
+    probe = World("probe", segments.reshape(-1, 2, 2), circles.reshape(-1, 3), ())
+    if not len(probe.segments):
+        probe = World("probe", np.array([[[1e6, 1e6], [1e6, 1e6 + 1]]]), probe.circles, ())
+    return _route_clear(probe, leg, 0.6)
+
+
+def _rooms(rng: np.random.Generator, width: float) -> list[tuple[float, float]]:
+    """Random partition of [0, width] into rooms 4.5-9 m wide, as (x0, x1)."""
+    cuts = [0.0]
+    while width - cuts[-1] > 9.0:
+        cuts.append(cuts[-1] + float(rng.uniform(4.5, 9.0)))
+    if width - cuts[-1] < 4.5 and len(cuts) > 1:
+        cuts.pop()
+    cuts.append(width)
+    return list(zip(cuts[:-1], cuts[1:], strict=True))
+
+
+def grow_world(seed: int) -> World:
+    """A random corridor building grown from ``seed`` (see the module docstring).
+
+    Deterministic for a seed. Obstacles are redrawn until both routes keep 0.45 m from
+    every obstacle, so the simulated robots never drive through a wall.
+    """
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        world = _grow_once(rng, seed)
+        if world is not None:
+            return world
+    raise GpoccError(f"could not grow a world from seed {seed}")  # pragma: no cover
+
+
+def _grow_once(rng: np.random.Generator, seed: int) -> World | None:
+    width = float(rng.uniform(24.0, 40.0))
+    height = float(rng.uniform(16.0, 26.0))
+    corridor_w = float(rng.uniform(2.4, 3.6))
+    c0 = float(rng.uniform(0.35, 0.55) * (height - corridor_w))
+    c1 = c0 + corridor_w
+    mid = c0 + 0.5 * corridor_w
+    parts = [_box(0, 0, width, height)]
+    circles: list[tuple[float, float, float]] = []
+    south_doors, north_doors = [], []
+    visits: list[tuple[float, list[tuple[float, float]]]] = []
+    for side, (y_lo, y_hi, wall_y) in enumerate(((0.0, c0, c0), (c1, height, c1))):
+        doors = south_doors if side == 0 else north_doors
+        rooms = _rooms(rng, width)
+        for i, (x0, x1) in enumerate(rooms):
+            if i > 0:
+                gap = ()
+                if rng.random() < 0.3:  # a side door into the previous room
+                    d = float(rng.uniform(y_lo + 1.0, y_hi - 2.2))
+                    gap = ((d, d + 1.2),)
+                parts.append(_wall(x0, y_lo, x0, y_hi, gap))
+            door_w = float(rng.uniform(1.1, 1.6))
+            dx = float(rng.uniform(x0 + 0.9, x1 - 0.9 - door_w))
+            doors.append((dx, dx + door_w))
+            door_x = dx + 0.5 * door_w
+            inward = -1.0 if side == 0 else 1.0
+            inside = (door_x, wall_y + inward * 1.0)
+            centre = (0.5 * (x0 + x1), 0.5 * (y_lo + y_hi))
+            path = [(door_x, mid), inside, centre, inside, (door_x, mid)]
+            visits.append((door_x, path))
+            leg = np.array([(door_x, wall_y), inside, centre])
+            for _ in range(int(rng.integers(0, 3))):
+                bw, bh = rng.uniform(0.6, 2.2, 2)
+                bx = rng.uniform(x0 + 0.4, x1 - 0.4 - bw)
+                by = rng.uniform(y_lo + 0.4, y_hi - 0.4 - bh)
+                box = _box(bx, by, bx + bw, by + bh)
+                if _leg_clear(np.array(box, dtype=float), np.zeros((0, 3)), leg):
+                    parts.append(box)
+            if rng.random() < 0.6:
+                r = float(rng.uniform(0.2, 0.5))
+                pillar = (float(rng.uniform(x0 + 0.6, x1 - 0.6)),
+                          float(rng.uniform(y_lo + 0.6, y_hi - 0.6)), r)
+                if _leg_clear(np.zeros((0, 2, 2)), np.array([pillar]), leg):
+                    circles.append(pillar)
+    parts.append(_wall(0, c0, width, c0, tuple(south_doors)))
+    parts.append(_wall(0, c1, width, c1, tuple(north_doors)))
+    split = float(rng.uniform(0.4, 0.6) * width)
+    west = [p for x, path in sorted(visits) if x < split for p in path]
+    east = [p for x, path in sorted(visits) if x >= split for p in path]
+    explorer = [(1.2, mid - 0.15), *[(x, mid - 0.15) if y == mid else (x, y) for x, y in west]]
+    traverser = [(1.2, mid + 0.15), (width - 1.2, mid + 0.15),
+                 *[(x, mid + 0.15) if y == mid else (x, y) for x, y in reversed(east)],
+                 (1.5, mid + 0.15)]
+    if len(explorer) < 2 or not east:
+        return None
+    segments = np.array([seg for part in parts for seg in part], dtype=float)
+    circ = np.array(circles, dtype=float).reshape(-1, 3)
+    routes = [np.array(explorer), np.array(traverser)]
+    if rng.random() < 0.5:  # turn the building north-south
+        segments, circ = segments[..., ::-1].copy(), np.column_stack((circ[:, 1::-1], circ[:, 2]))
+        routes = [r[:, ::-1].copy() for r in routes]
+    world = World(
+        name=f"{_GROWN}{seed}", segments=segments, circles=circ, routes=tuple(routes),
+        description=(f"grown from seed {seed}: {width:.0f} x {height:.0f} m, corridor "
+                     f"{corridor_w:.1f} m wide, rooms both sides, boxes, pillars"),
+    )
+    if not all(_route_clear(world, r, 0.45) for r in world.routes):
+        return None
+    return world
+
+
 _WORLDS: dict[str, Callable[[], World]] = {
     "default": _default,
     "office": _office,
     "warehouse": _warehouse,
 }
 
-#: Names accepted by :func:`make_world`.
+#: Names accepted by :func:`make_world` besides ``grown-<seed>``.
 WORLD_NAMES: tuple[str, ...] = tuple(_WORLDS)
 
 
+def is_world_name(name: str) -> bool:
+    """True for a named world or ``grown-<non-negative integer>``."""
+    if name in _WORLDS:
+        return True
+    tail = name[len(_GROWN):] if name.startswith(_GROWN) else ""
+    return tail.isdigit()
+
+
 def make_world(name: str = "default") -> World:
-    """The named world (see the module docstring)."""
-    try:
+    """The named world, or ``grown-<seed>`` (see the module docstring)."""
+    if name in _WORLDS:
         return _WORLDS[name]()
-    except KeyError:
-        raise GpoccError(
-            f"unknown world {name!r}; choose one of: {', '.join(WORLD_NAMES)}"
-        ) from None
+    if is_world_name(name):
+        return grow_world(int(name[len(_GROWN):]))
+    raise GpoccError(
+        f"unknown world {name!r}; choose one of: {', '.join(WORLD_NAMES)}, or grown-<seed>"
+    )

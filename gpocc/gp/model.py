@@ -101,7 +101,8 @@ def build_model(
         # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
         patches = make_patches(samples, model_cfg.training, config.seed + 1)
         classifier = fit_classifier(result.kernel, result.noise_variance, patches,
-                                    model_cfg.quadrature_level)
+                                    model_cfg.quadrature_level,
+                                    model_cfg.training.classifier_holdout)
     training = {
         "log_marginal_likelihood": result.log_marginal_likelihood,
         "initial_log_marginal_likelihood": result.initial_log_marginal_likelihood,

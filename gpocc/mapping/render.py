@@ -159,3 +159,39 @@ def render_roc(
     ax.legend(loc="lower right")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
+
+
+def render_reliability(
+    path: str | os.PathLike[str],
+    curves: list[tuple[str, np.ndarray, np.ndarray, float, float]],
+    title: str = "Reliability",
+) -> None:
+    """Write a PNG reliability diagram (fraction occupied against mean p), atomically.
+
+    Args:
+        path: output ``.png``.
+        curves: ``(name, mean p (K,), fraction occupied (K,), brier, ece)`` per method,
+            one point per non-empty probability bin; the legend shows Brier and ECE.
+        title: plot title.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.0, 6.0), dpi=150, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    ax.plot([0.0, 1.0], [0.0, 1.0], linestyle="--", color="0.6", linewidth=1.0,
+            label="perfectly calibrated")
+    for name, mean_p, fraction, brier, ece in curves:
+        ax.plot(np.asarray(mean_p), np.asarray(fraction), marker="o", linewidth=1.6,
+                label=f"{name} (Brier {brier:.3f}, ECE {ece:.3f})")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("mean predicted p(occupied) in bin")
+    ax.set_ylabel("fraction of points occupied")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper left")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")

@@ -55,7 +55,11 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     absorbs: with a noisy range the true surface may lie up to a few standard deviations
     before the measured hit, and a "free" sample there would be a wrong label. Their position
     error comes from the bearing and the pose alone. ``var_b`` is
-    ``bearing_variance_rad2`` for both.
+    ``bearing_variance_rad2`` for both. With ``samples.free_range_variance`` the free
+    samples of a beam that hit get ``var_r = range_variance_m2`` as well: where free
+    space ends along that beam is as uncertain as its reading, and a noisy sensor's hits
+    would otherwise lose kernel amplitude to their input noise while its free samples,
+    exact-looking, keep theirs and erode its obstacles.
 
     Sensor settings and pose covariance: :func:`gpocc.samples.beam.sensor_config` and
     :func:`gpocc.samples.beam.pose_covariances` (the batch's per-scan covariances when it
@@ -269,6 +273,10 @@ def _batch_samples(
         mean[:, 2:] = poses[scan_local]
         var_r = np.zeros(n)
         var_r[:n_hit] = var_r_hit
+        if cfg.free_range_variance:
+            # Free samples of beams that hit carry the beam's range variance too.
+            beam_hit = is_hit[free_scan + s0, free_beam]
+            var_r[n_hit:] = np.where(beam_hit, var_r_hit, 0.0)
         cov = np.zeros((n, 5, 5))
         cov[:, 0, 0] = var_r
         cov[:, 1, 1] = sd_b**2
