@@ -415,9 +415,8 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen"
 
 
 @pytest.mark.slow
-def test_intel_grid_is_fast_and_counts_every_hit():
-    import time
-
+def test_intel_grid_counts_every_hit():
+    # Its speed is measured in bench/ (docs/benchmarks.md), not asserted here.
     from gpocc.io.inputs import read_inputs
 
     path = DATA / "intel.gfs.log"
@@ -425,11 +424,8 @@ def test_intel_grid_is_fast_and_counts_every_hit():
         pytest.skip(f"real data absent: {path}")
     cfg = Config()
     (batch,) = read_inputs([path], cfg)
-    started = time.perf_counter()
     spec = default_grid_spec([batch], cfg, 0.1)
     g = occupancy_grid([batch], cfg, spec)
-    seconds = time.perf_counter() - started
-    assert seconds < 15.0  # a few seconds on one core; generous for slow CI machines
     r = batch.ranges
     with np.errstate(invalid="ignore"):
         n_hits = int((np.isfinite(r) & (r >= batch.range_min) & (r < batch.range_max)).sum())
