@@ -191,12 +191,12 @@ def test_out_under_a_regular_file_is_one_line(model_path, tmp_path):
 def test_a_write_failure_is_one_line_and_leaves_nothing(model_path, tmp_path, monkeypatch, err):
     # A full disk or a read-only folder cannot be made portably as root in a container,
     # so the GeoTIFF writer fails the way the OS would.
-    import gpocc.mapping.mapper as mapper
+    import gpocc.mapping.folder as folder
 
     def full(path, *args, **kwargs):
         raise OSError(err, os.strerror(err))
 
-    monkeypatch.setattr(mapper, "write_geotiff", full)
+    monkeypatch.setattr(folder, "write_geotiff", full)
     out = tmp_path / "map"
     result = runner.invoke(app, ["map", str(model_path), "--resolution", "0.3",
                                  "--workers", "1", "--out", str(out)])
