@@ -341,14 +341,17 @@ def run_loop(work: Path) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("what", nargs="*", default=["sim", "real", "loop"],
-                        choices=["sim", "real", "loop", "reclassify", "report"])
+    steps = ("sim", "real", "loop", "reclassify", "report")
+    # No default list here: argparse would check the whole list against the choices.
+    parser.add_argument("what", nargs="*", choices=steps,
+                        help="steps to run (default: sim real loop)")
     parser.add_argument("--work", type=Path, default=ROOT / "out" / "experiment")
     parser.add_argument("--variant", default="published", choices=list(VARIANTS))
     parser.add_argument("--worlds", nargs="*", default=list(WORLDS))
     parser.add_argument("--logs", nargs="*", default=list(REAL_LOGS))
     parser.add_argument("--seed", type=int, default=0, help="noise seed of worlds and logs")
     args = parser.parse_args()
+    args.what = args.what or ["sim", "real", "loop"]
     args.work.mkdir(parents=True, exist_ok=True)
     cases: list[dict] = []
     if "sim" in args.what:
