@@ -39,6 +39,7 @@ from gpocc.io.laserpose import namespace
 from gpocc.io.poses import POSE_TYPES, XY_YAW, PoseCollector
 from gpocc.io.scans import ScanBatch
 from gpocc.io.tf import TF_TYPES, TfBuffer, TfCollector, frame_name, merge_buffers
+from gpocc.io.timeline import blend_poses, brackets
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 #: ``pose_topic`` value meaning: positions from TF only, covariance from the config.
@@ -253,24 +254,10 @@ def interpolate_poses(
         ``(poses (S, 3), covariances (S, 3, 3), valid (S,) bool)``; rows where ``valid``
         is False hold the nearest pose and are to be dropped.
     """
-    n = pose_stamps.shape[0]
-    right = np.searchsorted(pose_stamps, stamps, side="right")
-    i0 = np.clip(right - 1, 0, n - 1)
-    i1 = np.clip(right, 0, n - 1)
-    exact = (right > 0) & (pose_stamps[i0] == stamps)
-    i1 = np.where(exact, i0, i1)
-    gap = pose_stamps[i1] - pose_stamps[i0]
-    inside = (right > 0) & (right < n)
-    valid = exact | (inside & (gap <= max_gap_s))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(gap > 0, (stamps - pose_stamps[i0]) / np.where(gap > 0, gap, 1.0), 0.0)
-    w = np.clip(w, 0.0, 1.0)
-    p0, p1 = poses[i0], poses[i1]
-    dyaw = np.angle(np.exp(1j * (p1[:, 2] - p0[:, 2])))
-    out = p0 + w[:, None] * (p1 - p0)
-    out[:, 2] = np.angle(np.exp(1j * (p0[:, 2] + w * dyaw)))
-    cov = (1.0 - w)[:, None, None] * covariances[i0] + w[:, None, None] * covariances[i1]
-    return out, cov, valid
+    at = brackets(pose_stamps, stamps, max_gap_s)
+    w = at.weight[:, None, None]
+    cov = (1.0 - w) * covariances[at.before] + w * covariances[at.after]
+    return blend_poses(poses, at), cov, at.served
 
 
 def check_topics(path: Path, contents: BagContents, sensor: SensorConfig) -> None:

@@ -37,6 +37,7 @@ from gpocc.io.poses import (
 )
 from gpocc.io.scans import Provenance, ScanBatch
 from gpocc.io.tf import Chain, TfBuffer
+from gpocc.io.timeline import blend_poses, brackets
 from gpocc.progress import log
 
 #: A sensor losing more than this share of its scans gets a warning.
@@ -178,22 +179,8 @@ def interpolate_poses(
     A stamp is served when it equals a pose stamp, or lies between two poses at most
     ``max_gap_s`` apart. Returns ``(poses (S, 3), valid (S,) bool)``.
     """
-    n = pose_stamps.shape[0]
-    right = np.searchsorted(pose_stamps, stamps, side="right")
-    i0 = np.clip(right - 1, 0, n - 1)
-    i1 = np.clip(right, 0, n - 1)
-    exact = (right > 0) & (pose_stamps[i0] == stamps)
-    i1 = np.where(exact, i0, i1)
-    gap = pose_stamps[i1] - pose_stamps[i0]
-    valid = exact | ((right > 0) & (right < n) & (gap <= max_gap_s))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(gap > 0, (stamps - pose_stamps[i0]) / np.where(gap > 0, gap, 1.0), 0.0)
-    w = np.clip(w, 0.0, 1.0)
-    p0, p1 = poses[i0], poses[i1]
-    dyaw = np.angle(np.exp(1j * (p1[:, 2] - p0[:, 2])))
-    out = p0 + w[:, None] * (p1 - p0)
-    out[:, 2] = np.angle(np.exp(1j * (p0[:, 2] + w * dyaw)))
-    return out, valid
+    at = brackets(pose_stamps, stamps, max_gap_s)
+    return blend_poses(poses, at), at.served
 
 
 def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:

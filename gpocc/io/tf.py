@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from gpocc.errors import GpoccError
+from gpocc.io.timeline import brackets
 
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 
@@ -149,22 +150,11 @@ class Edge:
         if self.static:
             return (np.broadcast_to(self.translations[0], (s, 3)).copy(),
                     np.broadcast_to(self.quaternions[0], (s, 4)).copy(), np.ones(s, bool))
-        t = self.stamps
-        n = t.shape[0]
-        right = np.searchsorted(t, stamps, side="right")
-        i0 = np.clip(right - 1, 0, n - 1)
-        i1 = np.clip(right, 0, n - 1)
-        exact = (right > 0) & (t[i0] == stamps)
-        i1 = np.where(exact, i0, i1)
-        gap = t[i1] - t[i0]
-        valid = exact | ((right > 0) & (right < n) & (gap <= max_gap_s))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = np.where(gap > 0, (stamps - t[i0]) / np.where(gap > 0, gap, 1.0), 0.0)
-        w = np.clip(w, 0.0, 1.0)
-        trans = self.translations[i0] + w[:, None] * (self.translations[i1] -
-                                                     self.translations[i0])
-        quats = quat_slerp(self.quaternions[i0], self.quaternions[i1], w)
-        return trans, quats, valid
+        at = brackets(self.stamps, stamps, max_gap_s)
+        t0, t1 = self.translations[at.before], self.translations[at.after]
+        trans = t0 + at.weight[:, None] * (t1 - t0)
+        quats = quat_slerp(self.quaternions[at.before], self.quaternions[at.after], at.weight)
+        return trans, quats, at.served
 
 
 @dataclass(frozen=True)
