@@ -22,6 +22,7 @@ from gpocc.config import Config, ModelConfig, TrainingConfig
 from gpocc.gp.model import build_model, save_model
 from gpocc.io.bags import write_bag
 from gpocc.io.scans import ScanBatch
+from gpocc.samples.coverage import sample_coverage
 from gpocc.samples.sampleset import SampleSet
 
 
@@ -53,8 +54,10 @@ def _batch(ranges: float, range_max: float) -> ScanBatch:
 def corpus(tmp_path_factory) -> Path:
     """The inputs the cases refer to by name."""
     root = tmp_path_factory.mktemp("corpus")
-    model = build_model(_room(), Config(model=ModelConfig(
-        neighbours=40, training=TrainingConfig(learn=False, patches=1, patch_size=30))))
+    room = _room()
+    model = build_model(room, Config(model=ModelConfig(
+        neighbours=40, training=TrainingConfig(learn=False, patches=1, patch_size=30))),
+        coverage=sample_coverage(room.means))
     save_model(model, root / "good.npz")
     write_bag(root / "far.mcap", [_batch(1e6, 1e7)], [("/scan", "/pose")], "mcap")
     write_bag(root / "huge.mcap", [_batch(1e20, 1e30)], [("/scan", "/pose")], "mcap")
@@ -110,6 +113,12 @@ TAMPERING: dict[str, Callable[[dict, dict], None]] = {
     "text_labels": _arrays(lambda a: a.update(labels=np.array(["x"] * len(a["labels"])))),
     "missing_array": _arrays(lambda a: a.pop("pose_factors")),
     "huge_extent": _arrays(lambda a: a.update(means=a["means"] * 5e6)),
+    # The coverage raster behind the nodata mask is model data like any other.
+    "coverage_nan_cell": _set("coverage.cell_m", math.nan),
+    "coverage_negative_cell": _set("coverage.cell_m", -0.2),
+    "coverage_huge_shape": _set("coverage.shape", [100000, 100000]),
+    "coverage_truncated_bits": _arrays(lambda a: a.update(coverage=a["coverage"][:1])),
+    "coverage_bits_missing": _arrays(lambda a: a.pop("coverage")),
 }
 
 # (case id, argv with {root} placeholders, what the error line must name (parts separated

@@ -23,7 +23,7 @@ from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier, fit_classifier
 from gpocc.gp.kernels import Kernel, make_kernel
-from gpocc.gp.modelfile import validate_contents
+from gpocc.gp.modelfile import validate_contents, validate_coverage
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_output_file
 from gpocc.samples.coverage import Coverage
@@ -179,19 +179,5 @@ def load_model(path: str | Path) -> GPModel:
         classifier=parts.classifier, samples=parts.samples, config=parts.config,
         input_noise=parts.input_noise, training=parts.training, inputs=parts.inputs,
         versions=parts.versions,
-        coverage=_coverage(meta.get("coverage"), coverage_bits, p),
+        coverage=validate_coverage(meta.get("coverage"), coverage_bits, parts.config, p),
     )
-
-
-def _coverage(meta: dict | None, bits: np.ndarray | None, path: Path) -> Coverage | None:
-    """The stored coverage raster; None for files written before it existed."""
-    if meta is None or bits is None:
-        return None
-    try:
-        shape = tuple(int(v) for v in meta["shape"])
-        covered = np.unpackbits(bits, count=shape[0] * shape[1]).astype(bool).reshape(shape)
-        return Coverage(float(meta["x0"]), float(meta["y0"]), float(meta["cell_m"]),
-                        float(meta["step_m"]), covered)
-    except (KeyError, TypeError, ValueError):
-        raise GpoccError(f"{path}: corrupt coverage raster; re-create it with "
-                         "`gpocc train`") from None

@@ -20,6 +20,8 @@ from gpocc.config import Config, config_from_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier
 from gpocc.gp.kernels import Kernel, NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.limits import max_cells
+from gpocc.samples.coverage import Coverage
 from gpocc.samples.sampleset import SampleSet
 
 _KERNELS = {"nn": NeuralNetworkKernel, "se": SquaredExponentialKernel}
@@ -191,4 +193,48 @@ def validate_contents(meta: Any, arrays: dict[str, np.ndarray], path: str | Path
         # The embedded config or a kernel constructor: the fix is re-training, not a config.
         raise GpoccError(
             f"{path}: damaged model file ({exc}); re-create it with `gpocc train`"
+        ) from None
+
+
+def _coverage(meta: Any, bits: np.ndarray, limit: int) -> Coverage:
+    if not isinstance(meta, dict):
+        raise _Damaged("its coverage record is not a JSON object")
+    x0 = _finite_number(meta.get("x0"), "coverage x0")
+    y0 = _finite_number(meta.get("y0"), "coverage y0")
+    cell = _finite_number(meta.get("cell_m"), "coverage cell_m", positive=True)
+    step = _finite_number(meta.get("step_m"), "coverage step_m", positive=True)
+    shape = meta.get("shape")
+    if (not isinstance(shape, list) or len(shape) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0
+                       for v in shape)):
+        raise _Damaged(f"coverage shape is {shape!r}, not two non-negative whole numbers")
+    rows, cols = shape
+    if rows * cols > limit:
+        raise _Damaged(f"coverage raster of {rows} x {cols} cells is over the cell limit")
+    if bits.dtype != np.uint8 or bits.ndim != 1 or bits.size != -(-rows * cols // 8):
+        raise _Damaged(f"coverage bits have dtype {bits.dtype} and shape {bits.shape}, "
+                       f"not {-(-rows * cols // 8)} bytes for {rows} x {cols} cells")
+    covered = np.unpackbits(bits, count=rows * cols).astype(bool).reshape(rows, cols)
+    return Coverage(x0, y0, cell, step, covered)
+
+
+def validate_coverage(meta: Any, bits: np.ndarray | None, config: Config,
+                      path: str | Path) -> Coverage | None:
+    """The model file's coverage raster (cells the training beams crossed), checked.
+
+    None when the file has none (files written before it existed): maps then fall back
+    to the cells holding training samples.
+
+    Raises:
+        GpoccError: naming ``path`` and what is wrong, and saying to re-train.
+    """
+    if meta is None and bits is None:
+        return None
+    try:
+        if meta is None or bits is None:
+            raise _Damaged("it holds half of a coverage raster (record or bits missing)")
+        return _coverage(meta, bits, max_cells(config.map.max_cells))
+    except _Damaged as exc:
+        raise GpoccError(
+            f"{path}: damaged model file: {exc}; re-create it with `gpocc train`"
         ) from None
