@@ -445,8 +445,8 @@ def load_config(path: str | Path | None) -> Config:
     try:
         data = yaml.safe_load(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, ValueError):
-        raise GpoccError(f"{p}: not a text (UTF-8) YAML file; pass the YAML job config "
-                         "with --config") from None
+        raise GpoccError(f"{p}: not a text (UTF-8) YAML file; give the job's "
+                         "YAML config") from None
     except OSError as exc:
         raise GpoccError(f"{p}: cannot read the config ({exc.strerror or exc}); check "
                          "its permissions") from None

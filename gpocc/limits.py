@@ -45,11 +45,13 @@ def max_cells(configured: int | None = None) -> int:
 
 
 def check_cells(width: float, height: float, resolution: float, limit: int, what: str,
-                fix: str = "use a coarser --resolution or smaller --bounds") -> None:
+                fix: str = "use a coarser resolution or smaller bounds",
+                configurable: bool = True) -> None:
     """Refuse a ``width`` x ``height`` raster of ``what`` above ``limit`` cells.
 
     ``width`` and ``height`` may be floats (a size computed before any rounding), so a
-    request too large for an integer is refused the same way.
+    request too large for an integer is refused the same way. ``configurable``: the
+    limit came from a config the user can edit (not one embedded in a model file).
     """
     cells = float(width) * float(height)
     if math.isfinite(cells) and cells <= limit:
@@ -58,8 +60,9 @@ def check_cells(width: float, height: float, resolution: float, limit: int, what
             else "more cells than can be counted")
     raise GpoccError(
         f"{what} at {resolution:g} m would be {size}, more than the limit of {limit:.3g} "
-        f"(about {17 * limit / 1e9:.1f} GB); {fix}, or raise map.max_cells in the config "
-        f"(or {ENV_MAX_CELLS})"
+        f"(about {17 * limit / 1e9:.1f} GB); {fix}, or raise "
+        + (f"map.max_cells in the config (or {ENV_MAX_CELLS})" if configurable
+           else f"the limit with the environment variable {ENV_MAX_CELLS}")
     )
 
 

@@ -11,6 +11,11 @@ import gpocc
 
 
 def software_versions() -> dict[str, str]:
-    """Versions of gpocc, numpy, scipy and Python, by name."""
+    """Versions of gpocc, numpy, scipy, numba (the expected kernels), rasterio and GDAL
+    (every GeoTIFF byte) and Python, by name."""
+    import numba
+    import rasterio
+
     return {"gpocc": gpocc.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
-            "python": platform.python_version()}
+            "numba": numba.__version__, "rasterio": rasterio.__version__,
+            "gdal": rasterio.__gdal_version__, "python": platform.python_version()}

@@ -269,7 +269,7 @@ def test_map_server_size_limit_is_an_explicit_error(model_path, tmp_path):
     out = tmp_path / "lim"
     result = runner.invoke(app, ["map", str(path), "--resolution", "0.1", "--out", str(out)])
     assert result.exit_code != 0
-    assert "map.max_pgm_pixels" in result.output and "--resolution" in result.output
+    assert "map.max_pgm_pixels" in result.output and "coarser resolution" in result.output
     assert not out.exists()
     run_map(path, out, "--resolution", "0.2", "--bounds", "-2.4", "-1.7", "2.4", "1.8")
 

@@ -40,7 +40,8 @@ def grid_command(
     n_scans = sum(b.n_scans for b in batches)
     log(f"read {n_scans} scans from {len(inputs)} input(s)")
     spec = default_grid_spec(batches, cfg, res, bounds)
-    check_cells(spec.width, spec.height, res, max_cells(cfg.map.max_cells), "the grid")
+    check_cells(spec.width, spec.height, res, max_cells(cfg.map.max_cells), "the grid",
+                fix="use a coarser --resolution or smaller --bounds")
     check_map_server_size(spec, cfg.map.max_pgm_pixels)  # before any work
     log(f"grid: {spec.width} x {spec.height} cells at {res} m")
     t0 = time.perf_counter()

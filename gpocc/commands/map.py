@@ -45,8 +45,10 @@ def map_command(
         spec = GridSpec.from_bounds(*bounds, resolution)
     else:
         spec = default_spec(model, resolution, model.config.map.margin_m)
+    # The model's embedded config is not the user's to edit here: name the variable.
     check_cells(spec.width, spec.height, resolution,
-                max_cells(model.config.map.max_cells), f"the map of {model_path}")
+                max_cells(model.config.map.max_cells), f"the map of {model_path}",
+                fix="use a coarser --resolution or smaller --bounds", configurable=False)
     n_workers = workers or default_workers()
     cells = block_cells(model.config.model.block_size_m, resolution)
     total = len(plan_blocks(spec, cells))

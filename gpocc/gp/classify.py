@@ -98,7 +98,7 @@ def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProble
 
 
 def holdout_predictions(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
-                        level: int, holdout: str = "scan",
+                        level: int, holdout: str = "sample",
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Held-out latent means, variances and labels (concatenated over ``patches``)."""
     if holdout not in HOLDOUTS:

@@ -44,7 +44,6 @@ class GPModel:
     ``sensor_names`` name the sensors they came from. ``versions``: the software that
     trained the model (:func:`gpocc.versions.software_versions`). ``training``: the
     learning's record (likelihoods, evaluations, patches, ``timings_s``).
-    covariances are zero (the baseline GP), so prediction code needs no switch.
     ``coverage``: the cells the training beams crossed (None for models built from
     samples alone); maps are nodata far from it.
     """

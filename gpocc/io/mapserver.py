@@ -78,7 +78,7 @@ def check_map_server_size(spec: GridSpec, max_pixels: int | None) -> None:
     if max_pixels is not None and max(spec.width, spec.height) > max_pixels:
         raise GpoccError(
             f"map.pgm would be {spec.width} x {spec.height} pixels, over map.max_pgm_pixels "
-            f"= {max_pixels}; use a coarser --resolution or smaller --bounds, or raise or "
+            f"= {max_pixels}; use a coarser resolution or smaller bounds, or raise or "
             f"remove map.max_pgm_pixels"
         )
 
