@@ -25,10 +25,6 @@ def set_verbosity(level: int) -> None:
     _verbosity = level
 
 
-def verbosity() -> int:
-    return _verbosity
-
-
 def log(message: str) -> None:
     """One progress/log line on stderr (not when quiet)."""
     if _verbosity >= NORMAL:

@@ -90,9 +90,8 @@ def test_world_cast_takes_the_nearest_obstacle():
 # --------------------------------------------------------------------------- worlds, routes
 
 
-@pytest.mark.parametrize("name", WORLD_NAMES)
-def test_routes_stay_in_free_space(name):
-    world = make_world(name)
+def _assert_routes_clear(world) -> None:
+    """Every route stays 0.4 m from obstacles and inside the world's bounds."""
     x0, y0, x1, y1 = world.bounds
     for route in world.routes:
         legs = [a + np.linspace(0, 1, 200)[:, None] * (b - a)
@@ -100,6 +99,12 @@ def test_routes_stay_in_free_space(name):
         pts = np.concatenate(legs)
         assert world.clearance(pts).min() >= 0.4
         assert np.all((pts > [x0, y0]) & (pts < [x1, y1]))
+
+
+@pytest.mark.parametrize("name", WORLD_NAMES)
+def test_routes_stay_in_free_space(name):
+    world = make_world(name)
+    _assert_routes_clear(world)
 
 
 def test_route_poses_are_evenly_spaced_along_the_route():
@@ -300,13 +305,7 @@ def test_simulate_command_unknown_world(tmp_path: Path):
 def test_grown_worlds_keep_routes_in_free_space_and_differ(seed):
     world = make_world(f"grown-{seed}")
     assert world.name == f"grown-{seed}"
-    x0, y0, x1, y1 = world.bounds
-    for route in world.routes:
-        legs = [a + np.linspace(0, 1, 200)[:, None] * (b - a)
-                for a, b in zip(route[:-1], route[1:], strict=True)]
-        pts = np.concatenate(legs)
-        assert world.clearance(pts).min() >= 0.4
-        assert np.all((pts > [x0, y0]) & (pts < [x1, y1]))
+    _assert_routes_clear(world)
     again = make_world(f"grown-{seed}")
     np.testing.assert_array_equal(world.segments, again.segments)
     other = make_world(f"grown-{seed + 100}")

@@ -126,6 +126,38 @@ def _variance_range(v: np.ndarray) -> tuple[float, float]:
     return lo, hi
 
 
+def _write_unit_square_plot(
+    path: str | os.PathLike[str],
+    lines: list[tuple[np.ndarray, np.ndarray, str]],
+    diagonal_label: str,
+    axis_labels: tuple[str, str],
+    title: str,
+    legend_loc: str,
+    marker: str | None = None,
+) -> None:
+    """A square [0, 1]^2 plot of ``(x, y, label)`` lines over the dashed diagonal, as PNG."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.0, 6.0), dpi=150, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    ax.plot([0.0, 1.0], [0.0, 1.0], linestyle="--", color="0.6", linewidth=1.0,
+            label=diagonal_label)
+    for x, y, label in lines:
+        ax.plot(np.asarray(x), np.asarray(y), marker=marker, linewidth=1.6, label=label)
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.set_aspect("equal")
+    ax.set_xlabel(axis_labels[0])
+    ax.set_ylabel(axis_labels[1])
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc=legend_loc)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+
+
 def render_roc(
     path: str | os.PathLike[str],
     curves: list[tuple[str, np.ndarray, np.ndarray, float]],
@@ -138,27 +170,10 @@ def render_roc(
         curves: ``(name, fpr (T,), tpr (T,), auc)`` per method; the legend shows the AUC.
         title: plot title.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(6.0, 6.0), dpi=150, layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.subplots()
-    ax.plot([0.0, 1.0], [0.0, 1.0], linestyle="--", color="0.6", linewidth=1.0,
-            label="no discrimination")
-    for name, fpr, tpr, auc in curves:
-        ax.plot(np.asarray(fpr), np.asarray(tpr), linewidth=1.6,
-                label=f"{name} (AUC = {auc:.3f})")
-    ax.set_xlim(0.0, 1.0)
-    ax.set_ylim(0.0, 1.0)
-    ax.set_aspect("equal")
-    ax.set_xlabel("false positive rate")
-    ax.set_ylabel("true positive rate")
-    ax.set_title(title)
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="lower right")
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    _write_unit_square_plot(
+        path, [(fpr, tpr, f"{name} (AUC = {auc:.3f})") for name, fpr, tpr, auc in curves],
+        "no discrimination", ("false positive rate", "true positive rate"), title,
+        "lower right")
 
 
 def render_reliability(
@@ -174,24 +189,9 @@ def render_reliability(
             one point per non-empty probability bin; the legend shows Brier and ECE.
         title: plot title.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(6.0, 6.0), dpi=150, layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.subplots()
-    ax.plot([0.0, 1.0], [0.0, 1.0], linestyle="--", color="0.6", linewidth=1.0,
-            label="perfectly calibrated")
-    for name, mean_p, fraction, brier, ece in curves:
-        ax.plot(np.asarray(mean_p), np.asarray(fraction), marker="o", linewidth=1.6,
-                label=f"{name} (Brier {brier:.3f}, ECE {ece:.3f})")
-    ax.set_xlim(0.0, 1.0)
-    ax.set_ylim(0.0, 1.0)
-    ax.set_aspect("equal")
-    ax.set_xlabel("mean predicted p(occupied) in bin")
-    ax.set_ylabel("fraction of points occupied")
-    ax.set_title(title)
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="upper left")
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    _write_unit_square_plot(
+        path, [(mean_p, fraction, f"{name} (Brier {brier:.3f}, ECE {ece:.3f})")
+               for name, mean_p, fraction, brier, ece in curves],
+        "perfectly calibrated",
+        ("mean predicted p(occupied) in bin", "fraction of points occupied"), title,
+        "upper left", marker="o")

@@ -24,6 +24,7 @@ import numpy as np
 
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
+from gpocc.io.poses import move_covariances
 from gpocc.io.scans import ScanBatch
 
 
@@ -119,10 +120,8 @@ def laser_pose_covariances(poses: np.ndarray, covariances: np.ndarray,
     poses = np.asarray(poses, dtype=float)
     mx, my, _ = (float(v) for v in np.asarray(mount, dtype=float))
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    jac = np.broadcast_to(np.eye(3), (len(poses), 3, 3)).copy()
-    jac[:, 0, 2] = -s * mx - c * my
-    jac[:, 1, 2] = c * mx - s * my
-    return jac @ np.asarray(covariances, dtype=float) @ np.swapaxes(jac, -1, -2)
+    lever = np.column_stack([c * mx - s * my, s * mx + c * my])  # R(yaw) (mx, my)
+    return move_covariances(np.asarray(covariances, dtype=float), lever)
 
 
 def beam_points(lasers: np.ndarray, bearings: np.ndarray, distances: np.ndarray) -> np.ndarray:
