@@ -329,33 +329,51 @@ def _prepare(target: Path) -> None:
 
 
 @contextlib.contextmanager
+def _claimed_temporary(path: str | os.PathLike[str], force: bool, folder: bool
+                       ) -> Iterator[Path]:
+    """Claim ``path``, yield a temporary file or folder beside it, install it on success.
+
+    The temporary is removed on any exit; the claim is released.
+    """
+    target = Path(path)
+    _prepare(target)
+    try:
+        _refuse_existing(target, force, folder=folder)
+        prefix = f".{target.name}{_TMP}{os.getpid()}-"
+        try:
+            if folder:
+                tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=target.parent))
+            else:
+                fd, tmp_name = tempfile.mkstemp(prefix=prefix, suffix=target.suffix or ".tmp",
+                                                dir=target.parent)
+                os.close(fd)
+                tmp = Path(tmp_name)
+        except OSError as exc:
+            raise _write_error(target, exc) from None
+        try:
+            yield tmp
+            os.chmod(tmp, (0o777 if folder else 0o666) & ~_umask())
+            _install(tmp, target, force)
+        except OSError as exc:
+            raise _write_error(target, exc) from None
+        finally:
+            if folder:
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                tmp.unlink(missing_ok=True)
+    finally:
+        release_claim(target)
+
+
+@contextlib.contextmanager
 def atomic_output_file(path: str | os.PathLike[str], force: bool = False) -> Iterator[Path]:
     """Yield a temporary file beside top-level output ``path``; install it on success.
 
     The claim, ``force`` rule and no-replace rename of the module docstring apply. The
     temporary keeps the suffix, so libraries choosing a format by extension still work.
     """
-    target = Path(path)
-    _prepare(target)
-    try:
-        _refuse_existing(target, force, folder=False)
-        try:
-            fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}{_TMP}{os.getpid()}-",
-                                            suffix=target.suffix or ".tmp", dir=target.parent)
-        except OSError as exc:
-            raise _write_error(target, exc) from None
-        os.close(fd)
-        tmp = Path(tmp_name)
-        try:
-            yield tmp
-            os.chmod(tmp, 0o666 & ~_umask())
-            _install(tmp, target, force)
-        except OSError as exc:
-            raise _write_error(target, exc) from None
-        finally:
-            tmp.unlink(missing_ok=True)
-    finally:
-        release_claim(target)
+    with _claimed_temporary(path, force, folder=False) as tmp:
+        yield tmp
 
 
 @contextlib.contextmanager
@@ -390,22 +408,5 @@ def atomic_directory(path: str | os.PathLike[str], force: bool = False) -> Itera
     An existing ``path`` is refused unless ``force`` and it is a gpocc output; it is
     replaced only after the new folder is complete, so a failure leaves it untouched.
     """
-    target = Path(path)
-    _prepare(target)
-    try:
-        _refuse_existing(target, force, folder=True)
-        try:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}{_TMP}{os.getpid()}-",
-                                        dir=target.parent))
-        except OSError as exc:
-            raise _write_error(target, exc) from None
-        try:
-            yield tmp
-            os.chmod(tmp, 0o777 & ~_umask())
-            _install(tmp, target, force)
-        except OSError as exc:
-            raise _write_error(target, exc) from None
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-    finally:
-        release_claim(target)
+    with _claimed_temporary(path, force, folder=True) as tmp:
+        yield tmp
