@@ -49,6 +49,44 @@ def test_likelihood_gradient_matches_finite_differences():
         assert grad[i] == pytest.approx((plus - minus) / 2e-5, rel=1e-4, abs=1e-5)
 
 
+def _correlated_problem():
+    rng = np.random.default_rng(0)
+    n = 300
+    means = rng.uniform(-3, 3, (n, 2))
+    covs = np.einsum("n,ij->nij", rng.uniform(0.001, 0.02, n), np.eye(2))
+    labels = np.where(rng.random(n) < 0.3, 1.0, -1.0)
+    return samples_from(means, labels, covs, rng.integers(0, 20, n),
+                        rng.normal(0, 0.03, (n, 2, 3)))
+
+
+def test_value_only_path_and_threads_give_the_same_likelihood():
+    from concurrent.futures import ThreadPoolExecutor
+
+    patches = make_patches(_correlated_problem(), TrainingConfig(patches=4, patch_size=40),
+                           seed=1)
+    kernel = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
+    x = np.append(kernel.theta, math.log(0.2))
+    value, grad = negative_log_likelihood(x, kernel, patches, 2)
+    value_only, zeros = negative_log_likelihood(x, kernel, patches, 2, with_gradient=False)
+    assert value_only == pytest.approx(value, rel=1e-12)
+    assert not zeros.any()
+    with ThreadPoolExecutor(2) as pool:
+        threaded, threaded_grad = negative_log_likelihood(x, kernel, patches, 2, executor=pool)
+    assert threaded == value
+    np.testing.assert_array_equal(threaded_grad, grad)
+
+
+def test_learned_hyperparameters_do_not_depend_on_the_thread_count():
+    samples = _correlated_problem()
+    config = TrainingConfig(patches=3, patch_size=40, anneal_maxfun=8, lbfgs_maxiter=5)
+    start = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
+    one = learn_hyperparameters(start, 0.2, samples, 2, config, seed=0, threads=1)
+    two = learn_hyperparameters(start, 0.2, samples, 2, config, seed=0, threads=2)
+    np.testing.assert_array_equal(one.kernel.theta, two.kernel.theta)
+    assert one.noise_variance == two.noise_variance
+    assert one.log_marginal_likelihood == two.log_marginal_likelihood
+
+
 def test_recovers_known_hyperparameters():
     """Draw labels from a GP with known SE hyperparameters and learn them back."""
     rng = np.random.default_rng(42)

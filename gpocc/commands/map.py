@@ -13,9 +13,9 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.blocks import block_cells, plan_blocks
-from gpocc.mapping.executors import default_workers
 from gpocc.mapping.folder import write_metadata
 from gpocc.mapping.mapper import default_spec, make_map, map_metadata
+from gpocc.parallel import default_workers
 from gpocc.progress import debug, log, progress_bar
 
 

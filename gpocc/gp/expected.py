@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -230,8 +231,10 @@ def _nparams(kernel: Kernel) -> int:
 # Node sets never depend on the hyperparameters, and training evaluates the same patches a
 # hundred times: the last few node sets are kept, keyed by a digest of their inputs (a hash
 # of a few kB, microseconds). Mapping never repeats a problem; it only pays the digest.
+# Training evaluates its patches on threads, hence the lock (held for look-ups, not builds).
 _NODE_CACHE: OrderedDict[bytes, object] = OrderedDict()
-_NODE_CACHE_ENTRIES = 24
+_NODE_CACHE_ENTRIES = 48
+_NODE_CACHE_LOCK = threading.Lock()
 
 
 def _cached(kind: str, build, *arrays: np.ndarray):
@@ -241,17 +244,19 @@ def _cached(kind: str, build, *arrays: np.ndarray):
         digest.update(str((a.dtype.str, a.shape)).encode())
         digest.update(a.data)
     key = digest.digest()
-    hit = _NODE_CACHE.get(key)
-    if hit is not None:
-        _NODE_CACHE.move_to_end(key)
-        return hit
+    with _NODE_CACHE_LOCK:
+        hit = _NODE_CACHE.get(key)
+        if hit is not None:
+            _NODE_CACHE.move_to_end(key)
+            return hit
     value = build()
     for a in vars(value).values() if isinstance(value, _Expansion) else (value,):
         if isinstance(a, np.ndarray):
             a.setflags(write=False)  # shared between calls: nobody may change it
-    _NODE_CACHE[key] = value
-    while len(_NODE_CACHE) > _NODE_CACHE_ENTRIES:
-        _NODE_CACHE.popitem(last=False)
+    with _NODE_CACHE_LOCK:
+        _NODE_CACHE[key] = value
+        while len(_NODE_CACHE) > _NODE_CACHE_ENTRIES:
+            _NODE_CACHE.popitem(last=False)
     return value
 
 

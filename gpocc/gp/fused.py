@@ -29,7 +29,8 @@ import numba
 import numpy as np
 
 # ``error_model="numpy"``: no ZeroDivisionError checks, which would stop vectorisation.
-_jit = numba.njit(cache=True, error_model="numpy")
+# ``nogil``: training evaluates its patches on threads.
+_jit = numba.njit(cache=True, error_model="numpy", nogil=True)
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")
 
 # fdlibm e_asin.c coefficients: asin(x) = x + x R(x^2) on [0, 0.5], R = P/Q.

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,7 @@ from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_matrix
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, NeighbourIndex, try_cholesky
+from gpocc.parallel import default_workers
 from gpocc.samples.sampleset import SampleSet
 
 _JITTER = 1e-8
@@ -80,33 +82,63 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
     return [index.problem(c, config.patch_size) for c in centres]
 
 
+def _patch_negative_log_likelihood(
+    kernel: Kernel, noise: float, patch: LocalProblem, level: int, with_gradient: bool
+) -> tuple[float, np.ndarray | None] | None:
+    """One patch's -LML and its gradient in log-parameters; None if K is not a covariance."""
+    s = patch.samples
+    if with_gradient:
+        cov, dcov = expected_kernel_matrix(
+            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
+            pose_factors=s.pose_factors, with_gradient=True,
+        )
+    else:
+        cov = expected_kernel_matrix(
+            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
+            pose_factors=s.pose_factors,
+        )
+    cov[np.diag_indices_from(cov)] += noise + _JITTER
+    chol = try_cholesky(cov, jitter=False)
+    if chol is None:
+        return None
+    alpha = cho_solve((chol, True), s.labels)
+    value = 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
+    if not with_gradient:
+        return float(value), None
+    inner = cho_solve((chol, True), np.eye(len(s))) - np.outer(alpha, alpha)
+    grad = np.empty(len(kernel.theta) + 1)
+    # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
+    grad[:-1] = 0.5 * np.einsum("ij,pij->p", inner, dcov)
+    grad[-1] = 0.5 * noise * np.trace(inner)
+    return float(value), grad
+
+
 def negative_log_likelihood(
-    params: np.ndarray, kernel, patches: list[LocalProblem], level: int
+    params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
+    with_gradient: bool = True, executor: Executor | None = None,
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
 
-    ``params`` = ``[kernel.theta..., log noise_variance]``.
+    ``params`` = ``[kernel.theta..., log noise_variance]``. Without ``with_gradient`` the
+    gradient is returned as zeros (and not computed: the global stage needs values only).
+    ``executor`` evaluates the patches concurrently (the compiled kernels and LAPACK
+    release the GIL); the sum is taken in patch order, so the result does not depend on it.
     """
     k = kernel.with_theta(params[:-1])
     noise = math.exp(params[-1])
+
+    def one(patch: LocalProblem) -> tuple[float, np.ndarray | None] | None:
+        return _patch_negative_log_likelihood(k, noise, patch, level, with_gradient)
+
+    terms = list(executor.map(one, patches)) if executor is not None else map(one, patches)
     value = 0.0
     grad = np.zeros_like(params)
-    for patch in patches:
-        s = patch.samples
-        cov, dcov = expected_kernel_matrix(
-            k, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, with_gradient=True,
-        )
-        cov[np.diag_indices_from(cov)] += noise + _JITTER
-        chol = try_cholesky(cov, jitter=False)
-        if chol is None:  # not a valid covariance: reject these hyperparameters
+    for term in terms:
+        if term is None:  # not a valid covariance: reject these hyperparameters
             return 1e10, np.zeros_like(params)
-        alpha = cho_solve((chol, True), s.labels)
-        value += 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
-        inner = cho_solve((chol, True), np.eye(len(s))) - np.outer(alpha, alpha)
-        # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
-        grad[:-1] += 0.5 * np.einsum("ij,pij->p", inner, dcov)
-        grad[-1] += 0.5 * noise * np.trace(inner)
+        value += term[0]
+        if term[1] is not None:
+            grad += term[1]
     return float(value), grad
 
 
@@ -114,20 +146,35 @@ def learn_hyperparameters(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
+    threads: int | None = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
+    ``threads`` (default: every usable core) evaluate the patches concurrently; the
+    result does not depend on their number.
     """
     patches = make_patches(samples, config, seed)
+    with ThreadPoolExecutor(max_workers=min(len(patches), threads or default_workers())) as pool:
 
-    def negative_log_likelihood_counted(
-        params: np.ndarray, *args: object
-    ) -> tuple[float, np.ndarray]:
-        result = negative_log_likelihood(params, *args)
-        if on_evaluation is not None:
-            on_evaluation(1)
-        return result
+        def negative_log_likelihood_counted(
+            params: np.ndarray, *args: object, with_gradient: bool = True
+        ) -> tuple[float, np.ndarray]:
+            result = negative_log_likelihood(params, *args, with_gradient=with_gradient,
+                                             executor=pool)
+            if on_evaluation is not None:
+                on_evaluation(1)
+            return result
+
+        return _optimise(kernel, noise_variance, patches, level, config, seed,
+                         negative_log_likelihood_counted)
+
+
+def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem], level: int,
+              config: TrainingConfig, seed: int,
+              negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
+              ) -> TrainingResult:
+    """Global annealing on values, then L-BFGS-B on values and gradients."""
 
     x0 = np.append(kernel.theta, math.log(noise_variance))
     initial, _ = negative_log_likelihood_counted(x0, kernel, patches, level)
@@ -142,7 +189,8 @@ def learn_hyperparameters(
     start = min(max(x0[-1], bounds[-1][0]), bounds[-1][1])
 
     def value_only(p: np.ndarray) -> float:
-        return negative_log_likelihood_counted(p, kernel, patches, level)[0]
+        return negative_log_likelihood_counted(p, kernel, patches, level,
+                                               with_gradient=False)[0]
 
     # Only a start below the noise floor moves; otherwise its value is already known.
     best_value = initial if start == x0[-1] else None

@@ -81,14 +81,6 @@ def _compute_in_worker(lattice: AnchorLattice, chunk: list[Anchor]) -> list[Anch
     return compute_chunk(_worker_state["process_model"], lattice, chunk)
 
 
-def default_workers() -> int:
-    """All cores this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
-
-
 def run_anchors(
     model: GPModel,
     lattice: AnchorLattice,
