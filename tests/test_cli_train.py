@@ -108,17 +108,16 @@ def test_intel_end_to_end_gp_beats_grid_on_held_out_scans(tmp_path):
 
 def test_two_robot_simulation_end_to_end(tmp_path):
     """simulate -> train (two sensors of different quality in one job) -> map -> evaluate."""
-    import yaml
 
     from gpocc.io.rasters import read_raster
 
     sim = tmp_path / "sim"
     invoke("simulate", "--out", sim, "--seed", "5")
-    config = yaml.safe_load((sim / "sim.yaml").read_text())
-    config["model"] = {"training": {"anneal_maxfun": 10, "lbfgs_maxiter": 10, "patches": 4}}
-    (tmp_path / "fast.yaml").write_text(yaml.safe_dump(config))
+    # The default training budget: a starved one (4 patches, 10 + 10 evaluations) learned
+    # hyperparameters that swung the AUC between 0.87 and 0.96 with which of two
+    # equally certain samples thinning kept.
     bounds = [f"{v}" for v in read_raster(sim / "truth.tif")[1].bounds]
-    invoke("train", sim / "sim.mcap", "--config", tmp_path / "fast.yaml", "--out",
+    invoke("train", sim / "sim.mcap", "--config", sim / "sim.yaml", "--out",
            tmp_path / "gp.npz")
     model = load_model(tmp_path / "gp.npz")
     assert set(model.samples.sensor_ids.tolist()) == {0, 1}

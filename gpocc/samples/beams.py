@@ -20,8 +20,9 @@ from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 from gpocc.limits import MAX_SAMPLES_PER_SCAN
 from gpocc.samples import beam
+from gpocc.samples.beam_unscented import beam_unscented
 from gpocc.samples.sampleset import SampleSet
-from gpocc.samples.unscented import matrix_sqrt, unscented_transform
+from gpocc.samples.unscented import matrix_sqrt
 
 #: Upper bound (approximately: whole scans are never split) on the samples pushed through
 #: one unscented-transform call; bounds peak memory to a few hundred MB.
@@ -172,8 +173,8 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     """Keep, per label and per square cell of side ``cell_m``, the most certain sample.
 
     Cells are ``floor(mean / cell_m)`` in the map frame. "Most certain" is the smallest
-    covariance trace; ties keep the earliest sample. The kept samples stay in their
-    original order. ``cell_m <= 0`` returns the samples unchanged.
+    covariance trace (to 7 significant digits); ties keep the earliest sample. The kept
+    samples stay in their original order. ``cell_m <= 0`` returns the samples unchanged.
 
     Args:
         samples: any sample set.
@@ -182,7 +183,11 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     if cell_m <= 0 or len(samples) == 0:
         return samples
     cells = np.floor(samples.means / cell_m).astype(np.int64)
-    trace = samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]
+    # Traces are compared in single precision (7 significant digits): samples of one scan
+    # at the same distance along different beams have mathematically equal traces, and
+    # round-off (which differs between code paths and BLAS builds) must not decide which
+    # of them is kept.
+    trace = (samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]).astype(np.float32)
     # lexsort is stable, so within one (label, cell) and trace the earliest sample leads.
     order = np.lexsort((trace, cells[:, 1], cells[:, 0], samples.labels))
     label_s = samples.labels[order]
@@ -249,9 +254,6 @@ def _batch_samples(
     sd_b = float(np.sqrt(sensor.bearing_variance_rad2))
     ut = cfg.unscented
 
-    def endpoint(inputs: np.ndarray) -> np.ndarray:
-        return beam.beam_endpoint(inputs, mount)
-
     for s0, s1 in zip(bounds[:-1], bounds[1:], strict=True):
         hit_scan, hit_beam = np.nonzero(is_hit[s0:s1])
         counts = n_free[s0:s1].ravel()
@@ -267,30 +269,19 @@ def _batch_samples(
         beam_local = np.concatenate((hit_beam, free_beam))
         dist = np.concatenate((ranges[hit_scan + s0, hit_beam], k * cfg.free_spacing_m))
 
-        mean = np.empty((n, 5))
-        mean[:, 0] = dist
-        mean[:, 1] = angles[beam_local]
-        mean[:, 2:] = poses[scan_local]
         var_r = np.zeros(n)
         var_r[:n_hit] = var_r_hit
         if cfg.free_range_variance:
             # Free samples of beams that hit carry the beam's range variance too.
             beam_hit = is_hit[free_scan + s0, free_beam]
             var_r[n_hit:] = np.where(beam_hit, var_r_hit, 0.0)
-        cov = np.zeros((n, 5, 5))
-        cov[:, 0, 0] = var_r
-        cov[:, 1, 1] = sd_b**2
-        cov[:, 2:, 2:] = pose_cov[scan_local]
-        # The input covariance is block diagonal, so its root is too; this keeps the pose
-        # sigma points along the columns of L (the A_i identity in build_samples' docstring).
-        root = np.zeros((n, 5, 5))
-        root[:, 0, 0] = np.sqrt(var_r)
-        root[:, 1, 1] = sd_b
-        root[:, 2:, 2:] = pose_root[scan_local]
-        y_mean, y_cov, cross = unscented_transform(
-            endpoint, mean, cov, ut.alpha, ut.beta, ut.kappa, sqrt_cov=root
+        # The compiled transform uses the block-diagonal root (range, bearing, then the
+        # pose's L) directly, which keeps the pose sigma points along the columns of L
+        # (the A_i identity in build_samples' docstring).
+        y_mean, y_cov, factors = beam_unscented(
+            dist, angles[beam_local], var_r, sd_b**2, scan_local, poses, pose_root,
+            pose_map, mount, ut.alpha, ut.beta, ut.kappa,
         )
-        factors = np.swapaxes(cross[:, 2:, :], -1, -2) @ pose_map[scan_local]
 
         labels = np.full(n, -1.0)
         labels[:n_hit] = 1.0
