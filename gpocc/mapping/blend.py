@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpocc.gridspec import GridSpec
-from gpocc.mapping.blocks import AnchorLattice, Block
+from gpocc.mapping.blocks import Anchor, AnchorLattice, Block
 from gpocc.mapping.executors import run_anchors
 from gpocc.mapping.support import Support
 
@@ -70,13 +70,17 @@ def predict_tile(
         er1 = min(spec.height, row0 + tile.rows + 2 * cells)
         ec1 = min(spec.width, col0 + tile.cols + 2 * cells)
         around = support.mask(spec.window(er0, ec0, er1 - er0, ec1 - ec0), cells)
-        keep = []
+        kept, skipped = [], []
         for anchor in anchors:
             fp, _ = lattice.footprint(anchor)
-            keep.append(bool(around[fp.row0 - er0:fp.row0 + fp.rows - er0,
-                                    fp.col0 - ec0:fp.col0 + fp.cols - ec0].any()))
-        skipped = [a for a, k in zip(anchors, keep, strict=True) if not k]
-        anchors = [a for a, k in zip(anchors, keep, strict=True) if k]
+            cells_inside = around[fp.row0 - er0:fp.row0 + fp.rows - er0,
+                                  fp.col0 - ec0:fp.col0 + fp.cols - ec0]
+            if cells_inside.any():
+                # Only supported cells are predicted: the others become nodata anyway.
+                kept.append(Anchor(anchor.row, anchor.col, inside=cells_inside.copy()))
+            else:
+                skipped.append(anchor)
+        anchors = kept
         inside = around[row0 - er0:row0 + tile.rows - er0, col0 - ec0:col0 + tile.cols - ec0]
         if progress:
             progress(sum(owned(a) for a in skipped))

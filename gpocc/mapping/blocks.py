@@ -12,7 +12,7 @@ the map's edges the weights are clamped, so edge cells keep full weight).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,10 +33,15 @@ class Block:
 
 @dataclass(frozen=True)
 class Anchor:
-    """Local problem (row, col) of a map's anchor lattice: centred on block (row, col)."""
+    """Local problem (row, col) of a map's anchor lattice: centred on block (row, col).
+
+    ``inside``: optional (rows, cols) bool over the anchor's footprint, the cells to
+    predict (the data's support); the others are left at zero and must not be used.
+    """
 
     row: int
     col: int
+    inside: np.ndarray | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -125,17 +130,25 @@ class AnchorLattice:
 
 def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice,
                    anchor: Anchor) -> AnchorResult:
-    """Predict every cell of ``anchor``'s footprint from the neighbours of its centre.
+    """Predict the cells of ``anchor``'s footprint (those in ``anchor.inside``, or all)
+    from the neighbours of its centre.
 
     The footprint never depends on how the map is tiled, so neither do the values.
     """
     block, weight = lattice.footprint(anchor)
     window = lattice.spec.window(block.row0, block.col0, block.rows, block.cols)
     xs, ys = window.cell_centres()
-    queries = np.column_stack([xs.ravel(), ys.ravel()])
+    shape = (block.rows, block.cols)
+    wanted = np.ones(shape, dtype=bool) if anchor.inside is None else anchor.inside
+    if wanted.shape != shape:
+        raise ValueError(f"anchor mask {wanted.shape} does not match its footprint {shape}")
+    queries = np.column_stack([xs[wanted], ys[wanted]])
     centre = lattice.centre(anchor)
     problem = index.problem(centre, model.config.model.neighbours)
     pred = predict_local(model.kernel, model.noise_variance, problem, queries, model.level)
-    shape = (block.rows, block.cols)
-    return AnchorResult(anchor, block, weight, pred.mean.reshape(shape),
-                        pred.variance.reshape(shape), pred.prior_variance.reshape(shape))
+    layers = []
+    for values in (pred.mean, pred.variance, pred.prior_variance):
+        layer = np.zeros(shape)
+        layer[wanted] = values
+        layers.append(layer)
+    return AnchorResult(anchor, block, weight, *layers)
