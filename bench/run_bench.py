@@ -115,7 +115,8 @@ def run_method(work: Path, method: str, config: Path, resolution: float) -> list
                      "--input-noise", noise, "--force"])
     mapped = measure([*GPOCC, "map", str(model), "--resolution", str(resolution), "--out",
                       str(out), "--force"])
-    return [("train", train, stage_times(train.stdout)), ("map", mapped, "")]
+    return [("train", train, stage_times(train.stdout)),
+            ("map", mapped, stage_times(mapped.stdout))]
 
 
 def run_octomap(logs: list[Path], config: Path, resolution: float) -> Measurement:
@@ -159,8 +160,8 @@ def campus(work: Path) -> None:
         ["gp", "train", f"{train.wall_s:.1f}", f"{train.cpu_s:.1f}", f"{train.peak_mib:.0f}",
          stage_times(train.stdout)],
         ["gp", "map (2 processes)", f"{mapped.wall_s:.1f}", f"{mapped.cpu_s:.1f}",
-         f"{mapped.peak_mib:.0f}", f"{cells.group(1)} x {cells.group(2)} cells" if cells
-         else ""],
+         f"{mapped.peak_mib:.0f}", (f"{cells.group(1)} x {cells.group(2)} cells; " if cells
+                                     else "") + stage_times(mapped.stdout)],
         ["gp", "map (Dask LocalCluster, 2 workers)", f"{on_dask.wall_s:.1f}", "",
          f"{on_dask.peak_mib:.0f}", f"identical output: {'yes' if identical else 'NO'}"],
         ["octomap", "build", f"{octo.wall_s:.1f}", f"{octo.cpu_s:.1f}", f"{octo.peak_mib:.0f}",

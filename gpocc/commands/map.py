@@ -65,4 +65,6 @@ def map_command(
     counts = summary.class_counts
     typer.echo(f"classes: {counts['occupied']} occupied, {counts['free']} free, "
                f"{counts['unsure']} unsure")
+    stages = ", ".join(f"{k} {v:.1f} s" for k, v in summary.stage_seconds.items())
+    typer.echo(f"stages: {stages}")
     typer.echo(f"time: {seconds:.1f} s")

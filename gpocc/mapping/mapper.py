@@ -29,13 +29,18 @@ from gpocc.mapping.support import model_support
 
 @dataclass(frozen=True)
 class MapSummary:
-    """What ``make_map`` wrote: grid, tiles, timings (seconds) and class counts."""
+    """What ``make_map`` wrote: grid, tiles, timings (seconds) and class counts.
+
+    ``stage_seconds``: wall seconds of ``predict`` (local problems and blending, all
+    tiles), ``write`` (tile rasters) and ``finish`` (mosaics, map_server files, preview).
+    """
 
     spec: GridSpec
     tiles: int
     blocks: int
     seconds: float
     class_counts: dict[str, int]
+    stage_seconds: dict[str, float]
 
 
 def default_spec(model: GPModel, resolution: float, margin: float) -> GridSpec:
@@ -71,10 +76,14 @@ def make_map(
     windows = _tile_windows(spec, tile)
     folder = MapFolder(out_dir, spec, config, tiled=len(windows) > 1, tile=tile)
     n_blocks = 0
+    stages = {"predict": 0.0, "write": 0.0, "finish": 0.0}
 
     for row0, col0, window in windows:
+        tick = time.perf_counter()
         layers = predict_tile(model, lattice, row0, col0, window, support, workers,
                               scheduler, progress)
+        stages["predict"] += time.perf_counter() - tick
+        tick = time.perf_counter()
         n_blocks += layers.anchors
         probability, unsure = layers.probability, layers.unsure
         variance = layers.variance.astype(np.float32)
@@ -82,13 +91,17 @@ def make_map(
         # The preview draws cells too uncertain to classify as no data.
         folder.add(row0, col0, window, probability, variance, classes,
                    decided=np.where(unsure, np.nan, probability))
+        stages["write"] += time.perf_counter() - tick
 
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     # The preview shows what a user may rely on: cells too uncertain to classify (and so
     # exported as unknown) are drawn as no data; probability.tif keeps the model's value.
+    tick = time.perf_counter()
     counts = folder.finish(title, no_data_label="no data or too uncertain (class: unsure)")
+    stages["finish"] = time.perf_counter() - tick
     return MapSummary(spec=spec, tiles=len(windows), blocks=n_blocks,
-                      seconds=time.perf_counter() - started, class_counts=counts)
+                      seconds=time.perf_counter() - started, class_counts=counts,
+                      stage_seconds=stages)
 
 
 def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
@@ -100,7 +113,7 @@ def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
         summary.class_counts,
         {"probability": "p(occupied), float32",
          "variance": "latent GP predictive variance, float32"},
-        {"map": summary.seconds},
+        {"map": summary.seconds, **summary.stage_seconds},
         model=str(model_path),
         model_versions=dict(model.versions),
         model_sensors=list(model.samples.sensor_names),
