@@ -497,7 +497,9 @@ def expected_kernel_cross(
     queries = np.asarray(queries, dtype=np.float64)
     if queries.ndim != 2 or queries.shape[1] != 2:
         raise ValueError(f"queries must have shape (Q, 2), got {queries.shape}")
-    ex = _expand(means, covariances, level)
+    # The training matrix of the same problem has just expanded these points.
+    ex = _cached("expand", functools.partial(_expand, means, covariances, level), means,
+                 covariances, np.array([level]))
     q = queries.shape[0]
     out = np.empty((q, ex.size))
     dout = np.empty((_nparams(kernel), q, ex.size)) if with_gradient else None
