@@ -75,7 +75,8 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     shared with other beams of the scan.
 
     Thinning (``samples.thin_cell_m > 0``): see :func:`thin_samples`; applied as the
-    chunks arrive, which gives the same result as thinning the whole set at the end.
+    chunks arrive, which gives the same result as thinning the whole set at the end
+    (``tests/test_beams.py`` checks it).
 
     Args:
         batches: the readers' output, one per sensor and source.
@@ -97,8 +98,11 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     sensor_index: dict[str, int] = {}
     thin_cell = float(config.samples.thin_cell_m)
     min_share = float(config.samples.min_label_share)
-    kept: SampleSet | None = None
     parts: list[SampleSet] = []
+    # Thinning keeps a per-cell minimum, so thinning each chunk and thinning their union
+    # again equals thinning everything at the end; the union is re-thinned only when the
+    # thinned chunks have grown to twice what it held, which keeps the work linear.
+    thinned_size, pending = 0, 0
     votes = LabelVotes(thin_cell) if thin_cell > 0 and min_share > 0 else None
     offset = 0
     for batch in batches:
@@ -110,9 +114,12 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
             if votes is not None:
                 votes.add(part)
             if thin_cell > 0:
-                # A per-cell minimum: thinning as chunks arrive equals thinning at the end.
-                merged = part if kept is None else SampleSet.concatenate([kept, part])
-                kept = thin_samples(merged, thin_cell)
+                part = thin_samples(part, thin_cell)
+                pending += len(part)
+                parts.append(part)
+                if pending > max(thinned_size, CHUNK_SAMPLES):
+                    parts = [thin_samples(SampleSet.concatenate(parts), thin_cell)]
+                    thinned_size, pending = len(parts[0]), 0
             else:
                 parts.append(part)
         if n_batch == 0:
@@ -124,12 +131,11 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
                 f"no_return_free_m and that the ranges are in metres"
             )
         offset += batch.n_scans
-    if kept is not None:
+    result = SampleSet.concatenate(parts)
+    if thin_cell > 0:
+        result = thin_samples(result, thin_cell)
         if votes is not None:
-            kept = kept.subset(votes.share(kept) >= min_share)
-        result = kept
-    else:
-        result = SampleSet.concatenate(parts)
+            result = result.subset(votes.share(result) >= min_share)
     return dataclasses.replace(result, sensor_names=tuple(sensor_index))
 
 
@@ -146,23 +152,43 @@ class LabelVotes:
         self.cell_m = cell_m
         self.keys = np.zeros(0, dtype=np.int64)
         self.counts = np.zeros((0, 2), dtype=np.int64)  # columns: free, occupied
+        # Counted chunks not merged yet: merging every chunk into the whole table would
+        # sort the table once per chunk; it is merged when they outgrow it.
+        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self._pending_size = 0
 
     def _keys(self, samples: SampleSet) -> np.ndarray:
         cells = np.floor(samples.means / self.cell_m).astype(np.int64)
         return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
 
+    @staticmethod
+    def _reduce(keys: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        unique, inverse = np.unique(keys, return_inverse=True)
+        total = np.zeros((len(unique), 2), dtype=np.int64)
+        np.add.at(total, inverse, counts)
+        return unique, total
+
     def add(self, samples: SampleSet) -> None:
         """Count a chunk of samples."""
-        keys = np.concatenate((self.keys, self._keys(samples)))
-        unique, inverse = np.unique(keys, return_inverse=True)
-        counts = np.zeros((len(unique), 2), dtype=np.int64)
-        np.add.at(counts, inverse[: len(self.keys)], self.counts)
         occupied = (samples.labels > 0).astype(np.intp)
-        np.add.at(counts, (inverse[len(self.keys):], occupied), 1)
-        self.keys, self.counts = unique, counts
+        counts = np.zeros((len(samples), 2), dtype=np.int64)
+        counts[np.arange(len(samples)), occupied] = 1
+        keys, counts = self._reduce(self._keys(samples), counts)
+        self._pending.append((keys, counts))
+        self._pending_size += len(keys)
+        if self._pending_size > max(len(self.keys), 1 << 16):
+            self._merge()
+
+    def _merge(self) -> None:
+        if self._pending:
+            keys = np.concatenate([self.keys, *(k for k, _ in self._pending)])
+            counts = np.concatenate([self.counts, *(c for _, c in self._pending)])
+            self.keys, self.counts = self._reduce(keys, counts)
+            self._pending, self._pending_size = [], 0
 
     def share(self, samples: SampleSet) -> np.ndarray:
         """(N,) fraction of its cell's counted samples that carry each sample's label."""
+        self._merge()
         index = np.searchsorted(self.keys, self._keys(samples))
         counts = self.counts[index]
         own = counts[np.arange(len(samples)), (samples.labels > 0).astype(np.intp)]

@@ -14,9 +14,9 @@ distance by at most :attr:`Coverage.error_m` (half a cell diagonal plus half a s
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from gpocc.config import Config, SensorConfig
@@ -33,8 +33,6 @@ from gpocc.samples.beam import (
 
 #: Coverage cell side, metres.
 COVERAGE_CELL_M = 0.2
-#: Points per beam segment are generated in chunks of about this many (bounds memory).
-_CHUNK_POINTS = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -96,20 +94,21 @@ def beam_segments(batch: ScanBatch, sensor: SensorConfig, config: Config
     return start, end
 
 
-def _segment_points(start: np.ndarray, end: np.ndarray, step: float) -> Iterator[np.ndarray]:
-    """(P, 2) points every ``step`` along each segment, plus each end point, in chunks."""
-    delta = end - start
-    length = np.hypot(delta[:, 0], delta[:, 1])
-    unit = delta / np.maximum(length, 1e-12)[:, None]
-    counts = np.floor(length / step).astype(np.int64) + 2  # 0, step, ..., and the end
-    bounds = np.searchsorted(np.cumsum(counts), np.arange(0, counts.sum(), _CHUNK_POINTS))
-    bounds = np.unique(np.concatenate([bounds, [len(counts)]]))
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-        n = counts[a:b]
-        seg = np.repeat(np.arange(a, b), n)
-        k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-        t = np.minimum(k * step, length[seg])
-        yield start[seg] + t[:, None] * unit[seg]
+@numba.njit(cache=True, error_model="numpy", nogil=True)
+def _mark_segments(start: np.ndarray, end: np.ndarray, covered: np.ndarray
+                   ) -> None:  # pragma: no cover - compiled
+    """Set the cells of ``covered`` (H, W) that hold a point every 1 cell along each
+    segment ``start -> end`` (N, 2), cell units from the raster's corner, or its end."""
+    height, width = covered.shape
+    for s in range(start.shape[0]):
+        dx, dy = end[s, 0] - start[s, 0], end[s, 1] - start[s, 1]
+        length = math.hypot(dx, dy)
+        ux, uy = dx / max(length, 1e-12), dy / max(length, 1e-12)
+        for k in range(int(math.floor(length)) + 2):  # 0, 1, ..., and the end
+            t = min(float(k), length)
+            col = min(max(int(start[s, 0] + t * ux), 0), width - 1)
+            row = min(max(int(start[s, 1] + t * uy), 0), height - 1)
+            covered[row, col] = True
 
 
 def coverage_of_segments(start: np.ndarray, end: np.ndarray,
@@ -123,14 +122,13 @@ def coverage_of_segments(start: np.ndarray, end: np.ndarray,
     x0, y0 = (np.floor(lo / cell_m) - 1) * cell_m
     width = int(np.floor((hi[0] - x0) / cell_m)) + 2
     height = int(np.floor((hi[1] - y0) / cell_m)) + 2
-    covered = np.zeros(height * width, dtype=bool)
-    # Points in cell units relative to the corner: the cell index is the integer part.
+    covered = np.zeros((height, width), dtype=bool)
+    # Points in cell units relative to the corner (non-negative): the cell index is the
+    # integer part.
     origin = np.array([x0, y0])
-    for pts in _segment_points((start - origin) / cell_m, (end - origin) / cell_m, 1.0):
-        cells = pts.astype(np.int64)  # non-negative, so truncation is floor
-        covered[np.clip(cells[:, 1], 0, height - 1) * width
-                + np.clip(cells[:, 0], 0, width - 1)] = True
-    return Coverage(float(x0), float(y0), cell_m, step, covered.reshape(height, width))
+    _mark_segments(np.ascontiguousarray((start - origin) / cell_m),
+                   np.ascontiguousarray((end - origin) / cell_m), covered)
+    return Coverage(float(x0), float(y0), cell_m, step, covered)
 
 
 def beam_coverage(batches: list[ScanBatch], config: Config,
