@@ -185,7 +185,7 @@ class ModelConfig:
     kernel: str = "nn"
     input_noise: bool = True
     quadrature_level: int = 2
-    neighbours: int = 160
+    neighbours: int = 128
     block_size_m: float = 1.0
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
