@@ -1,8 +1,26 @@
-"""How many cores gpocc may use: map processes and training threads both ask here."""
+"""Cores and worker processes: map anchors and training patches both run here.
+
+Worker processes never outlive a run: an exception in the parent (Ctrl-C, SIGTERM via
+:mod:`gpocc.lifecycle`, an error) terminates them, and they die with the parent when it is
+killed outright (``PR_SET_PDEATHSIG`` on Linux, and a thread polling the parent pid).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import multiprocessing
+import multiprocessing.pool
 import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+from gpocc.blas import single_threaded_blas
+
+_PR_SET_PDEATHSIG = 1
 
 
 def default_workers() -> int:
@@ -11,3 +29,55 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def _die_with_parent(parent: int) -> None:
+    """End this worker when ``parent`` dies, even by SIGKILL (which it cannot catch)."""
+    try:  # Linux: the kernel sends SIGKILL when the parent exits.
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        pass
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+    def watch() -> None:  # elsewhere (and as a backstop): poll the parent
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="gpocc-parent-watch").start()
+
+
+def _init_worker(parent: int, initializer: Callable[..., None], initargs: tuple) -> None:
+    # Ctrl-C reaches the whole process group: the parent handles it and ends the workers,
+    # so they must not print their own KeyboardInterrupt tracebacks.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the parent's (gpocc.lifecycle)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+    _die_with_parent(parent)
+    single_threaded_blas()  # many small matrices: see gpocc.blas
+    initializer(*initargs)
+
+
+@contextlib.contextmanager
+def worker_pool(workers: int, initializer: Callable[..., None],
+                initargs: tuple[Any, ...]) -> Iterator[multiprocessing.pool.Pool]:
+    """A ``multiprocessing.Pool`` of ``workers`` processes, each set up by
+    ``initializer(*initargs)``, that ends (terminated on any exception) with the block."""
+    # Workers start with SIGTERM blocked, so none can run the parent's handler (see
+    # gpocc.lifecycle) before its initialiser restores the default.
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    try:
+        pool = multiprocessing.Pool(workers, initializer=_init_worker,
+                                    initargs=(os.getpid(), initializer, initargs))
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    try:
+        yield pool
+    except BaseException:
+        # Ctrl-C, SIGTERM, an error, or the consumer stopping: no worker may outlive it.
+        pool.terminate()
+        pool.join()
+        raise
+    pool.close()
+    pool.join()

@@ -4,20 +4,12 @@ Anchors are independent and each is computed by the same deterministic code, so 
 executor gives bit-identical results. Workers receive the model once (process
 initialiser, or a Dask scatter) and build their own neighbour index.
 
-Local workers never outlive a run: any exception in the parent (Ctrl-C, SIGTERM via
-:mod:`gpocc.lifecycle`, an error) terminates them, and they die with the parent when it
-is killed outright (``PR_SET_PDEATHSIG`` on Linux, and a thread polling the parent pid).
+Local workers never outlive a run (:func:`gpocc.parallel.worker_pool`).
 """
 
 from __future__ import annotations
 
-import ctypes
 import functools
-import multiprocessing
-import os
-import signal
-import threading
-import time
 from collections.abc import Callable, Iterator
 
 from gpocc.blas import single_threaded_blas
@@ -25,9 +17,9 @@ from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex
 from gpocc.gp.model import GPModel
 from gpocc.mapping.blocks import Anchor, AnchorLattice, AnchorResult, predict_anchor
+from gpocc.parallel import worker_pool
 
 _worker_state: dict[str, object] = {}
-_PR_SET_PDEATHSIG = 1
 
 
 def _chunks(anchors: list[Anchor], size: int) -> list[list[Anchor]]:
@@ -50,30 +42,7 @@ def compute_chunk(model: GPModel, lattice: AnchorLattice,
         return [predict_anchor(model, index, lattice, anchor) for anchor in chunk]
 
 
-def _die_with_parent(parent: int) -> None:
-    """End this worker when ``parent`` dies, even by SIGKILL (which it cannot catch)."""
-    try:  # Linux: the kernel sends SIGKILL when the parent exits.
-        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        pass
-    if os.getppid() != parent:  # the parent died before prctl took effect
-        os._exit(1)
-
-    def watch() -> None:  # elsewhere (and as a backstop): poll the parent
-        while os.getppid() == parent:
-            time.sleep(1.0)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True, name="gpocc-parent-watch").start()
-
-
-def _init_worker(model: GPModel, parent: int) -> None:
-    # Ctrl-C reaches the whole process group: the parent handles it and ends the workers,
-    # so they must not print their own KeyboardInterrupt tracebacks.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the parent's (gpocc.lifecycle)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
-    _die_with_parent(parent)
+def _init_worker(model: GPModel) -> None:
     _worker_state["process_model"] = model
 
 
@@ -107,29 +76,12 @@ def run_anchors(
             if on_done:
                 on_done(len(chunk))
         return
-    pool = None
-    try:
-        # Workers start with SIGTERM blocked, so none can run the parent's handler (see
-        # gpocc.lifecycle) before its initialiser restores the default.
-        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
-        try:
-            pool = multiprocessing.Pool(workers, initializer=_init_worker,
-                                        initargs=(model, os.getpid()))
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    with worker_pool(workers, _init_worker, (model,)) as pool:
         results_per_chunk = pool.imap(functools.partial(_compute_in_worker, lattice), chunks)
         for chunk, results in zip(chunks, results_per_chunk, strict=True):
             yield from results
             if on_done:
                 on_done(len(chunk))
-    except BaseException:
-        # Ctrl-C, SIGTERM, an error, or the consumer stopping: no worker may outlive it.
-        if pool is not None:
-            pool.terminate()
-            pool.join()
-        raise
-    pool.close()
-    pool.join()
 
 
 def _run_dask(model: GPModel, lattice: AnchorLattice, chunks: list[list[Anchor]],
