@@ -237,10 +237,10 @@ def reclassified(model_path: Path, folder: Path, holdout: str) -> Path:
     """``folder``'s map with the classifier re-fitted by ``holdout``, same GP.
 
     The latent mean is recovered from the stored p and variance by inverting
-    p = Phi((a mu + b) / sqrt(1 + a^2 var)); the new classifier is fitted exactly as
+    p = Phi((mu + c) / sqrt(s + var)); the new classifier is fitted exactly as
     ``gpocc train`` does (same patches, seed + 1). Writes ``<folder>-<holdout>-cv``.
     """
-    from scipy.special import ndtr, ndtri
+    from scipy.special import ndtri
 
     from gpocc.gp.classify import fit_classifier
     from gpocc.gp.model import load_model
@@ -259,11 +259,11 @@ def reclassified(model_path: Path, folder: Path, holdout: str) -> Path:
     v, _, _ = read_raster(folder / "variance.tif")
     p, v = p.astype(float), v.astype(float)
     z = ndtri(np.clip(p, 1e-12, 1 - 1e-12))
-    mu = (z * np.sqrt(1 + old.a**2 * v) - old.b) / old.a
-    q = ndtr((new.a * mu + new.b) / np.sqrt(1 + new.a**2 * v)).astype(np.float32)
+    mu = z * np.sqrt(old.extra_variance + v) - old.offset
+    q = new.probability(mu, v).astype(np.float32)
     write_geotiff(out / "probability.tif", q, spec, nodata=np.nan)
     (out / "classifier.json").write_text(json.dumps(
-        {"from": {"a": old.a, "b": old.b}, "to": {"a": new.a, "b": new.b}}) + "\n")
+        {"from": dataclasses.asdict(old), "to": dataclasses.asdict(new)}) + "\n")
     return out
 
 

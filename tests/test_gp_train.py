@@ -9,7 +9,12 @@ import pytest
 from scipy.special import ndtr
 
 from gpocc.config import TrainingConfig
-from gpocc.gp.classify import PlattClassifier, classify, fit_classifier, loo_log_probability
+from gpocc.gp.classify import (
+    PlattClassifier,
+    classify,
+    fit_classifier,
+    held_out_log_probability,
+)
 from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
 from gpocc.gp.local import leave_one_out, training_covariance
 from gpocc.gp.train import learn_hyperparameters, make_patches, negative_log_likelihood
@@ -127,15 +132,15 @@ def test_classifier_maximises_loo_log_probability():
         var.append(v)
         y.append(p.samples.labels)
     mu, var, y = map(np.concatenate, (mu, var, y))
-    best = loo_log_probability(fitted.a, fitted.b, mu, var, y)
+    best = held_out_log_probability(fitted.offset, fitted.extra_variance, mu, var, y)
     # Brute-force grid search cannot beat the optimiser by more than its resolution.
-    grid = max(loo_log_probability(a, b, mu, var, y)
+    grid = max(held_out_log_probability(b / a, 1 / a**2, mu, var, y)
                for a in np.linspace(0.05, 10, 60) for b in np.linspace(-3, 3, 61))
     assert best >= grid - 1e-6
 
 
 def test_probability_formula_and_classes():
-    clf = PlattClassifier(a=2.0, b=0.5)
+    clf = PlattClassifier.from_ab(2.0, 0.5)
     mean = np.array([-1.0, 0.0, 1.0])
     var = np.array([0.5, 0.1, 2.0])
     expected = ndtr((2.0 * mean + 0.5) / np.sqrt(1 + 4.0 * var))
@@ -184,8 +189,8 @@ def test_scan_holdout_classifier_maximises_held_out_log_probability():
     kernel = NeuralNetworkKernel(1.0, 1.0, (2.0, 2.0))
     fitted = fit_classifier(kernel, 0.1, patches, 3, holdout="scan")
     mu, var, y = holdout_predictions(kernel, 0.1, patches, 3, "scan")
-    best = loo_log_probability(fitted.a, fitted.b, mu, var, y)
-    grid = max(loo_log_probability(a, b, mu, var, y)
+    best = held_out_log_probability(fitted.offset, fitted.extra_variance, mu, var, y)
+    grid = max(held_out_log_probability(b / a, 1 / a**2, mu, var, y)
                for a in np.linspace(0.05, 10, 60) for b in np.linspace(-3, 3, 61))
     assert best >= grid - 1e-6
 

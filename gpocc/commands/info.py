@@ -121,7 +121,9 @@ def format_model(path: Path, model: GPModel) -> list[str]:
         f"  kernel: {params}",
         f"  noise_variance: {model.noise_variance:.6g}",
         f"  input noise: {'on' if model.input_noise else 'off'}",
-        f"  classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g}, thresholds "
+        f"  classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
+        f"{model.classifier.offset:.4g}, extra variance "
+        f"{model.classifier.extra_variance:.3g}), thresholds "
         f"occupied {model.config.classify.occupied:g}, free {model.config.classify.free:g}",
         f"  samples: {len(samples)} ({occupied} occupied, {len(samples) - occupied} free) "
         f"from {len(np.unique(samples.scan_ids))} scans",

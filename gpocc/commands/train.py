@@ -73,7 +73,9 @@ def train(
     typer.echo(f"noise_variance: {model.noise_variance:.6g}")
     typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
                f"(initial {model.training['initial_log_marginal_likelihood']:.3f})")
-    typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g}")
+    typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
+               f"{model.classifier.offset:.4g}, extra variance "
+               f"{model.classifier.extra_variance:.3g})")
     typer.echo(f"stages: read {read_s:.1f} s, samples {samples_s:.1f} s, "
                f"hyperparameters+classifier {learn_s:.1f} s")
     typer.echo(f"time: {seconds:.1f} s")

@@ -1,9 +1,15 @@
 """Probabilistic least-squares classification (Platt scaling of the GP regression).
 
 ``p(occupied | x) = Phi((a * mu + b) / sqrt(1 + a^2 * var))`` squashes the latent GP
-mean ``mu`` and variance ``var`` into a probability. ``a`` and ``b`` maximise the
-predictive log probability of training labels that the predicting GP did not see
-(Rasmussen and Williams, section 6.5), in one of two ways (``model.training.
+mean ``mu`` and variance ``var`` into a probability (Rasmussen and Williams, section
+6.5). It is fitted and stored as ``Phi((mu + c) / sqrt(s + var))`` with the offset
+``c = b / a`` (latent units) and the extra variance ``s = 1 / a^2`` (latent units
+squared): the same family, but as ``a`` grows the objective tends to that of
+``Phi((mu + c) / sqrt(var))``, a ridge towards ``a -> infinity`` along which the fitted
+``a`` depended on round-off (docs/results.md). In ``(c, s)`` that ridge is the finite
+boundary ``s = S_MIN`` (``a = 1000``, the old bound), which a bounded optimiser reaches
+exactly. ``c`` and ``s`` maximise the predictive log probability of training labels that
+the predicting GP did not see, in one of two ways (``model.training.
 classifier_holdout``):
 
 * ``sample`` (default): the method as published, closed-form leave-one-sample-out of
@@ -38,23 +44,59 @@ HOLDOUTS = ("scan", "sample")
 OCCUPIED, FREE, UNSURE, NO_DATA = 1, 0, 2, 255
 
 
+#: Bounds of the fit: extra variance s = 1/a^2 (a in [1e-3, 1e3]) and offset c = b/a.
+S_MIN, S_MAX = 1e-6, 1e6
+C_BOUND = 1e2
+
+
 @dataclass(frozen=True)
 class PlattClassifier:
-    """The squashing p = Phi((a mu + b) / sqrt(1 + a^2 var)) with its fitted a > 0, b."""
+    """p = Phi((mu + offset) / sqrt(extra_variance + var)).
 
-    a: float = 1.0
-    b: float = 0.0
+    ``offset`` is c = b / a and ``extra_variance`` s = 1 / a^2 > 0 of the published form
+    Phi((a mu + b) / sqrt(1 + a^2 var)); ``a`` and ``b`` are derived for display.
+    """
+
+    offset: float = 0.0
+    extra_variance: float = 1.0
+
+    @classmethod
+    def from_ab(cls, a: float, b: float) -> PlattClassifier:
+        """The classifier Phi((a mu + b) / sqrt(1 + a^2 var)) for a > 0."""
+        return cls(offset=b / a, extra_variance=1.0 / a**2)
+
+    @property
+    def a(self) -> float:
+        return float(1.0 / np.sqrt(self.extra_variance))
+
+    @property
+    def b(self) -> float:
+        return float(self.offset / np.sqrt(self.extra_variance))
 
     def probability(self, mean: np.ndarray, variance: np.ndarray) -> np.ndarray:
         """p(occupied) for latent means and variances of any (matching) shape."""
-        return ndtr((self.a * mean + self.b) / np.sqrt(1.0 + self.a**2 * variance))
+        return ndtr((mean + self.offset) / np.sqrt(self.extra_variance + variance))
 
 
-def loo_log_probability(a: float, b: float, mean: np.ndarray, variance: np.ndarray,
-                        labels: np.ndarray) -> float:
-    """Sum of log Phi(y_i (a mu_i + b) / sqrt(1 + a^2 var_i)) over LOO predictions."""
-    z = labels * (a * mean + b) / np.sqrt(1.0 + a**2 * variance)
+def held_out_log_probability(offset: float, extra_variance: float, mean: np.ndarray,
+                             variance: np.ndarray, labels: np.ndarray) -> float:
+    """Sum of log Phi(y_i (mu_i + c) / sqrt(s + var_i)) over held-out predictions (N,)."""
+    z = labels * (mean + offset) / np.sqrt(extra_variance + variance)
     return float(log_ndtr(z).sum())
+
+
+def _negative_log_probability(params: np.ndarray, mean: np.ndarray, variance: np.ndarray,
+                              labels: np.ndarray) -> tuple[float, np.ndarray]:
+    """-held_out_log_probability and its gradient in (c, s)."""
+    c, s = params
+    root = np.sqrt(s + variance)
+    z = labels * (mean + c) / root
+    log_cdf = log_ndtr(z)
+    # d log Phi(z) / dz = phi(z) / Phi(z), evaluated in logs (stable for z << 0).
+    ratio = np.exp(-0.5 * z**2 - 0.5 * np.log(2 * np.pi) - log_cdf)
+    grad_c = -np.sum(ratio * labels / root)
+    grad_s = np.sum(ratio * z / (2.0 * root**2))
+    return float(-log_cdf.sum()), np.array([grad_c, grad_s])
 
 
 def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProblem,
@@ -119,22 +161,23 @@ def holdout_predictions(kernel: Kernel, noise_variance: float, patches: list[Loc
 
 
 def fit_platt(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray) -> PlattClassifier:
-    """a > 0 and b maximising :func:`loo_log_probability` of held-out predictions (N,)."""
+    """c and s maximising :func:`held_out_log_probability` of held-out predictions (N,).
+
+    Bounded L-BFGS-B in (c, s) with the analytic gradient: where the objective keeps
+    rising towards a -> infinity, s stops at the bound :data:`S_MIN` exactly.
+    """
     if mean.size == 0 or np.all(labels > 0) or np.all(labels < 0):
         # Nothing to calibrate against: keep the identity squashing.
         return PlattClassifier()
-
-    def objective(p: np.ndarray) -> float:
-        return -loo_log_probability(p[0], p[1], mean, variance, labels)
-
-    result = minimize(objective, np.array([1.0, 0.0]), method="L-BFGS-B",
-                      bounds=[(1e-3, 1e3), (-1e2, 1e2)])
-    return PlattClassifier(a=float(result.x[0]), b=float(result.x[1]))
+    result = minimize(_negative_log_probability, np.array([0.0, 1.0]),
+                      args=(mean, variance, labels), jac=True, method="L-BFGS-B",
+                      bounds=[(-C_BOUND, C_BOUND), (S_MIN, S_MAX)])
+    return PlattClassifier(offset=float(result.x[0]), extra_variance=float(result.x[1]))
 
 
 def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
                    level: int, holdout: str = "sample") -> PlattClassifier:
-    """Fit a and b on held-out predictions over ``patches`` (``holdout``: scan or sample)."""
+    """Fit the classifier on held-out predictions over ``patches`` (``holdout``: scan or sample)."""
     mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout)
     return fit_platt(mu, var, y)
 

@@ -31,7 +31,9 @@ from gpocc.samples.sampleset import SampleSet
 from gpocc.versions import software_versions
 
 FORMAT_NAME = "gpocc-model"
-FORMAT_VERSION = 1
+#: 2: the classifier is stored as (offset, extra_variance); files of format 1 (a, b)
+#: still load.
+FORMAT_VERSION = 2
 _ARRAYS = ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")
 
 
@@ -129,7 +131,8 @@ def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:
         "kernel": kernel_parameters(model.kernel),
         "kernel_name": model.config.model.kernel,
         "noise_variance": model.noise_variance,
-        "classifier": {"a": model.classifier.a, "b": model.classifier.b},
+        "classifier": {"offset": model.classifier.offset,
+                       "extra_variance": model.classifier.extra_variance},
         "input_noise": model.input_noise,
         "training": model.training,
         "inputs": list(model.inputs),

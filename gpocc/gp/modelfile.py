@@ -132,6 +132,23 @@ def _samples(arrays: dict[str, np.ndarray]) -> SampleSet:
     return SampleSet(**checked)
 
 
+def _classifier(record: Any, version: Any) -> PlattClassifier:
+    """Format 1 stored the published (a, b); format 2 stores (offset, extra_variance)."""
+    if version == 1:
+        if not isinstance(record, dict) or set(record) != {"a", "b"}:
+            raise _Damaged(f"the classifier must hold exactly 'a' and 'b', got {record!r}")
+        a = _finite_number(record["a"], "classifier 'a'", positive=True)
+        b = _finite_number(record["b"], "classifier 'b'")
+        return PlattClassifier.from_ab(a, b)
+    keys = {"offset", "extra_variance"}
+    if not isinstance(record, dict) or set(record) != keys:
+        raise _Damaged(f"the classifier must hold exactly {sorted(keys)}, got {record!r}")
+    return PlattClassifier(
+        offset=_finite_number(record["offset"], "classifier 'offset'"),
+        extra_variance=_finite_number(record["extra_variance"], "classifier 'extra_variance'",
+                                      positive=True))
+
+
 def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelContents:
     if not isinstance(meta, dict):
         raise _Damaged("its metadata is not a JSON object")
@@ -140,11 +157,7 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelCon
     config = config_from_dict(meta["config"], f"{source} (embedded config)")
     kernel = _kernel(meta)
     noise = _finite_number(meta.get("noise_variance"), "noise_variance", positive=True)
-    classifier = meta.get("classifier")
-    if not isinstance(classifier, dict) or set(classifier) != {"a", "b"}:
-        raise _Damaged(f"the classifier must hold exactly 'a' and 'b', got {classifier!r}")
-    a = _finite_number(classifier["a"], "classifier 'a'", positive=True)
-    b = _finite_number(classifier["b"], "classifier 'b'")
+    platt = _classifier(meta.get("classifier"), meta.get("format_version"))
     input_noise = meta.get("input_noise")
     if not isinstance(input_noise, bool):
         raise _Damaged(f"input_noise is {input_noise!r}, not true or false")
@@ -165,7 +178,7 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelCon
         raise _Damaged(f"array 'sensor_ids' names sensors beyond the {len(names)} in "
                        "sensor_names")
     return ModelContents(
-        kernel=kernel, noise_variance=noise, classifier=PlattClassifier(a, b),
+        kernel=kernel, noise_variance=noise, classifier=platt,
         samples=dataclasses.replace(samples, sensor_names=tuple(names)), config=config,
         input_noise=input_noise, training=training, inputs=tuple(inputs),
         versions=dict(versions),

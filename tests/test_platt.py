@@ -1,0 +1,156 @@
+"""The Platt classifier's fit in (offset c, extra variance s): oracles, the a -> inf ridge."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from gpocc.config import TrainingConfig
+from gpocc.errors import GpoccError
+from gpocc.gp import expected
+from gpocc.gp.classify import (
+    S_MIN,
+    PlattClassifier,
+    fit_classifier,
+    fit_platt,
+    held_out_log_probability,
+)
+from gpocc.gp.kernels import NeuralNetworkKernel
+from gpocc.gp.model import load_model
+from gpocc.gp.train import make_patches
+from tests.test_map import room_samples
+
+
+def test_published_form_and_fitted_form_give_the_same_probability():
+    rng = np.random.default_rng(0)
+    mean, var = rng.normal(0, 1, 50), rng.uniform(0, 2, 50)
+    for a, b in ((0.3, -1.0), (2.0, 0.5), (800.0, -12.0)):
+        clf = PlattClassifier.from_ab(a, b)
+        assert clf.a == pytest.approx(a) and clf.b == pytest.approx(b)
+        np.testing.assert_allclose(clf.probability(mean, var),
+                                   ndtr((a * mean + b) / np.sqrt(1 + a**2 * var)), rtol=1e-12)
+
+
+def test_fit_recovers_the_classifier_that_drew_the_labels():
+    # Labels drawn from a known classifier: the maximum-likelihood fit must find it
+    # (interior optimum; the truth is the oracle, to the sampling error of 40000 labels).
+    rng = np.random.default_rng(1)
+    n = 40000
+    mean, var = rng.normal(0, 1, n), rng.uniform(0.01, 0.5, n)
+    truth = PlattClassifier.from_ab(2.0, 0.5)
+    labels = np.where(rng.random(n) < truth.probability(mean, var), 1.0, -1.0)
+    fitted = fit_platt(mean, var, labels)
+    assert fitted.a == pytest.approx(2.0, rel=0.08)
+    assert fitted.b == pytest.approx(0.5, abs=0.05)
+
+
+def _brute_force(mean, var, labels):
+    """Best objective over a grid of (c, s), s including the bound S_MIN."""
+    cs = np.linspace(-1, 1, 201)
+    ss = np.concatenate([[S_MIN], np.geomspace(1e-5, 10, 120)])
+    values = np.array([[held_out_log_probability(c, s, mean, var, labels) for s in ss]
+                       for c in cs])
+    i, j = np.unravel_index(values.argmax(), values.shape)
+    return values[i, j], cs[i], ss[j]
+
+
+def test_fit_is_at_least_as_good_as_brute_force_and_finds_the_ridge_bound():
+    # Labels that the latent mean separates but for a few near the boundary: the
+    # objective rises towards a -> infinity, so the optimum is the bound s = S_MIN.
+    rng = np.random.default_rng(2)
+    n = 400
+    mean = rng.normal(0, 1, n)
+    var = rng.uniform(0.01, 0.2, n)
+    labels = np.where(mean + rng.normal(0, 0.1, n) > 0.2, 1.0, -1.0)
+    fitted = fit_platt(mean, var, labels)
+    best, c_best, s_best = _brute_force(mean, var, labels)
+    value = held_out_log_probability(fitted.offset, fitted.extra_variance, mean, var, labels)
+    assert value >= best - 1e-9
+    assert s_best == S_MIN and fitted.extra_variance == S_MIN
+    assert fitted.offset == pytest.approx(c_best, abs=0.01)
+
+
+def test_fit_matches_brute_force_argmax_inside_the_box():
+    rng = np.random.default_rng(3)
+    n = 3000
+    mean, var = rng.normal(0, 1, n), rng.uniform(0.01, 0.3, n)
+    truth = PlattClassifier(offset=-0.3, extra_variance=0.5)
+    labels = np.where(rng.random(n) < truth.probability(mean, var), 1.0, -1.0)
+    fitted = fit_platt(mean, var, labels)
+    best, c_best, s_best = _brute_force(mean, var, labels)
+    value = held_out_log_probability(fitted.offset, fitted.extra_variance, mean, var, labels)
+    assert value >= best - 1e-9
+    assert fitted.offset == pytest.approx(c_best, abs=0.01)  # grid step 0.01
+    assert fitted.extra_variance == pytest.approx(s_best, rel=0.1)  # grid ratio 1.1
+
+
+def test_numpy_and_compiled_kernels_give_the_same_classifier(monkeypatch):
+    # The room model's classifier lies on the ridge (steep walls); before the (c, s)
+    # parametrisation the two kernel paths, agreeing to 1e-14, gave different (a, b).
+    if expected._fused_module is None:
+        pytest.skip("the compiled expected kernels are not available")
+    samples = room_samples()
+    patches = make_patches(samples, TrainingConfig(patches=3, patch_size=120), seed=1)
+    kernel = NeuralNetworkKernel(2.0, 1.0, (3.0, 3.0))
+    fits = {}
+    for fused in (False, True):
+        monkeypatch.setattr(expected, "USE_FUSED", fused)
+        fits[fused] = fit_classifier(kernel, 0.02, patches, 3)
+    assert fits[True].offset == pytest.approx(fits[False].offset, abs=1e-6)
+    assert fits[True].extra_variance == pytest.approx(fits[False].extra_variance,
+                                                      rel=1e-6, abs=1e-12)
+
+
+def _saved_model(tmp_path, classifier: PlattClassifier):
+    from gpocc.config import Config
+    from gpocc.gp.model import GPModel, save_model
+
+    model = GPModel(kernel=NeuralNetworkKernel(2.0, 1.0, (3.0, 3.0)), noise_variance=0.02,
+                    classifier=classifier, samples=room_samples(), config=Config(),
+                    input_noise=True)
+    path = tmp_path / "model.npz"
+    save_model(model, path)
+    with np.load(path) as data:
+        arrays = dict(data)
+    return path, arrays, json.loads(bytes(arrays["metadata"]).decode())
+
+
+def _rewrite(path, arrays, meta):
+    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(path, **arrays)
+
+
+def test_format_1_model_files_with_a_and_b_still_load(tmp_path):
+    path, arrays, meta = _saved_model(tmp_path, PlattClassifier())
+    meta["format_version"] = 1
+    meta["classifier"] = {"a": 527.0, "b": -28.1}
+    _rewrite(path, arrays, meta)
+    loaded = load_model(path).classifier
+    mean, var = np.linspace(-1, 1, 11), np.linspace(0.001, 0.1, 11)
+    np.testing.assert_allclose(loaded.probability(mean, var),
+                               ndtr((527.0 * mean - 28.1) / np.sqrt(1 + 527.0**2 * var)),
+                               rtol=1e-12)
+
+
+@pytest.mark.parametrize("version, record", [
+    (1, {"offset": 0.1, "extra_variance": 1e-3}),  # today's keys in an old file
+    (2, {"a": 2.0, "b": 0.1}),                      # old keys in a new file
+    (2, {"offset": 0.1, "extra_variance": 0.0}),    # a = infinity
+])
+def test_classifier_record_of_the_wrong_form_is_a_clear_error(tmp_path, version, record):
+    path, arrays, meta = _saved_model(tmp_path, PlattClassifier())
+    meta["format_version"] = version
+    meta["classifier"] = record
+    _rewrite(path, arrays, meta)
+    with pytest.raises(GpoccError, match="classifier.*gpocc train"):
+        load_model(path)
+
+
+def test_saved_classifier_round_trips_exactly(tmp_path):
+    clf = PlattClassifier(offset=-0.0184823, extra_variance=S_MIN)
+    path, _, meta = _saved_model(tmp_path, clf)
+    assert meta["format_version"] == 2
+    assert load_model(path).classifier == clf
