@@ -59,6 +59,11 @@ VARIANTS: dict[str, dict[str, object]] = {
     "free-range-floor-0.1": {"model.training.classifier_holdout": "scan",
                              "model.training.min_noise_variance": 0.1,
                              "samples.free_range_variance": True},
+    "learned-scale": {"model.training.classifier_holdout": "sample",
+                      "model.training.learn_input_noise_scale": True},
+    "learned-scale-floor-0.1": {"model.training.classifier_holdout": "sample",
+                                "model.training.learn_input_noise_scale": True,
+                                "model.training.min_noise_variance": 0.1},
 }
 
 

@@ -159,6 +159,9 @@ class TrainingConfig:
     classifier's training labels are held out, ``sample`` (leave one sample out, the method
     as published, default) or ``scan`` (leave one scan out); see gpocc.gp.classify and
     docs/results.md (leave-one-scan-out measured worse calibrated on held-out data).
+    ``learn_input_noise_scale``: also learn a scale g on every input covariance (S -> g S,
+    pose factors -> sqrt(g) A; gpocc.gp.inputscale) within ``[min_input_noise_scale,
+    max_input_noise_scale]``, starting at 1; false keeps g = 1 (the published method).
     """
 
     learn: bool = True
@@ -169,6 +172,9 @@ class TrainingConfig:
     log_bounds_width: float = 4.0
     min_noise_variance: float = 0.01
     classifier_holdout: str = "sample"
+    learn_input_noise_scale: bool = False
+    min_input_noise_scale: float = 0.05
+    max_input_noise_scale: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -289,6 +295,7 @@ _POSITIVE_KEYS = {
     "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
     "max_variance_ratio", "max_pgm_pixels", "covariance_sentinel",
+    "min_input_noise_scale", "max_input_noise_scale",
     "weight_variance", "bias_variance", "max_cells",
 }
 
@@ -420,6 +427,13 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'model.training.classifier_holdout' must be 'scan' or 'sample', "
             f"got {config.model.training.classifier_holdout!r}"
+        )
+    t = config.model.training
+    if not t.min_input_noise_scale <= 1.0 <= t.max_input_noise_scale:
+        raise GpoccError(
+            f"{source}: keys 'model.training.min_input_noise_scale' and "
+            f"'max_input_noise_scale' must enclose 1 (the stated covariances), got "
+            f"{t.min_input_noise_scale} and {t.max_input_noise_scale}"
         )
     if config.model.quadrature_level > 10:
         raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")

@@ -120,7 +120,9 @@ def format_model(path: Path, model: GPModel) -> list[str]:
                           or "(not recorded)"),
         f"  kernel: {params}",
         f"  noise_variance: {model.noise_variance:.6g}",
-        f"  input noise: {'on' if model.input_noise else 'off'}",
+        f"  input noise: {'on' if model.input_noise else 'off'}"
+        + (f", input covariances scaled by {model.input_noise_scale:.4g}"
+           if model.input_noise and model.input_noise_scale != 1.0 else ""),
         f"  classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
         f"{model.classifier.offset:.4g}, extra variance "
         f"{model.classifier.extra_variance:.3g}), thresholds "

@@ -73,6 +73,8 @@ def train(
     typer.echo(f"noise_variance: {model.noise_variance:.6g}")
     typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
                f"(initial {model.training['initial_log_marginal_likelihood']:.3f})")
+    if model.input_noise_scale != 1.0:
+        typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}")
     typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
                f"{model.classifier.offset:.4g}, extra variance "
                f"{model.classifier.extra_variance:.3g})")

@@ -22,6 +22,7 @@ from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier, fit_classifier
+from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import Kernel, make_kernel
 from gpocc.gp.modelfile import validate_contents, validate_coverage
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
@@ -32,7 +33,8 @@ from gpocc.versions import software_versions
 
 FORMAT_NAME = "gpocc-model"
 #: 2: the classifier is stored as (offset, extra_variance); files of format 1 (a, b)
-#: still load.
+#: still load. The samples' covariances and pose factors are stored already scaled by
+#: ``input_noise_scale`` (absent: 1).
 FORMAT_VERSION = 2
 _ARRAYS = ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")
 
@@ -42,7 +44,9 @@ class GPModel:
     """Everything ``gpocc map`` needs: samples, kernel, noise, classifier, settings.
 
     ``samples`` are the samples the model predicts from: with ``input_noise`` off their
-    covariances are zero (the baseline GP), so prediction code needs no switch; their
+    covariances are zero (the baseline GP), and with it on they are already scaled by
+    the learned ``input_noise_scale`` g (:mod:`gpocc.gp.inputscale`; 1 when not learned
+    and in files written before it existed), so prediction code needs no switch; their
     ``sensor_names`` name the sensors they came from. ``versions``: the software that
     trained the model (:func:`gpocc.versions.software_versions`). ``training``: the
     learning's record (likelihoods, evaluations, patches, ``timings_s``).
@@ -60,6 +64,7 @@ class GPModel:
     inputs: tuple[str, ...] = ()
     versions: dict[str, str] = field(default_factory=software_versions)
     coverage: Coverage | None = None
+    input_noise_scale: float = 1.0
 
     @property
     def level(self) -> int:
@@ -98,6 +103,8 @@ def build_model(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
         )
+        # The model predicts from the samples as the likelihood saw them: scaled by g.
+        samples = scale_input_noise(samples, result.input_noise_scale)
         # Fresh patches (another seed) for the classifier: a and b fitted on the very
         # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
         patches = make_patches(samples, model_cfg.training, config.seed + 1)
@@ -114,6 +121,7 @@ def build_model(
         kernel=result.kernel, noise_variance=result.noise_variance, classifier=classifier,
         samples=samples, config=config, input_noise=model_cfg.input_noise,
         training=training, inputs=tuple(inputs), coverage=coverage,
+        input_noise_scale=result.input_noise_scale,
     )
 
 
@@ -134,6 +142,7 @@ def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:
         "classifier": {"offset": model.classifier.offset,
                        "extra_variance": model.classifier.extra_variance},
         "input_noise": model.input_noise,
+        "input_noise_scale": model.input_noise_scale,
         "training": model.training,
         "inputs": list(model.inputs),
         "config": config_to_dict(model.config),
@@ -180,6 +189,6 @@ def load_model(path: str | Path) -> GPModel:
         kernel=parts.kernel, noise_variance=parts.noise_variance,
         classifier=parts.classifier, samples=parts.samples, config=parts.config,
         input_noise=parts.input_noise, training=parts.training, inputs=parts.inputs,
-        versions=parts.versions,
+        versions=parts.versions, input_noise_scale=parts.input_noise_scale,
         coverage=validate_coverage(meta.get("coverage"), coverage_bits, parts.config, p),
     )

@@ -50,6 +50,7 @@ class ModelContents:
     training: dict[str, Any]
     inputs: tuple[str, ...]
     versions: dict[str, str]
+    input_noise_scale: float = 1.0
 
 
 class _Damaged(Exception):
@@ -161,6 +162,9 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelCon
     input_noise = meta.get("input_noise")
     if not isinstance(input_noise, bool):
         raise _Damaged(f"input_noise is {input_noise!r}, not true or false")
+    # Absent in files written before it was learned: the stated covariances (g = 1).
+    scale = _finite_number(meta.get("input_noise_scale", 1.0), "input_noise_scale",
+                           positive=True)
     training = meta.get("training", {})
     if not isinstance(training, dict):
         raise _Damaged("the training record is not a JSON object")
@@ -181,7 +185,7 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelCon
         kernel=kernel, noise_variance=noise, classifier=platt,
         samples=dataclasses.replace(samples, sensor_names=tuple(names)), config=config,
         input_noise=input_noise, training=training, inputs=tuple(inputs),
-        versions=dict(versions),
+        versions=dict(versions), input_noise_scale=scale,
     )
 
 

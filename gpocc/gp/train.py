@@ -5,7 +5,8 @@ neighbourhoods ("patches") of the exact GP log marginal likelihood, each patch c
 at the origin like an inference problem. The expected-kernel matrices and their analytic
 gradients come from Gauss-Hermite quadrature whose nodes do not depend on the
 hyperparameters. Optimisation: ``scipy.optimize.dual_annealing`` (global, bounded,
-seeded) and then L-BFGS-B from its best point.
+seeded) and then L-BFGS-B from its best point. With ``learn_input_noise_scale`` a
+scale g on every input covariance (:mod:`gpocc.gp.inputscale`) is learned with them.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from scipy.optimize import dual_annealing, minimize
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_matrix
+from gpocc.gp.inputscale import LOG_SCALE_STEP, scale_patches
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, NeighbourIndex, try_cholesky
 from gpocc.parallel import default_workers
@@ -29,6 +31,8 @@ from gpocc.samples.sampleset import SampleSet
 
 _JITTER = 1e-8
 _LOG_2PI = math.log(2.0 * math.pi)
+#: Value of hyperparameters whose training covariance is not positive definite.
+_REJECTED = 1e10
 
 
 @dataclass(frozen=True)
@@ -42,6 +46,7 @@ class TrainingResult:
         initial_log_marginal_likelihood: at the initial values (nats).
         evaluations: likelihood evaluations spent.
         patches: number of patches and samples per patch.
+        input_noise_scale: learned scale g of the input covariances (1: not learned).
     """
 
     kernel: Kernel
@@ -50,6 +55,7 @@ class TrainingResult:
     initial_log_marginal_likelihood: float
     evaluations: int
     patches: tuple[int, int]
+    input_noise_scale: float = 1.0
 
 
 def spread_patch_centres(means: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -135,11 +141,45 @@ def negative_log_likelihood(
     grad = np.zeros_like(params)
     for term in terms:
         if term is None:  # not a valid covariance: reject these hyperparameters
-            return 1e10, np.zeros_like(params)
+            return _REJECTED, np.zeros_like(params)
         value += term[0]
         if term[1] is not None:
             grad += term[1]
     return float(value), grad
+
+
+def negative_log_likelihood_with_scale(
+    params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
+    with_gradient: bool = True, executor: Executor | None = None,
+) -> tuple[float, np.ndarray]:
+    """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
+
+    ``params`` = ``[kernel.theta..., log noise_variance, log g]``. The derivative in
+    ``log g`` is a central difference of two value-only evaluations, step
+    :data:`LOG_SCALE_STEP` (the expected kernel has no analytic derivative in its input
+    covariances here); at ``log g = 0`` the value and the other derivatives are exactly
+    those of the unscaled likelihood.
+    """
+    log_g = float(params[-1])
+
+    def at(log_scale: float, gradient: bool) -> tuple[float, np.ndarray]:
+        return negative_log_likelihood(params[:-1], kernel,
+                                       scale_patches(patches, math.exp(log_scale)), level,
+                                       with_gradient=gradient, executor=executor)
+
+    value, grad = at(log_g, with_gradient)
+    if not with_gradient or value >= _REJECTED:
+        return value, np.append(grad, 0.0)
+    up, down = at(log_g + LOG_SCALE_STEP, False)[0], at(log_g - LOG_SCALE_STEP, False)[0]
+    if up < _REJECTED and down < _REJECTED:
+        slope = (up - down) / (2.0 * LOG_SCALE_STEP)
+    elif up < _REJECTED:  # one side is not a valid covariance: one-sided difference
+        slope = (up - value) / LOG_SCALE_STEP
+    elif down < _REJECTED:
+        slope = (value - down) / LOG_SCALE_STEP
+    else:
+        slope = 0.0
+    return value, np.append(grad, slope)
 
 
 def learn_hyperparameters(
@@ -155,28 +195,33 @@ def learn_hyperparameters(
     result does not depend on their number.
     """
     patches = make_patches(samples, config, seed)
+    # g only matters (and is only learned) when some input has a covariance.
+    learn_scale = config.learn_input_noise_scale and bool(samples.covariances.any())
+    objective = negative_log_likelihood_with_scale if learn_scale else negative_log_likelihood
     with ThreadPoolExecutor(max_workers=min(len(patches), threads or default_workers())) as pool:
 
         def negative_log_likelihood_counted(
             params: np.ndarray, *args: object, with_gradient: bool = True
         ) -> tuple[float, np.ndarray]:
-            result = negative_log_likelihood(params, *args, with_gradient=with_gradient,
-                                             executor=pool)
+            result = objective(params, *args, with_gradient=with_gradient, executor=pool)
             if on_evaluation is not None:
                 on_evaluation(1)
             return result
 
         return _optimise(kernel, noise_variance, patches, level, config, seed,
-                         negative_log_likelihood_counted)
+                         negative_log_likelihood_counted, learn_scale)
 
 
 def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem], level: int,
               config: TrainingConfig, seed: int,
               negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
-              ) -> TrainingResult:
+              learn_scale: bool = False) -> TrainingResult:
     """Global annealing on values, then L-BFGS-B on values and gradients."""
 
     x0 = np.append(kernel.theta, math.log(noise_variance))
+    noise_at = x0.shape[0] - 1  # then log g when it is learned, starting at g = 1
+    if learn_scale:
+        x0 = np.append(x0, 0.0)
     initial, _ = negative_log_likelihood_counted(x0, kernel, patches, level)
     evaluations = 1
     if not config.learn:
@@ -185,16 +230,19 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     width = config.log_bounds_width
     bounds = [(v - width, v + width) for v in x0]
     floor = math.log(config.min_noise_variance)
-    bounds[-1] = (max(bounds[-1][0], floor), max(bounds[-1][1], floor + 1.0))
-    start = min(max(x0[-1], bounds[-1][0]), bounds[-1][1])
+    bounds[noise_at] = (max(bounds[noise_at][0], floor), max(bounds[noise_at][1], floor + 1.0))
+    if learn_scale:
+        bounds[-1] = (math.log(config.min_input_noise_scale),
+                      math.log(config.max_input_noise_scale))
+    start = min(max(x0[noise_at], bounds[noise_at][0]), bounds[noise_at][1])
 
     def value_only(p: np.ndarray) -> float:
         return negative_log_likelihood_counted(p, kernel, patches, level,
                                                with_gradient=False)[0]
 
     # Only a start below the noise floor moves; otherwise its value is already known.
-    best_value = initial if start == x0[-1] else None
-    x0[-1] = start
+    best_value = initial if start == x0[noise_at] else None
+    x0[noise_at] = start
     if best_value is None:
         best_value = value_only(x0)
         evaluations += 1
@@ -217,8 +265,9 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     else:
         final, final_value = best, best_value
     return TrainingResult(
-        kernel=kernel.with_theta(final[:-1]),
-        noise_variance=float(math.exp(final[-1])),
+        kernel=kernel.with_theta(final[:noise_at]),
+        noise_variance=float(math.exp(final[noise_at])),
+        input_noise_scale=float(math.exp(final[-1])) if learn_scale else 1.0,
         log_marginal_likelihood=-final_value,
         initial_log_marginal_likelihood=-initial,
         evaluations=evaluations,

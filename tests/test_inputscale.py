@@ -1,0 +1,171 @@
+"""The learned input-noise scale g (S -> g S, A -> sqrt(g) A): oracles and recovery."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from gpocc.config import Config, ModelConfig, TrainingConfig
+from gpocc.gp.expected import expected_kernel_matrix, expected_se_closed_form_pairs
+from gpocc.gp.inputscale import scale_input_noise, scale_patches
+from gpocc.gp.kernels import SquaredExponentialKernel
+from gpocc.gp.train import (
+    learn_hyperparameters,
+    make_patches,
+    negative_log_likelihood,
+    negative_log_likelihood_with_scale,
+)
+from gpocc.samples.sampleset import SampleSet
+
+
+def _samples(n: int, rng: np.random.Generator, scans: int = 4) -> SampleSet:
+    means = rng.uniform(-1, 1, (n, 2))
+    covs = np.einsum("n,ij->nij", rng.uniform(0.002, 0.02, n), np.eye(2))
+    factors = rng.normal(0, 0.04, (n, 2, 3))
+    covs = covs + np.einsum("nik,njk->nij", factors, factors)  # S_i includes A_i A_i'
+    return SampleSet(means, covs, np.where(rng.random(n) < 0.3, 1.0, -1.0),
+                     rng.integers(0, scans, n), factors, np.zeros(n, dtype=np.int16))
+
+
+@pytest.mark.parametrize("scale", [0.3, 2.5])
+def test_scaled_samples_give_the_closed_form_of_the_scaled_joint_law(scale):
+    # Girard's closed form with every covariance, and the same-scan cross-covariance
+    # A_i A_j', multiplied by g: the oracle for what the scaled samples must mean.
+    rng = np.random.default_rng(0)
+    s = _samples(12, rng, scans=2)
+    scaled = scale_input_noise(s, scale)
+    kernel = SquaredExponentialKernel(1.3, (0.4, 0.6))
+    k = expected_kernel_matrix(kernel, scaled.means, scaled.covariances, 8,
+                               scan_ids=scaled.scan_ids, pose_factors=scaled.pose_factors)
+    i, j = np.triu_indices(len(s), 1)
+    cross = np.einsum("pik,pjk->pij", s.pose_factors[i], s.pose_factors[j])
+    cross[s.scan_ids[i] != s.scan_ids[j]] = 0.0
+    oracle = expected_se_closed_form_pairs(kernel, s.means[i], scale * s.covariances[i],
+                                           s.means[j], scale * s.covariances[j],
+                                           scale * cross)
+    np.testing.assert_allclose(k[i, j], oracle, rtol=0, atol=2e-4)
+
+
+def test_scale_one_is_the_published_model_exactly():
+    rng = np.random.default_rng(1)
+    s = _samples(150, rng)
+    assert scale_input_noise(s, 1.0) is s
+    patches = make_patches(s, TrainingConfig(patches=2, patch_size=60), seed=0)
+    kernel = SquaredExponentialKernel(1.0, (0.5, 0.5))
+    params = np.append(kernel.theta, math.log(0.05))
+    value, grad = negative_log_likelihood(params, kernel, patches, 2)
+    value_g, grad_g = negative_log_likelihood_with_scale(np.append(params, 0.0), kernel,
+                                                         patches, 2)
+    assert value_g == value
+    np.testing.assert_array_equal(grad_g[:-1], grad)
+
+
+def test_log_scale_gradient_matches_the_likelihood_of_scaled_patches():
+    # The last gradient entry against a difference of the plain likelihood of patches
+    # scaled by hand (a wider step than the implementation's).
+    rng = np.random.default_rng(2)
+    patches = make_patches(_samples(150, rng), TrainingConfig(patches=2, patch_size=60), 0)
+    kernel = SquaredExponentialKernel(1.0, (0.3, 0.3))
+    params = np.append(kernel.theta, math.log(0.05))
+    log_g, h = math.log(1.7), 1e-2
+    _, grad = negative_log_likelihood_with_scale(np.append(params, log_g), kernel, patches, 2)
+    up = negative_log_likelihood(params, kernel, scale_patches(patches, math.exp(log_g + h)),
+                                 2)[0]
+    down = negative_log_likelihood(params, kernel,
+                                   scale_patches(patches, math.exp(log_g - h)), 2)[0]
+    assert grad[-1] == pytest.approx((up - down) / (2 * h), rel=1e-3, abs=1e-3)
+
+
+def _synthetic(true_scale: float, seed: int) -> tuple[SampleSet, SquaredExponentialKernel]:
+    """GP labels at true positions; means drawn around them with true_scale * S, and S
+    (half the samples 3 cm, half 14 cm standard deviation) labelled as their covariance."""
+    rng = np.random.default_rng(seed)
+    n = 700
+    truth = rng.uniform(-3, 3, (n, 2))
+    kernel = SquaredExponentialKernel(1.0, (0.6, 0.6))
+    cov = kernel(truth, truth) + 1e-8 * np.eye(n)
+    labels = np.linalg.cholesky(cov) @ rng.standard_normal(n) + rng.normal(0, 0.1, n)
+    sd = np.where(np.arange(n) % 2 == 0, 0.03, 0.14)
+    stated = np.einsum("n,ij->nij", sd**2, np.eye(2))
+    means = truth + rng.standard_normal((n, 2)) * (sd * math.sqrt(true_scale))[:, None]
+    samples = SampleSet(means, stated, labels, np.arange(n), np.zeros((n, 2, 3)),
+                        np.zeros(n, dtype=np.int16))
+    return samples, kernel
+
+
+@pytest.mark.parametrize("true_scale", [0.25, 3.0])
+def test_learned_scale_recovers_the_input_noise_that_made_the_data(true_scale):
+    # Kernel and label noise start at the truth and may move by a factor e^0.5; g is
+    # free in [0.05, 4]. Oracles: the truth (to the sampling error of 700 samples), and
+    # a brute-force profile of the same likelihood over g (the optimiser's job).
+    samples, kernel = _synthetic(true_scale, seed=3)
+    config = TrainingConfig(patches=4, patch_size=100, anneal_maxfun=20, lbfgs_maxiter=40,
+                            log_bounds_width=0.5, learn_input_noise_scale=True)
+    result = learn_hyperparameters(kernel, 0.01, samples, 2, config, seed=0)
+    assert result.input_noise_scale == pytest.approx(true_scale, rel=0.5)
+    patches = make_patches(samples, config, 0)
+    params = np.append(result.kernel.theta, math.log(result.noise_variance))
+    grid = np.geomspace(0.05, 4.0, 41)
+    profile = [negative_log_likelihood(params, result.kernel, scale_patches(patches, g), 2)[0]
+               for g in grid]
+    best = grid[int(np.argmin(profile))]
+    assert result.input_noise_scale == pytest.approx(best, rel=0.12)  # grid ratio 1.116
+    assert -result.log_marginal_likelihood <= min(profile) + 1e-6
+
+
+def test_model_applies_the_learned_scale_and_files_keep_it(tmp_path):
+    from gpocc.gp.model import build_model, load_model, save_model
+
+    samples, kernel = _synthetic(3.0, seed=4)
+    samples = dataclasses.replace(samples, labels=np.where(samples.labels > 0, 1.0, -1.0))
+    config = Config(model=ModelConfig(kernel="se", quadrature_level=3, training=TrainingConfig(
+        patches=3, patch_size=80, anneal_maxfun=5, lbfgs_maxiter=10,
+        learn_input_noise_scale=True)))
+    model = build_model(samples, config)
+    g = model.input_noise_scale
+    assert g != 1.0
+    np.testing.assert_allclose(model.samples.covariances, g * samples.covariances)
+    save_model(model, tmp_path / "m.npz")
+    again = load_model(tmp_path / "m.npz")
+    assert again.input_noise_scale == g
+    np.testing.assert_array_equal(again.samples.covariances, model.samples.covariances)
+
+
+def test_files_without_a_scale_load_with_the_stated_covariances(tmp_path):
+    import json
+
+    from gpocc.gp.classify import PlattClassifier
+    from gpocc.gp.model import GPModel, load_model, save_model
+
+    rng = np.random.default_rng(5)
+    samples = _samples(40, rng)
+    samples = dataclasses.replace(samples, covariances=samples.covariances * 3.0)
+    model = GPModel(kernel=SquaredExponentialKernel(), noise_variance=0.1,
+                    classifier=PlattClassifier(), samples=samples,
+                    config=Config(model=ModelConfig(kernel="se")), input_noise=True,
+                    input_noise_scale=3.0)
+    path = tmp_path / "m.npz"
+    save_model(model, path)
+    with np.load(path) as data:
+        arrays = dict(data)
+    meta = json.loads(bytes(arrays["metadata"]).decode())
+    assert meta["input_noise_scale"] == 3.0
+    del meta["input_noise_scale"]
+    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(path, **arrays)
+    old = load_model(path)
+    assert old.input_noise_scale == 1.0
+    np.testing.assert_array_equal(old.samples.covariances, samples.covariances)
+
+
+@pytest.mark.parametrize("low, high", [(1.5, 4.0), (0.05, 0.9)])
+def test_scale_bounds_must_enclose_one(low, high):
+    from gpocc.config import config_from_dict
+    from gpocc.errors import GpoccError
+
+    with pytest.raises(GpoccError, match="min_input_noise_scale"):
+        config_from_dict({"model": {"training": {"min_input_noise_scale": low,
+                                                 "max_input_noise_scale": high}}})
