@@ -103,7 +103,9 @@ def test_recovers_known_hyperparameters():
     labels = np.linalg.cholesky(cov + 1e-9 * np.eye(n)) @ rng.standard_normal(n)
     samples = samples_from(means, labels)
     start = SquaredExponentialKernel(0.5, (2.0, 2.0))
-    config = TrainingConfig(patches=8, patch_size=120, anneal_maxfun=40, lbfgs_maxiter=60)
+    # The true noise (0.05) is below the default floor: the published floor of 0.01.
+    config = TrainingConfig(patches=8, patch_size=120, anneal_maxfun=40, lbfgs_maxiter=60,
+                            min_noise_variance=0.01)
     result = learn_hyperparameters(start, 0.5, samples, 3, config, seed=0)
     assert result.log_marginal_likelihood > result.initial_log_marginal_likelihood
     assert result.kernel.lengthscale[0] == pytest.approx(0.8, rel=0.3)

@@ -98,12 +98,14 @@ def _synthetic(true_scale: float, seed: int) -> tuple[SampleSet, SquaredExponent
 
 @pytest.mark.parametrize("true_scale", [0.25, 3.0])
 def test_learned_scale_recovers_the_input_noise_that_made_the_data(true_scale):
-    # Kernel and label noise start at the truth and may move by a factor e^0.5; g is
-    # free in [0.05, 4]. Oracles: the truth (to the sampling error of 700 samples), and
-    # a brute-force profile of the same likelihood over g (the optimiser's job).
+    # Kernel and label noise start at the truth and may move by a factor e^0.5 (the
+    # label-noise floor below the true 0.01); g is free in [0.05, 4]. Oracles: the truth
+    # (to the sampling error of 700 samples), and a brute-force profile of the same
+    # likelihood over g (the optimiser's job).
     samples, kernel = _synthetic(true_scale, seed=3)
     config = TrainingConfig(patches=4, patch_size=100, anneal_maxfun=20, lbfgs_maxiter=40,
-                            log_bounds_width=0.5, learn_input_noise_scale=True)
+                            log_bounds_width=0.5, min_noise_variance=0.001,
+                            learn_input_noise_scale=True)
     result = learn_hyperparameters(kernel, 0.01, samples, 2, config, seed=0)
     assert result.input_noise_scale == pytest.approx(true_scale, rel=0.5)
     patches = make_patches(samples, config, 0)
