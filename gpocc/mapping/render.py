@@ -111,7 +111,8 @@ def render_preview(
     if title:
         fig.suptitle(title)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        # zlib level 1: a quarter of the encoding time for a file ~20% larger.
+        fig.savefig(tmp, format="png", pil_kwargs={"compress_level": 1})
 
 
 def _cmap(name: str):
