@@ -81,12 +81,12 @@ def test_value_only_path_and_threads_give_the_same_likelihood():
     np.testing.assert_array_equal(threaded_grad, grad)
 
 
-def test_learned_hyperparameters_do_not_depend_on_the_thread_count():
+def test_learned_hyperparameters_do_not_depend_on_the_worker_count():
     samples = _correlated_problem()
     config = TrainingConfig(patches=3, patch_size=40, anneal_maxfun=8, lbfgs_maxiter=5)
     start = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
-    one = learn_hyperparameters(start, 0.2, samples, 2, config, seed=0, threads=1)
-    two = learn_hyperparameters(start, 0.2, samples, 2, config, seed=0, threads=2)
+    one = learn_hyperparameters(start, 0.2, samples, 2, config, seed=0, workers=1)
+    two = learn_hyperparameters(start, 0.2, samples, 2, config, seed=0, workers=2)
     np.testing.assert_array_equal(one.kernel.theta, two.kernel.theta)
     assert one.noise_variance == two.noise_variance
     assert one.log_marginal_likelihood == two.log_marginal_likelihood

@@ -11,7 +11,7 @@ import pytest
 from gpocc.config import Config, ModelConfig, TrainingConfig
 from gpocc.gp.expected import expected_kernel_matrix, expected_se_closed_form_pairs
 from gpocc.gp.inputscale import scale_input_noise, scale_patches
-from gpocc.gp.kernels import SquaredExponentialKernel
+from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
 from gpocc.gp.train import (
     learn_hyperparameters,
     make_patches,
@@ -171,3 +171,26 @@ def test_scale_bounds_must_enclose_one(low, high):
     with pytest.raises(GpoccError, match="min_input_noise_scale"):
         config_from_dict({"model": {"training": {"min_input_noise_scale": low,
                                                  "max_input_noise_scale": high}}})
+
+
+def test_scaled_likelihood_equals_the_likelihood_of_scaled_patches():
+    """input_scale (cached nodes moved by sqrt(g)) against patches whose samples were
+    scaled before any node was built."""
+    rng = np.random.default_rng(7)
+    n = 200
+    means = rng.uniform(-3, 3, (n, 2))
+    covs = np.einsum("n,ij->nij", rng.uniform(0.001, 0.02, n), np.eye(2))
+    covs[:10] = 0.0  # exact points keep one node
+    samples = SampleSet(means=means, covariances=covs,
+                        labels=np.where(rng.random(n) < 0.3, 1.0, -1.0),
+                        scan_ids=rng.integers(0, 15, n),
+                        pose_factors=rng.normal(0, 0.03, (n, 2, 3)),
+                        sensor_ids=np.zeros(n, dtype=np.int16))
+    patches = make_patches(samples, TrainingConfig(patches=3, patch_size=50), seed=2)
+    kernel = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
+    params = np.append(kernel.theta, math.log(0.2))
+    for g in (0.25, 3.0):
+        value, grad = negative_log_likelihood(params, kernel, patches, 2, input_scale=g)
+        ref, ref_grad = negative_log_likelihood(params, kernel, scale_patches(patches, g), 2)
+        assert value == pytest.approx(ref, rel=1e-12)
+        np.testing.assert_allclose(grad, ref_grad, rtol=1e-10, atol=1e-12)

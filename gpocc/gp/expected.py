@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -198,6 +199,19 @@ def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansio
     return _Expansion(nodes, weights, starts, 0)
 
 
+def _scaled_expansion(ex: _Expansion, means: np.ndarray, scale: float) -> _Expansion:
+    """The expansion of the same points with covariances times ``scale``: every node
+    moves away from its point's mean by sqrt(scale) (the root of g S is sqrt(g) times the
+    root of S), so the cached nodes of S serve every g."""
+    if scale == 1.0:
+        return ex
+    centre = np.repeat(means, np.diff(ex.starts), axis=0)
+    nodes = np.empty_like(ex.nodes)  # keeps the cached layout (contiguous columns)
+    np.multiply(ex.nodes - centre, math.sqrt(scale), out=nodes)
+    nodes += centre
+    return _Expansion(nodes, ex.weights, ex.starts, ex.uniform)
+
+
 def _reduce_last(values: np.ndarray, ex: _Expansion) -> np.ndarray:
     """Weighted sum over each point's nodes along the last axis: (..., M) -> (..., N)."""
     if ex.uniform == 1:
@@ -310,8 +324,11 @@ def _correlated_values(
     j: np.ndarray,
     level: int,
     with_gradient: bool,
+    input_scale: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """E[k(x_i, x_j)] under the joint 4-D Gaussian of each pair: (Pp,) and (P, Pp)."""
+    """E[k(x_i, x_j)] under the joint 4-D Gaussian of each pair: (Pp,) and (P, Pp).
+
+    ``input_scale`` (compiled path only): the joint covariances times it."""
     unit, w = gauss_hermite(level, 4)
     fused = _fused(kernel)
     if fused is not None:
@@ -328,6 +345,12 @@ def _correlated_values(
                                   ii[lo:hi], jj[lo:hi], unit),
                 means, covariances, pose_factors, ii[lo:hi], jj[lo:hi], unit,
             )
+            if input_scale != 1.0:  # the joint root scales by sqrt(g): see _scaled_expansion
+                size = w.shape[0]
+                centre = np.empty_like(nodes)
+                centre[:2] = np.repeat(means[ii[lo:hi]].T, size, axis=1)
+                centre[2:] = np.repeat(means[jj[lo:hi]].T, size, axis=1)
+                nodes = centre + math.sqrt(input_scale) * (nodes - centre)
             fused.nn_node_pairs(nodes, np.ascontiguousarray(w), kernel.root_two_s,
                                 kernel.arcsin_scale, out[:, lo:hi], with_gradient)
         return out[0].copy(), (out if with_gradient else None)
@@ -392,6 +415,7 @@ def expected_kernel_matrix(
     scan_ids: np.ndarray | None = None,
     pose_factors: np.ndarray | None = None,
     with_gradient: bool = False,
+    input_scale: float = 1.0,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Expected training covariance ``K[i, j] = E[k(x_i, x_j)]``, x_i ~ N(u_i, S_i).
 
@@ -408,18 +432,27 @@ def expected_kernel_matrix(
         scan_ids: (N,) integers.
         pose_factors: (N, 2, 3) metres.
         with_gradient: also return dK/dtheta.
+        input_scale: g > 0: the inputs' covariances are ``g S_i`` and their pose factors
+            ``sqrt(g) A_i`` (:mod:`gpocc.gp.inputscale`); node sets are built once for
+            ``g = 1`` and scaled, so learning g reuses them.
 
     Returns:
         K (N, N) symmetric, or (K, dK) with dK (P, N, N), P = len(kernel.theta).
     """
     means, covariances = _check_inputs(means, covariances)
+    fused = _fused(kernel)
+    if input_scale != 1.0 and fused is None:  # the reference path scales its inputs
+        covariances = covariances * input_scale
+        if pose_factors is not None:
+            pose_factors = np.asarray(pose_factors, dtype=np.float64) * math.sqrt(input_scale)
+        input_scale = 1.0
     ex = _cached("expand", functools.partial(_expand, means, covariances, level), means,
                  covariances, np.array([level]))
+    ex = _scaled_expansion(ex, means, input_scale)
     n = ex.size
     nparams = _nparams(kernel)
     k = np.empty((n, n))
     dk = np.empty((nparams, n, n)) if with_gradient else None
-    fused = _fused(kernel)
     if fused is not None:
         # Off-diagonal entries straight from the scaled nodes, no node-pair temporaries.
         u = kernel.scaled_columns(ex.nodes)
@@ -450,7 +483,7 @@ def expected_kernel_matrix(
     if i.shape[0] and level > 1:  # a 1-node rule puts both points at their means anyway
         values, grads = _correlated_values(
             kernel, means, covariances, np.asarray(pose_factors, dtype=np.float64),
-            i, j, level, with_gradient,
+            i, j, level, with_gradient, input_scale,
         )
         k[i, j] = values
         k[j, i] = values

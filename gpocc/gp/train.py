@@ -11,10 +11,13 @@ scale g on every input covariance (:mod:`gpocc.gp.inputscale`) is learned with t
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import math
 from collections.abc import Callable
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor
 from dataclasses import dataclass
+from multiprocessing.pool import Pool
 
 import numpy as np
 from scipy.linalg import cho_solve
@@ -23,10 +26,10 @@ from scipy.optimize import dual_annealing, minimize
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import expected_kernel_matrix
-from gpocc.gp.inputscale import LOG_SCALE_STEP, scale_patches
+from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, NeighbourIndex, try_cholesky
-from gpocc.parallel import default_workers
+from gpocc.parallel import default_workers, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
 _JITTER = 1e-8
@@ -89,19 +92,20 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
 
 
 def _patch_negative_log_likelihood(
-    kernel: Kernel, noise: float, patch: LocalProblem, level: int, with_gradient: bool
+    kernel: Kernel, noise: float, patch: LocalProblem, *, level: int, with_gradient: bool,
+    input_scale: float = 1.0,
 ) -> tuple[float, np.ndarray | None] | None:
     """One patch's -LML and its gradient in log-parameters; None if K is not a covariance."""
     s = patch.samples
     if with_gradient:
         cov, dcov = expected_kernel_matrix(
             kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, with_gradient=True,
+            pose_factors=s.pose_factors, with_gradient=True, input_scale=input_scale,
         )
     else:
         cov = expected_kernel_matrix(
             kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors,
+            pose_factors=s.pose_factors, input_scale=input_scale,
         )
     cov[np.diag_indices_from(cov)] += noise + _JITTER
     chol = try_cholesky(cov, jitter=False)
@@ -121,21 +125,21 @@ def _patch_negative_log_likelihood(
 
 def negative_log_likelihood(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
-    with_gradient: bool = True, executor: Executor | None = None,
+    with_gradient: bool = True, executor: Executor | Pool | None = None,
+    input_scale: float = 1.0,
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
 
     ``params`` = ``[kernel.theta..., log noise_variance]``. Without ``with_gradient`` the
     gradient is returned as zeros (and not computed: the global stage needs values only).
-    ``executor`` evaluates the patches concurrently (the compiled kernels and LAPACK
-    release the GIL); the sum is taken in patch order, so the result does not depend on it.
+    ``executor`` (anything with ``map``: worker processes, threads) evaluates the patches
+    concurrently; the sum is taken in patch order, so the result does not depend on it.
+    ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1).
     """
-    k = kernel.with_theta(params[:-1])
-    noise = math.exp(params[-1])
-
-    def one(patch: LocalProblem) -> tuple[float, np.ndarray | None] | None:
-        return _patch_negative_log_likelihood(k, noise, patch, level, with_gradient)
-
+    # A partial of a module-level function, so that worker processes can receive it.
+    one = functools.partial(_patch_negative_log_likelihood, kernel.with_theta(params[:-1]),
+                            math.exp(params[-1]), level=level, with_gradient=with_gradient,
+                            input_scale=input_scale)
     terms = list(executor.map(one, patches)) if executor is not None else map(one, patches)
     value = 0.0
     grad = np.zeros_like(params)
@@ -150,7 +154,7 @@ def negative_log_likelihood(
 
 def negative_log_likelihood_with_scale(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
-    with_gradient: bool = True, executor: Executor | None = None,
+    with_gradient: bool = True, executor: Executor | Pool | None = None,
 ) -> tuple[float, np.ndarray]:
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
@@ -163,9 +167,9 @@ def negative_log_likelihood_with_scale(
     log_g = float(params[-1])
 
     def at(log_scale: float, gradient: bool) -> tuple[float, np.ndarray]:
-        return negative_log_likelihood(params[:-1], kernel,
-                                       scale_patches(patches, math.exp(log_scale)), level,
-                                       with_gradient=gradient, executor=executor)
+        return negative_log_likelihood(params[:-1], kernel, patches, level,
+                                       with_gradient=gradient, executor=executor,
+                                       input_scale=math.exp(log_scale))
 
     value, grad = at(log_g, with_gradient)
     if not with_gradient or value >= _REJECTED:
@@ -182,23 +186,33 @@ def negative_log_likelihood_with_scale(
     return value, np.append(grad, slope)
 
 
+def _no_setup() -> None:
+    """Training workers need no state: each call brings its patches."""
+
+
 def learn_hyperparameters(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
-    threads: int | None = None,
+    workers: int | None = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
-    ``threads`` (default: every usable core) evaluate the patches concurrently; the
-    result does not depend on their number.
+    ``workers`` processes (default: every usable core; 1: none) evaluate the patches
+    concurrently; the result does not depend on their number.
     """
     patches = make_patches(samples, config, seed)
     # g only matters (and is only learned) when some input has a covariance.
     learn_scale = config.learn_input_noise_scale and bool(samples.covariances.any())
     objective = negative_log_likelihood_with_scale if learn_scale else negative_log_likelihood
-    with ThreadPoolExecutor(max_workers=min(len(patches), threads or default_workers())) as pool:
+    # Processes, not threads: much of a patch's work is numpy glue that holds the GIL
+    # (threads gave 1.4x on 2 cores). Each call ships the patches (~15 kB each); the
+    # workers' node caches still hit, as they are keyed by content.
+    workers = min(len(patches), workers or default_workers())
+    with contextlib.ExitStack() as stack:
+        pool = stack.enter_context(worker_pool(workers, _no_setup, ())) if workers > 1 \
+            else None
 
         def negative_log_likelihood_counted(
             params: np.ndarray, *args: object, with_gradient: bool = True
