@@ -48,12 +48,26 @@ def _transform(dist, bearing, range_sd, bearing_sd, scan, poses, pose_root, pose
                 points[3 + j + _N_INPUTS, 2 + d] -= step
         mean_x = 0.0
         mean_y = 0.0
+        # Most sigma points move the range or the position only: their angles are the
+        # centre's, so its sines and cosines are reused (the same arguments, the same
+        # values); only bearing and yaw points need their own. Two to three times fewer
+        # calls, bit-identical results.
+        th0, phi0 = points[0, 4], points[0, 4] + myaw + points[0, 1]
+        c0, s0 = math.cos(th0), math.sin(th0)
+        cp0, sp0 = math.cos(phi0), math.sin(phi0)
         for k in range(2 * _N_INPUTS + 1):
             r, b, x, y, th = points[k, 0], points[k, 1], points[k, 2], points[k, 3], points[k, 4]
-            c, sn = math.cos(th), math.sin(th)
+            if th == th0:
+                c, sn = c0, s0
+            else:
+                c, sn = math.cos(th), math.sin(th)
             phi = th + myaw + b
-            ys[k, 0] = x + c * mx - sn * my + r * math.cos(phi)
-            ys[k, 1] = y + sn * mx + c * my + r * math.sin(phi)
+            if phi == phi0:
+                cp, sp = cp0, sp0
+            else:
+                cp, sp = math.cos(phi), math.sin(phi)
+            ys[k, 0] = x + c * mx - sn * my + r * cp
+            ys[k, 1] = y + sn * mx + c * my + r * sp
             mean_x += wm[k] * ys[k, 0]
             mean_y += wm[k] * ys[k, 1]
         cxx = 0.0
