@@ -317,6 +317,19 @@ def collect(work: Path, variant: str, classifier: str) -> list[dict]:
     return cases
 
 
+def region_comparison(cases: list[dict], region: str
+                      ) -> tuple[list[dict], list[dict], list[dict], np.ndarray] | None:
+    """The cases of ``region``, the input-noise and no-input-noise GP rows of each, and
+    their AUC differences; None when the region has no case."""
+    chosen = [c for c in cases if c["region"] == region]
+    if not chosen:
+        return None
+    on = [c["methods"]["gp-input-noise"] for c in chosen]
+    off = [c["methods"]["gp-no-input-noise"] for c in chosen]
+    diff = np.array([a["auc"] - b["auc"] for a, b in zip(on, off, strict=True)])
+    return chosen, on, off, diff
+
+
 def tables(cases: list[dict]) -> str:
     lines = ["| case | region | method | AUC | FPR@TPR0.97 | Brier | log-loss | ECE |",
              "|---|---|---|---|---|---|---|---|"]
@@ -327,12 +340,10 @@ def tables(cases: list[dict]) -> str:
                          f"{s['fpr_at_tpr97']:.3f} | {s['brier']:.4f} | {s['log_loss']:.3f} | "
                          f"{s['ece']:.3f} |")
     for region in ("all", "noisy-only"):
-        chosen = [c for c in cases if c["region"] == region]
-        if not chosen:
+        compared = region_comparison(cases, region)
+        if compared is None:
             continue
-        on = [c["methods"]["gp-input-noise"] for c in chosen]
-        off = [c["methods"]["gp-no-input-noise"] for c in chosen]
-        diff = np.array([a["auc"] - b["auc"] for a, b in zip(on, off, strict=True)])
+        _, on, off, diff = compared
         lines += ["", f"Region {region}: input noise vs none over {diff.size} cases: AUC wins "
                       f"{int((diff > 0).sum())}/{diff.size}, mean {diff.mean():+.4f}, worst "
                       f"{diff.min():+.4f}; mean Brier {np.mean([a['brier'] for a in on]):.4f} "

@@ -14,17 +14,16 @@ import json
 from pathlib import Path
 
 import numpy as np
+from experiment import region_comparison
 
 
 def summary(cases: list[dict]) -> list[str]:
     lines = []
     for region in ("all", "noisy-only"):
-        chosen = [c for c in cases if c["region"] == region]
-        if not chosen:
+        compared = region_comparison(cases, region)
+        if compared is None:
             continue
-        on = [c["methods"]["gp-input-noise"] for c in chosen]
-        off = [c["methods"]["gp-no-input-noise"] for c in chosen]
-        diff = np.array([a["auc"] - b["auc"] for a, b in zip(on, off, strict=True)])
+        chosen, on, _, diff = compared
         lowest = sum(c["methods"]["gp-input-noise"]["fpr_at_tpr97"]
                      <= min(m["fpr_at_tpr97"] for m in c["methods"].values()) for c in chosen)
         lines.append(
