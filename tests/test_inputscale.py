@@ -10,8 +10,9 @@ import pytest
 
 from gpocc.config import Config, ModelConfig, TrainingConfig
 from gpocc.gp.expected import expected_kernel_matrix, expected_se_closed_form_pairs
-from gpocc.gp.inputscale import scale_input_noise, scale_patches
+from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.gp.local import LocalProblem
 from gpocc.gp.train import (
     learn_hyperparameters,
     make_patches,
@@ -19,6 +20,12 @@ from gpocc.gp.train import (
     negative_log_likelihood_with_scale,
 )
 from gpocc.samples.sampleset import SampleSet
+
+
+def scale_patches(patches: list[LocalProblem], scale: float) -> list[LocalProblem]:
+    """The oracle of ``input_scale``: every patch's samples scaled before any node is built."""
+    return [dataclasses.replace(p, samples=scale_input_noise(p.samples, scale))
+            for p in patches]
 
 
 def _samples(n: int, rng: np.random.Generator, scans: int = 4) -> SampleSet:

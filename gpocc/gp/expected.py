@@ -199,17 +199,23 @@ def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansio
     return _Expansion(nodes, weights, starts, 0)
 
 
+def _spread(nodes: np.ndarray, centres: np.ndarray, scale: float) -> np.ndarray:
+    """``nodes`` moved away from their points' ``centres`` (same shape) by sqrt(scale):
+    the nodes of covariances times ``scale``, since the root of g S is sqrt(g) times the
+    root of S. The result keeps ``nodes``' memory layout."""
+    out = np.empty_like(nodes)
+    np.multiply(nodes - centres, math.sqrt(scale), out=out)
+    out += centres
+    return out
+
+
 def _scaled_expansion(ex: _Expansion, means: np.ndarray, scale: float) -> _Expansion:
-    """The expansion of the same points with covariances times ``scale``: every node
-    moves away from its point's mean by sqrt(scale) (the root of g S is sqrt(g) times the
-    root of S), so the cached nodes of S serve every g."""
+    """The expansion of the same points with covariances times ``scale`` (:func:`_spread`),
+    so the cached nodes of S serve every g."""
     if scale == 1.0:
         return ex
-    centre = np.repeat(means, np.diff(ex.starts), axis=0)
-    nodes = np.empty_like(ex.nodes)  # keeps the cached layout (contiguous columns)
-    np.multiply(ex.nodes - centre, math.sqrt(scale), out=nodes)
-    nodes += centre
-    return _Expansion(nodes, ex.weights, ex.starts, ex.uniform)
+    centres = np.repeat(means, np.diff(ex.starts), axis=0)
+    return _Expansion(_spread(ex.nodes, centres, scale), ex.weights, ex.starts, ex.uniform)
 
 
 def _reduce_last(values: np.ndarray, ex: _Expansion) -> np.ndarray:
@@ -245,7 +251,7 @@ def _nparams(kernel: Kernel) -> int:
 # Node sets never depend on the hyperparameters, and training evaluates the same patches a
 # hundred times: the last few node sets are kept, keyed by a digest of their inputs (a hash
 # of a few kB, microseconds). Mapping never repeats a problem; it only pays the digest.
-# Training evaluates its patches on threads, hence the lock (held for look-ups, not builds).
+# The lock makes the cache safe for callers on threads (held for look-ups, not builds).
 _NODE_CACHE: OrderedDict[bytes, object] = OrderedDict()
 _NODE_CACHE_ENTRIES = 48
 _NODE_CACHE_LOCK = threading.Lock()
@@ -272,6 +278,12 @@ def _cached(kind: str, build, *arrays: np.ndarray):
         while len(_NODE_CACHE) > _NODE_CACHE_ENTRIES:
             _NODE_CACHE.popitem(last=False)
     return value
+
+
+def _cached_expansion(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansion:
+    """:func:`_expand` through the node-set cache."""
+    return _cached("expand", functools.partial(_expand, means, covariances, level), means,
+                   covariances, np.array([level]))
 
 
 def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -345,12 +357,10 @@ def _correlated_values(
                                   ii[lo:hi], jj[lo:hi], unit),
                 means, covariances, pose_factors, ii[lo:hi], jj[lo:hi], unit,
             )
-            if input_scale != 1.0:  # the joint root scales by sqrt(g): see _scaled_expansion
-                size = w.shape[0]
-                centre = np.empty_like(nodes)
-                centre[:2] = np.repeat(means[ii[lo:hi]].T, size, axis=1)
-                centre[2:] = np.repeat(means[jj[lo:hi]].T, size, axis=1)
-                nodes = centre + math.sqrt(input_scale) * (nodes - centre)
+            if input_scale != 1.0:
+                centres = np.vstack([np.repeat(means[ii[lo:hi]].T, w.shape[0], axis=1),
+                                     np.repeat(means[jj[lo:hi]].T, w.shape[0], axis=1)])
+                nodes = _spread(nodes, centres, input_scale)
             fused.nn_node_pairs(nodes, np.ascontiguousarray(w), kernel.root_two_s,
                                 kernel.arcsin_scale, out[:, lo:hi], with_gradient)
         return out[0].copy(), (out if with_gradient else None)
@@ -446,8 +456,7 @@ def expected_kernel_matrix(
         if pose_factors is not None:
             pose_factors = np.asarray(pose_factors, dtype=np.float64) * math.sqrt(input_scale)
         input_scale = 1.0
-    ex = _cached("expand", functools.partial(_expand, means, covariances, level), means,
-                 covariances, np.array([level]))
+    ex = _cached_expansion(means, covariances, level)
     ex = _scaled_expansion(ex, means, input_scale)
     n = ex.size
     nparams = _nparams(kernel)
@@ -531,8 +540,7 @@ def expected_kernel_cross(
     if queries.ndim != 2 or queries.shape[1] != 2:
         raise ValueError(f"queries must have shape (Q, 2), got {queries.shape}")
     # The training matrix of the same problem has just expanded these points.
-    ex = _cached("expand", functools.partial(_expand, means, covariances, level), means,
-                 covariances, np.array([level]))
+    ex = _cached_expansion(means, covariances, level)
     q = queries.shape[0]
     out = np.empty((q, ex.size))
     dout = np.empty((_nparams(kernel), q, ex.size)) if with_gradient else None

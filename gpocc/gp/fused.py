@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 # ``error_model="numpy"``: no ZeroDivisionError checks, which would stop vectorisation.
-# ``nogil``: training evaluates its patches on threads.
+# ``nogil``: callers may run them on threads.
 _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from gpocc.gp.local import LocalProblem
 from gpocc.samples.sampleset import SampleSet
 
 #: Step in log g of the central difference for d(-LML)/d log g (nats per unit log g).
@@ -30,11 +29,3 @@ def scale_input_noise(samples: SampleSet, scale: float) -> SampleSet:
         return samples
     return dataclasses.replace(samples, covariances=samples.covariances * scale,
                                pose_factors=samples.pose_factors * math.sqrt(scale))
-
-
-def scale_patches(patches: list[LocalProblem], scale: float) -> list[LocalProblem]:
-    """Every patch's samples through :func:`scale_input_noise`."""
-    if scale == 1.0:
-        return patches
-    return [dataclasses.replace(p, samples=scale_input_noise(p.samples, scale))
-            for p in patches]

@@ -185,10 +185,8 @@ def load_model(path: str | Path) -> GPModel:
             f"({FORMAT_VERSION}); upgrade gpocc or re-train with this version"
         )
     parts = validate_contents(meta, arrays, p)
+    # ModelContents holds GPModel's fields but the coverage, field for field.
     return GPModel(
-        kernel=parts.kernel, noise_variance=parts.noise_variance,
-        classifier=parts.classifier, samples=parts.samples, config=parts.config,
-        input_noise=parts.input_noise, training=parts.training, inputs=parts.inputs,
-        versions=parts.versions, input_noise_scale=parts.input_noise_scale,
+        **vars(parts),
         coverage=validate_coverage(meta.get("coverage"), coverage_bits, parts.config, p),
     )

@@ -210,9 +210,8 @@ def learn_hyperparameters(
     # (threads gave 1.4x on 2 cores). Each call ships the patches (~15 kB each); the
     # workers' node caches still hit, as they are keyed by content.
     workers = min(len(patches), workers or default_workers())
-    with contextlib.ExitStack() as stack:
-        pool = stack.enter_context(worker_pool(workers, _no_setup, ())) if workers > 1 \
-            else None
+    with worker_pool(workers, _no_setup, ()) if workers > 1 else contextlib.nullcontext() \
+            as pool:
 
         def negative_log_likelihood_counted(
             params: np.ndarray, *args: object, with_gradient: bool = True
