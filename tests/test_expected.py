@@ -369,6 +369,41 @@ def test_gradients_match_finite_differences(kernel):
         np.testing.assert_allclose(dkd[p], np.diag(fd), rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.parametrize("level", [2, 3])
+@pytest.mark.parametrize("scale", [1.0, 2.5])
+def test_input_scale_gradient_matches_finite_differences(level, scale):
+    """dK/dlog g (analytic, compiled path) against central differences of K at g e^{+-h}:
+    independent and same-scan pairs, a zero-covariance point, and the diagonal."""
+    means, covs, scan_ids, factors, _ = _scan_problem(31, n=14)
+    covs[4], factors[4] = 0.0, 0.0
+    kernel = NeuralNetworkKernel(2.3, 30.0, (45.0, 70.0))
+    kw = dict(scan_ids=scan_ids, pose_factors=factors)
+    assert ex._correlated_pairs(covs, scan_ids, factors)[0].shape[0] > 10
+    k, dk = expected_kernel_matrix(kernel, means, covs, level, with_gradient=True,
+                                   input_scale=scale, with_scale_gradient=True, **kw)
+    plain, dplain = expected_kernel_matrix(kernel, means, covs, level, with_gradient=True,
+                                           input_scale=scale, **kw)
+    np.testing.assert_array_equal(k, plain)
+    np.testing.assert_allclose(dk[:-1], dplain, rtol=0, atol=1e-13)
+    h = 1e-5
+    fd = (expected_kernel_matrix(kernel, means, covs, level, input_scale=scale * np.exp(h),
+                                 **kw)
+          - expected_kernel_matrix(kernel, means, covs, level, input_scale=scale * np.exp(-h),
+                                   **kw)) / (2 * h)
+    assert np.abs(fd).max() > 1e-3  # the scale matters here
+    np.testing.assert_allclose(dk[-1], fd, rtol=1e-6, atol=1e-8)
+    assert dk[-1][4, 4] == 0.0  # a point without spread: its own variance cannot change
+
+
+def test_input_scale_gradient_needs_the_compiled_kernel():
+    means, covs, scan_ids, factors, _ = _scan_problem(32, n=5)
+    with pytest.raises(ValueError, match="compiled NN kernel"):
+        expected_kernel_matrix(SE, means, covs, 2, with_gradient=True,
+                               with_scale_gradient=True)
+    assert not ex.supports_scale_gradient(SE)
+    assert ex.supports_scale_gradient(NeuralNetworkKernel(1.0, 1.0, (1.0, 1.0)))
+
+
 def test_bad_shapes_are_rejected():
     with pytest.raises(ValueError, match="covariances"):
         expected_kernel_matrix(NN, np.zeros((3, 2)), np.zeros((2, 2, 2)), 3)
@@ -393,6 +428,8 @@ def test_compiled_arcsin_matches_numpy_to_two_ulp():
 
 
 def test_compiled_root_of_joint_covariance_reproduces_it():
+    """Semi-definite Cholesky roots, compiled and numpy, of joint covariances of full rank
+    and of rank 3 (no per-point noise: both points move only with the shared pose)."""
     from gpocc.gp import fused
 
     means, covs, scan_ids, factors, _ = _scan_problem(21, n=30)
@@ -401,14 +438,25 @@ def test_compiled_root_of_joint_covariance_reproduces_it():
     joint[:, :2, :2], joint[:, 2:, 2:] = covs[i], covs[j]
     joint[:, :2, 2:] = factors[i] @ factors[j].transpose(0, 2, 1)
     joint[:, 2:, :2] = joint[:, :2, 2:].transpose(0, 2, 1)
-    root = fused.sqrt_psd4(np.ascontiguousarray(joint.transpose(1, 2, 0))).transpose(2, 0, 1)
-    np.testing.assert_allclose(root @ root.transpose(0, 2, 1), joint, atol=1e-15)
-    # Columns are orthogonal (R = V sqrt(L)), with the same eigenvalues as LAPACK's.
-    gram = root.transpose(0, 2, 1) @ root
-    lam = np.sort(np.diagonal(gram, axis1=1, axis2=2), axis=1)
-    np.testing.assert_allclose(lam, np.linalg.eigvalsh(joint), rtol=1e-9, atol=1e-16)
-    off = gram - np.einsum("pi,ij->pij", np.diagonal(gram, axis1=1, axis2=2), np.eye(4))
-    assert np.abs(off).max() < 1e-15
+    stacked = np.concatenate([factors[i], factors[j]], axis=1)  # (P, 4, 3)
+    singular = stacked @ stacked.transpose(0, 2, 1)
+    for matrices in (joint, singular):
+        compiled = fused.cholesky_psd4(
+            np.ascontiguousarray(matrices.transpose(1, 2, 0))).transpose(2, 0, 1)
+        reference = ex.cholesky_psd(matrices)
+        for root in (compiled, reference):
+            scale = np.abs(matrices).max()
+            np.testing.assert_allclose(root @ root.transpose(0, 2, 1), matrices,
+                                       atol=1e-9 * scale)
+            assert np.all(np.triu(root, 1) == 0.0) and np.all(np.isfinite(root))
+            # Rank 3: the last pivot is rounding noise (or zeroed).
+            last = np.abs(root[:, 3, 3]).max() / np.sqrt(scale)
+            assert last < (1.0 if matrices is joint else 1e-5)
+    compiled = fused.cholesky_psd4(np.ascontiguousarray(joint.transpose(1, 2, 0)))
+    np.testing.assert_allclose(compiled.transpose(2, 0, 1), np.linalg.cholesky(joint),
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ex.cholesky_psd(joint), np.linalg.cholesky(joint),
+                               rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("level", [1, 2, 3])

@@ -70,12 +70,14 @@ def test_scale_one_is_the_published_model_exactly():
     np.testing.assert_array_equal(grad_g[:-1], grad)
 
 
-def test_log_scale_gradient_matches_the_likelihood_of_scaled_patches():
+@pytest.mark.parametrize("kernel", [SquaredExponentialKernel(1.0, (0.3, 0.3)),
+                                    NeuralNetworkKernel(1.5, 20.0, (30.0, 50.0))],
+                         ids=["se-central-difference", "nn-analytic"])
+def test_log_scale_gradient_matches_the_likelihood_of_scaled_patches(kernel):
     # The last gradient entry against a difference of the plain likelihood of patches
     # scaled by hand (a wider step than the implementation's).
     rng = np.random.default_rng(2)
     patches = make_patches(_samples(150, rng), TrainingConfig(patches=2, patch_size=60), 0)
-    kernel = SquaredExponentialKernel(1.0, (0.3, 0.3))
     params = np.append(kernel.theta, math.log(0.05))
     log_g, h = math.log(1.7), 1e-2
     _, grad = negative_log_likelihood_with_scale(np.append(params, log_g), kernel, patches, 2)

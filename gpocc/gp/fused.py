@@ -2,14 +2,14 @@
 
 The numpy path of :mod:`gpocc.gp.expected` builds node-pair matrices of arcsin values (and,
 for gradients, four of them), then reduces them with the quadrature weights; same-scan
-pairs need one LAPACK eigendecomposition per 4 x 4 joint covariance. Here:
+pairs need a batched 4 x 4 Cholesky factor of each joint covariance. Here:
 
 * arcsin is :func:`_asin`, fdlibm's rational approximation written without branches
   (<= 2 ulp from ``numpy.arcsin``), so that LLVM vectorises every loop that calls it:
   libm's scalar ``asin`` is ten times slower than numpy's SIMD one, which it now matches;
 * each expected entry is reduced from one row of node values at a time, so nothing of
   size (nodes x nodes) exists and gradients cost one pass instead of five temporaries;
-* the 4 x 4 square roots of same-scan pairs are Jacobi eigendecompositions in registers.
+* the 4 x 4 roots of same-scan pairs are Cholesky factors computed in registers.
 
 Inputs are *scaled* nodes ``u`` in coordinate-major layout (3, M), as built by
 ``NeuralNetworkKernel._scaled`` (``z = u_a . u_b`` is the kernel's arcsin argument),
@@ -113,16 +113,35 @@ def _dz(ua: float, ub: float, hz: float) -> float:
     return ua * ub - hz * (ua * ua + ub * ub)
 
 
+@_inline
+def _dz_scale(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, z: float,
+              da1: float, da2: float, db1: float, db2: float) -> float:
+    """dz/dlog g: both nodes move away from their means as sqrt(g) (dx/dlog g = (x - m)/2).
+
+    With scaled rows ``a = p / n`` (p = (1, x, y) sqrt(2 S), n = sqrt(1 + |p|^2)) and
+    ``da = root (x - m) / n`` (the node's scaled offset from its mean), dz/dp_a =
+    (b - z a) / n, so dz/dlog g = ((b - z a) . da + (a - z b) . db) / 2 over x, y.
+    """
+    return 0.5 * ((b1 - z * a1) * da1 + (b2 - z * a2) * da2
+                  + (a1 - z * b1) * db1 + (a2 - z * b2) * db2)
+
+
 @_jit
 def nn_matrix_gradient(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, scale: float,
-                       out: np.ndarray) -> None:
+                       out: np.ndarray, offsets: np.ndarray, with_scale: bool) -> None:
     """out[:, i, j] = out[:, j, i] = E dk(x_i, x_j)/dtheta, theta = log(s, bias, wx, wy),
-    for i < j; out[0] is the expected kernel itself. Diagonal untouched."""
+    for i < j; out[0] is the expected kernel itself. Diagonal untouched.
+
+    ``with_scale``: out[4] is also the derivative in log g of the input-noise scale (every
+    node at ``mean + sqrt(g) offset``), from ``offsets`` (2, M), each node's scaled offset
+    from its point's mean (see :func:`_dz_scale`); otherwise ``offsets`` is not read.
+    """
     n = starts.shape[0] - 1
     total = starts[n]
-    rows = np.empty((4, total))
+    count = 5 if with_scale else 4
+    rows = np.empty((count, total))
     for i in range(n):
-        for p in range(4):
+        for p in range(count):
             for j in range(i + 1, n):
                 out[p, i, j] = 0.0
         b0 = starts[i + 1]
@@ -140,14 +159,22 @@ def nn_matrix_gradient(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, s
                 rows[1, b] = wg * _dz(x0, y0, hz)
                 rows[2, b] = wg * _dz(x1, y1, hz)
                 rows[3, b] = wg * _dz(x2, y2, hz)
+            if with_scale:  # a loop of its own keeps the one above free of branches
+                da1, da2 = offsets[0, a], offsets[1, a]
+                o1, o2 = offsets[0, b0:], offsets[1, b0:]
+                for b in range(total - b0):
+                    y0, y1, y2 = u0[b], u1[b], u2[b]
+                    z = _clip(x0 * y0 + x1 * y1 + x2 * y2)
+                    rows[4, b] = wb[b] / math.sqrt(1.0 - z * z) * _dz_scale(
+                        x0, x1, x2, y0, y1, y2, z, da1, da2, o1[b], o2[b])
             wa = weights[a] * scale
             for j in range(i + 1, n):
-                for p in range(4):
+                for p in range(count):
                     acc = 0.0
                     for b in range(starts[j] - b0, starts[j + 1] - b0):
                         acc += rows[p, b]
                     out[p, i, j] += wa * acc
-        for p in range(4):
+        for p in range(count):
             for j in range(i + 1, n):
                 out[p, j, i] = out[p, i, j]
 
@@ -174,105 +201,57 @@ def nn_cross(q: np.ndarray, u: np.ndarray, weights: np.ndarray, starts: np.ndarr
 # --------------------------------------------------------------------------- same-scan pairs
 
 
-@_inline
-def _rot(app, aqq, apq, x1p, x1q, x2p, x2q, v0p, v0q, v1p, v1q, v2p, v2q, v3p, v3q):
-    """One Jacobi rotation zeroing a_pq (Numerical Recipes' update): x1, x2 are the other
-    two rows of columns p, q, v the eigenvector columns p, q."""
-    theta = (aqq - app) / (2.0 * apq)
-    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-    t = -t if theta < 0.0 else t
-    c = 1.0 / math.sqrt(t * t + 1.0)
-    s = t * c
-    tau = s / (1.0 + c)
-    return (app - t * apq, aqq + t * apq,
-            x1p - s * (x1q + tau * x1p), x1q + s * (x1p - tau * x1q),
-            x2p - s * (x2q + tau * x2p), x2q + s * (x2p - tau * x2q),
-            v0p - s * (v0q + tau * v0p), v0q + s * (v0p - tau * v0q),
-            v1p - s * (v1q + tau * v1p), v1q + s * (v1p - tau * v1q),
-            v2p - s * (v2q + tau * v2p), v2q + s * (v2p - tau * v2q),
-            v3p - s * (v3q + tau * v3p), v3q + s * (v3p - tau * v3q))
-
-
 @_jit
-def sqrt_psd4(s: np.ndarray) -> np.ndarray:
-    """R (4, 4, P) with R R' = s for P symmetric 4 x 4 matrices s (4, 4, P), pair-minor.
+def cholesky_psd4(s: np.ndarray) -> np.ndarray:
+    """Lower-triangular R (4, 4, P) with R R' = s for P symmetric positive semi-definite
+    4 x 4 matrices s (4, 4, P), pair-minor: ``expected.cholesky_psd`` in registers.
 
-    As ``expected.sqrt_psd``: cyclic Jacobi rotations (to rounding) give the eigenpairs,
-    eigenvalues below 1e-13 of the largest are zeroed and R = V sqrt(L). Each matrix is
-    diagonalised in registers (its 10 entries and 16 eigenvector entries are scalars).
-    Eigenvector signs and order may differ from LAPACK's, which leaves the tensor
-    Gauss-Hermite rule unchanged: its unit nodes are symmetric under every coordinate
-    reflection and permutation, with equal weights (for distinct eigenvalues; with a
-    repeated one, any rule in its eigenspace is as valid).
+    A pivot below 1e-10 of the largest diagonal entry is rounding noise of a singular
+    matrix: its column is zero (for a PSD matrix the entries below it vanish with it).
     """
     size = s.shape[2]
-    out = np.empty((4, 4, size))
+    out = np.zeros((4, 4, size))
     for m in range(size):
         a00, a11, a22, a33 = s[0, 0, m], s[1, 1, m], s[2, 2, m], s[3, 3, m]
-        a01, a02, a03 = s[0, 1, m], s[0, 2, m], s[0, 3, m]
-        a12, a13, a23 = s[1, 2, m], s[1, 3, m], s[2, 3, m]
-        v00, v01, v02, v03 = 1.0, 0.0, 0.0, 0.0
-        v10, v11, v12, v13 = 0.0, 1.0, 0.0, 0.0
-        v20, v21, v22, v23 = 0.0, 0.0, 1.0, 0.0
-        v30, v31, v32, v33 = 0.0, 0.0, 0.0, 1.0
-        for _sweep in range(30):  # converges in 4-6 sweeps
-            # Off-diagonal entries below 1e-18 of the largest diagonal one move no
-            # eigenvalue by more than that (those under 1e-13 of it are zeroed anyway).
-            tiny = 1e-18 * max(max(abs(a00), abs(a11)), max(abs(a22), abs(a33)))
-            if max(max(max(abs(a01), abs(a02)), max(abs(a03), abs(a12))),
-                   max(abs(a13), abs(a23))) <= tiny:
-                break
-            if abs(a01) > tiny:
-                (a00, a11, a02, a12, a03, a13, v00, v01, v10, v11, v20, v21, v30,
-                 v31) = _rot(a00, a11, a01, a02, a12, a03, a13, v00, v01, v10, v11, v20,
-                             v21, v30, v31)
-                a01 = 0.0
-            if abs(a02) > tiny:
-                (a00, a22, a01, a12, a03, a23, v00, v02, v10, v12, v20, v22, v30,
-                 v32) = _rot(a00, a22, a02, a01, a12, a03, a23, v00, v02, v10, v12, v20,
-                             v22, v30, v32)
-                a02 = 0.0
-            if abs(a03) > tiny:
-                (a00, a33, a01, a13, a02, a23, v00, v03, v10, v13, v20, v23, v30,
-                 v33) = _rot(a00, a33, a03, a01, a13, a02, a23, v00, v03, v10, v13, v20,
-                             v23, v30, v33)
-                a03 = 0.0
-            if abs(a12) > tiny:
-                (a11, a22, a01, a02, a13, a23, v01, v02, v11, v12, v21, v22, v31,
-                 v32) = _rot(a11, a22, a12, a01, a02, a13, a23, v01, v02, v11, v12, v21,
-                             v22, v31, v32)
-                a12 = 0.0
-            if abs(a13) > tiny:
-                (a11, a33, a01, a03, a12, a23, v01, v03, v11, v13, v21, v23, v31,
-                 v33) = _rot(a11, a33, a13, a01, a03, a12, a23, v01, v03, v11, v13, v21,
-                             v23, v31, v33)
-                a13 = 0.0
-            if abs(a23) > tiny:
-                (a22, a33, a02, a03, a12, a13, v02, v03, v12, v13, v22, v23, v32,
-                 v33) = _rot(a22, a33, a23, a02, a03, a12, a13, v02, v03, v12, v13, v22,
-                             v23, v32, v33)
-                a23 = 0.0
-        top = max(max(a00, a11), max(a22, a33))
-        r0 = 0.0 if a00 < 1e-13 * top else math.sqrt(a00)
-        r1 = 0.0 if a11 < 1e-13 * top else math.sqrt(a11)
-        r2 = 0.0 if a22 < 1e-13 * top else math.sqrt(a22)
-        r3 = 0.0 if a33 < 1e-13 * top else math.sqrt(a33)
-        for r, (c0, c1, c2, c3) in enumerate(((v00, v01, v02, v03), (v10, v11, v12, v13),
-                                               (v20, v21, v22, v23), (v30, v31, v32, v33))):
-            out[r, 0, m] = c0 * r0
-            out[r, 1, m] = c1 * r1
-            out[r, 2, m] = c2 * r2
-            out[r, 3, m] = c3 * r3
+        a10 = 0.5 * (s[1, 0, m] + s[0, 1, m])
+        a20 = 0.5 * (s[2, 0, m] + s[0, 2, m])
+        a30 = 0.5 * (s[3, 0, m] + s[0, 3, m])
+        a21 = 0.5 * (s[2, 1, m] + s[1, 2, m])
+        a31 = 0.5 * (s[3, 1, m] + s[1, 3, m])
+        a32 = 0.5 * (s[3, 2, m] + s[2, 3, m])
+        tiny = 1e-10 * max(max(a00, a11), max(a22, a33))
+        l00 = l10 = l20 = l30 = l11 = l21 = l31 = l22 = l32 = l33 = 0.0
+        if a00 > tiny:
+            l00 = math.sqrt(a00)
+            l10, l20, l30 = a10 / l00, a20 / l00, a30 / l00
+        d = a11 - l10 * l10
+        if d > tiny:
+            l11 = math.sqrt(d)
+            l21 = (a21 - l20 * l10) / l11
+            l31 = (a31 - l30 * l10) / l11
+        d = a22 - l20 * l20 - l21 * l21
+        if d > tiny:
+            l22 = math.sqrt(d)
+            l32 = (a32 - l30 * l20 - l31 * l21) / l22
+        d = a33 - l30 * l30 - l31 * l31 - l32 * l32
+        if d > tiny:
+            l33 = math.sqrt(d)
+        out[0, 0, m] = l00
+        out[1, 0, m], out[1, 1, m] = l10, l11
+        out[2, 0, m], out[2, 1, m], out[2, 2, m] = l20, l21, l22
+        out[3, 0, m], out[3, 1, m], out[3, 2, m], out[3, 3, m] = l30, l31, l32, l33
     return out
 
 
 @_jit
 def correlated_nodes(means: np.ndarray, covariances: np.ndarray, pose_factors: np.ndarray,
-                     i: np.ndarray, j: np.ndarray, unit: np.ndarray) -> np.ndarray:
+                     i: np.ndarray, j: np.ndarray, unit: np.ndarray,
+                     input_scale: float = 1.0) -> np.ndarray:
     """(4, P L) nodes of the joint 4-D rule of each pair (x_i then x_j), pair-major.
 
-    The joint covariance is ``[[S_i, A_i A_j'], [A_j A_i', S_j]]`` (S symmetrised), its
-    root :func:`sqrt_psd4`; nodes are ``mean + R unit_k``.
+    The joint covariance is ``[[S_i, A_i A_j'], [A_j A_i', S_j]]`` (S symmetrised) times
+    ``input_scale``, its root :func:`cholesky_psd4` (times the scale's square root); nodes
+    are ``mean + R unit_k``.
     """
     size = unit.shape[0]
     pairs = i.shape[0]
@@ -288,7 +267,9 @@ def correlated_nodes(means: np.ndarray, covariances: np.ndarray, pose_factors: n
                     cross += pose_factors[a, r, k] * pose_factors[b, c, k]
                 joint[r, 2 + c, p] = cross
                 joint[2 + c, r, p] = cross
-    factor = sqrt_psd4(joint)
+    factor = cholesky_psd4(joint)
+    if input_scale != 1.0:
+        factor *= math.sqrt(input_scale)
     nodes = np.empty((4, pairs * size))
     for p in range(pairs):
         a, b = i[p], j[p]
@@ -303,28 +284,32 @@ def correlated_nodes(means: np.ndarray, covariances: np.ndarray, pose_factors: n
 
 
 @_inline
-def _scaled_row(x: float, y: float, root: np.ndarray) -> tuple[float, float, float]:
-    """u = (1, x, y) sqrt(2 S) / sqrt(1 + 2 (1, x, y)' S (1, x, y)), as ``_scaled``."""
+def _scaled_row(x: float, y: float, root: np.ndarray) -> tuple[float, float, float, float]:
+    """u = (1, x, y) sqrt(2 S) / sqrt(1 + 2 (1, x, y)' S (1, x, y)), as ``_scaled``, and
+    the normaliser 1 / sqrt(...)."""
     u1 = x * root[1]
     u2 = y * root[2]
     inv = 1.0 / math.sqrt(u1 * u1 + u2 * u2 + (1.0 + root[0] * root[0]))
-    return inv * root[0], u1 * inv, u2 * inv
+    return inv * root[0], u1 * inv, u2 * inv, inv
 
 
 @_jit
 def nn_node_pairs(nodes: np.ndarray, weights: np.ndarray, root: np.ndarray, scale: float,
-                  out: np.ndarray, with_gradient: bool) -> None:
+                  out: np.ndarray, with_gradient: bool, centres: np.ndarray,
+                  with_scale: bool) -> None:
     """out[:, p] = sum_k w_k (k, dk/dtheta)(a_pk, b_pk) over each pair's L nodes.
 
     ``nodes`` as from :func:`correlated_nodes`; out (4, P) with gradients (row 0 the
-    value), else (1, P).
+    value), else (1, P); with ``with_scale`` (gradients only) out (5, P), row 4 the
+    derivative in log g (:func:`_dz_scale`), ``centres`` (4, P) the two means of each pair.
     """
     size = weights.shape[0]
     total = nodes.shape[1]
-    rows = np.empty((4 if with_gradient else 1, total))
+    count = (5 if with_scale else 4) if with_gradient else 1
+    rows = np.empty((count, total))
     for m in range(total):  # vectorised over every node of every pair
-        a0, a1, a2 = _scaled_row(nodes[0, m], nodes[1, m], root)
-        b0, b1, b2 = _scaled_row(nodes[2, m], nodes[3, m], root)
+        a0, a1, a2, ia = _scaled_row(nodes[0, m], nodes[1, m], root)
+        b0, b1, b2, ib = _scaled_row(nodes[2, m], nodes[3, m], root)
         z = _clip(a0 * b0 + a1 * b1 + a2 * b2)
         w = weights[m % size]
         rows[0, m] = w * _asin(z)
@@ -334,9 +319,48 @@ def nn_node_pairs(nodes: np.ndarray, weights: np.ndarray, root: np.ndarray, scal
             rows[1, m] = wg * _dz(a0, b0, hz)
             rows[2, m] = wg * _dz(a1, b1, hz)
             rows[3, m] = wg * _dz(a2, b2, hz)
+            if with_scale:
+                p = m // size
+                rows[4, m] = wg * _dz_scale(
+                    a0, a1, a2, b0, b1, b2, z,
+                    root[1] * (nodes[0, m] - centres[0, p]) * ia,
+                    root[2] * (nodes[1, m] - centres[1, p]) * ia,
+                    root[1] * (nodes[2, m] - centres[2, p]) * ib,
+                    root[2] * (nodes[3, m] - centres[3, p]) * ib)
     for p in range(out.shape[1]):
         for r in range(rows.shape[0]):
             acc = 0.0
             for m in range(p * size, (p + 1) * size):
                 acc += rows[r, m]
             out[r, p] = scale * acc
+
+
+# Pairs per batch of :func:`nn_same_scan_pairs`: their nodes (4 x 16 float64 per pair at
+# level 2) stay in cache.
+_PAIR_BATCH = 256
+
+
+@_jit
+def nn_same_scan_pairs(means: np.ndarray, covariances: np.ndarray, pose_factors: np.ndarray,
+                       i: np.ndarray, j: np.ndarray, unit: np.ndarray, weights: np.ndarray,
+                       root: np.ndarray, scale: float, input_scale: float, out: np.ndarray,
+                       with_gradient: bool, with_scale: bool) -> None:
+    """out[:, p]: the expected kernel (and gradients, and with ``with_scale`` the
+    derivative in log g) of same-scan pair (i[p], j[p]) under its joint 4-D rule:
+    :func:`correlated_nodes` and :func:`nn_node_pairs` in batches.
+
+    The nodes are rebuilt on every call rather than kept: a batch's Cholesky roots and nodes
+    cost less than a third of its arcsin values, and a map's local problems never repeat.
+    """
+    pairs = i.shape[0]
+    centres = np.empty((4, _PAIR_BATCH))
+    for lo in range(0, pairs, _PAIR_BATCH):
+        hi = min(pairs, lo + _PAIR_BATCH)
+        nodes = correlated_nodes(means, covariances, pose_factors, i[lo:hi], j[lo:hi], unit,
+                                 input_scale)
+        if with_scale:
+            for p in range(hi - lo):
+                centres[0, p], centres[1, p] = means[i[lo + p], 0], means[i[lo + p], 1]
+                centres[2, p], centres[3, p] = means[j[lo + p], 0], means[j[lo + p], 1]
+        nn_node_pairs(nodes, weights, root, scale, out[:, lo:hi], with_gradient, centres,
+                      with_scale)

@@ -21,11 +21,10 @@ from multiprocessing.pool import Pool
 
 import numpy as np
 from scipy.linalg import cho_solve
-from scipy.optimize import dual_annealing, minimize
 
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
-from gpocc.gp.expected import expected_kernel_matrix
+from gpocc.gp.expected import expected_kernel_matrix, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, NeighbourIndex, try_cholesky
@@ -93,14 +92,16 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
 
 def _patch_negative_log_likelihood(
     kernel: Kernel, noise: float, patch: LocalProblem, *, level: int, with_gradient: bool,
-    input_scale: float = 1.0,
+    input_scale: float = 1.0, scale_gradient: bool = False,
 ) -> tuple[float, np.ndarray | None] | None:
-    """One patch's -LML and its gradient in log-parameters; None if K is not a covariance."""
+    """One patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
+    in log g); None if K is not a covariance."""
     s = patch.samples
     if with_gradient:
         cov, dcov = expected_kernel_matrix(
             kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
             pose_factors=s.pose_factors, with_gradient=True, input_scale=input_scale,
+            with_scale_gradient=scale_gradient,
         )
     else:
         cov = expected_kernel_matrix(
@@ -116,17 +117,20 @@ def _patch_negative_log_likelihood(
     if not with_gradient:
         return float(value), None
     inner = cho_solve((chol, True), np.eye(len(s))) - np.outer(alpha, alpha)
-    grad = np.empty(len(kernel.theta) + 1)
+    nkernel = len(kernel.theta)
+    grad = np.empty(nkernel + (2 if scale_gradient else 1))
     # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
-    grad[:-1] = 0.5 * np.einsum("ij,pij->p", inner, dcov)
-    grad[-1] = 0.5 * noise * np.trace(inner)
+    grad[:nkernel] = 0.5 * np.einsum("ij,pij->p", inner, dcov[:nkernel])
+    grad[nkernel] = 0.5 * noise * np.trace(inner)
+    if scale_gradient:
+        grad[nkernel + 1] = 0.5 * np.einsum("ij,ij->", inner, dcov[nkernel])
     return float(value), grad
 
 
 def negative_log_likelihood(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
     with_gradient: bool = True, executor: Executor | Pool | None = None,
-    input_scale: float = 1.0,
+    input_scale: float = 1.0, scale_gradient: bool = False,
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
 
@@ -134,18 +138,20 @@ def negative_log_likelihood(
     gradient is returned as zeros (and not computed: the global stage needs values only).
     ``executor`` (anything with ``map``: worker processes, threads) evaluates the patches
     concurrently; the sum is taken in patch order, so the result does not depend on it.
-    ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1).
+    ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1);
+    ``scale_gradient`` (with gradients): the gradient gains d/dlog g.
     """
     # A partial of a module-level function, so that worker processes can receive it.
     one = functools.partial(_patch_negative_log_likelihood, kernel.with_theta(params[:-1]),
                             math.exp(params[-1]), level=level, with_gradient=with_gradient,
-                            input_scale=input_scale)
+                            input_scale=input_scale,
+                            scale_gradient=scale_gradient and with_gradient)
     terms = list(executor.map(one, patches)) if executor is not None else map(one, patches)
     value = 0.0
-    grad = np.zeros_like(params)
+    grad = np.zeros(len(params) + (1 if scale_gradient else 0))
     for term in terms:
         if term is None:  # not a valid covariance: reject these hyperparameters
-            return _REJECTED, np.zeros_like(params)
+            return _REJECTED, np.zeros_like(grad)
         value += term[0]
         if term[1] is not None:
             grad += term[1]
@@ -159,18 +165,22 @@ def negative_log_likelihood_with_scale(
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
     ``params`` = ``[kernel.theta..., log noise_variance, log g]``. The derivative in
-    ``log g`` is a central difference of two value-only evaluations, step
-    :data:`LOG_SCALE_STEP` (the expected kernel has no analytic derivative in its input
-    covariances here); at ``log g = 0`` the value and the other derivatives are exactly
-    those of the unscaled likelihood.
+    ``log g`` is analytic for the compiled NN kernel (every quadrature node moves away
+    from its mean as sqrt(g)); for other kernels it is a central difference of two
+    value-only evaluations, step :data:`LOG_SCALE_STEP`. At ``log g = 0`` the value and
+    the other derivatives are exactly those of the unscaled likelihood.
     """
     log_g = float(params[-1])
 
-    def at(log_scale: float, gradient: bool) -> tuple[float, np.ndarray]:
+    def at(log_scale: float, gradient: bool, scale_gradient: bool = False
+           ) -> tuple[float, np.ndarray]:
         return negative_log_likelihood(params[:-1], kernel, patches, level,
                                        with_gradient=gradient, executor=executor,
-                                       input_scale=math.exp(log_scale))
+                                       input_scale=math.exp(log_scale),
+                                       scale_gradient=scale_gradient)
 
+    if with_gradient and supports_scale_gradient(kernel):
+        return at(log_g, True, scale_gradient=True)
     value, grad = at(log_g, with_gradient)
     if not with_gradient or value >= _REJECTED:
         return value, np.append(grad, 0.0)
@@ -230,6 +240,8 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
               negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
               learn_scale: bool = False) -> TrainingResult:
     """Global annealing on values, then L-BFGS-B on values and gradients."""
+    # Imported here: a map loads models through this module but never learns.
+    from scipy.optimize import dual_annealing, minimize
 
     x0 = np.append(kernel.theta, math.log(noise_variance))
     noise_at = x0.shape[0] - 1  # then log g when it is learned, starting at g = 1
