@@ -1,7 +1,9 @@
 """The ``gpocc`` command line: wiring only; each command lives in ``gpocc.commands``.
 
 Commands are plain functions registered here from :data:`COMMANDS` (command modules never
-import this module, so there is no import cycle). Registration adds what every command
+import this module, so there is no import cycle). The console script imports only the
+module of the command it runs: importing all of them (numba, scipy.optimize, rosbags, ...)
+took about a second more per run than one command needs. Registration adds what every command
 shares: ``--quiet`` / ``--verbose`` and the error policy: errors a user can fix
 (:class:`gpocc.errors.GpoccError`) become one line on stderr and exit status 2; results
 go to files and stdout, progress and logs to stderr.
@@ -10,7 +12,10 @@ go to files and stdout, progress and logs to stderr.
 from __future__ import annotations
 
 import functools
+import importlib
 import inspect
+import os
+import sys
 import typing
 from collections.abc import Callable
 from typing import Annotated, Any
@@ -19,31 +24,19 @@ import typer
 
 import gpocc
 from gpocc import progress
-from gpocc.commands import config as config_cmd
-from gpocc.commands import evaluate, grid, info, simulate, split, train
-from gpocc.commands import map as map_cmd
 from gpocc.errors import GpoccError
 from gpocc.lifecycle import command_scope
 
-#: (name, function) of every ``gpocc`` subcommand, in help order.
-COMMANDS: tuple[tuple[str, Callable[..., Any]], ...] = (
-    ("info", info.info),
-    ("train", train.train),
-    ("map", map_cmd.map_command),
-    ("grid", grid.grid_command),
-    ("evaluate", evaluate.evaluate),
-    ("split", split.split),
-    ("simulate", simulate.simulate_command),
-    ("config", config_cmd.config_command),
-)
-
-app = typer.Typer(
-    name="gpocc",
-    help="Gaussian-process occupancy maps from robot logs, with sensor and pose uncertainty.",
-    no_args_is_help=True,
-    add_completion=True,
-    pretty_exceptions_enable=False,
-    context_settings={"help_option_names": ["-h", "--help"]},
+#: (name, "module:function") of every ``gpocc`` subcommand, in help order.
+COMMANDS: tuple[tuple[str, str], ...] = (
+    ("info", "gpocc.commands.info:info"),
+    ("train", "gpocc.commands.train:train"),
+    ("map", "gpocc.commands.map:map_command"),
+    ("grid", "gpocc.commands.grid:grid_command"),
+    ("evaluate", "gpocc.commands.evaluate:evaluate"),
+    ("split", "gpocc.commands.split:split"),
+    ("simulate", "gpocc.commands.simulate:simulate_command"),
+    ("config", "gpocc.commands.config:config_command"),
 )
 
 Quiet = Annotated[bool, typer.Option(
@@ -58,7 +51,6 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
-@app.callback()
 def _root(
     version: Annotated[bool, typer.Option(
         "--version", callback=_version, is_eager=True, help="Print the version and exit.")
@@ -67,8 +59,29 @@ def _root(
     """Gaussian-process occupancy maps from robot logs, with sensor and pose uncertainty."""
 
 
-def register(name: str, fn: Callable[..., Any]) -> None:
-    """Add ``fn`` as ``gpocc NAME`` with ``--quiet/--verbose`` and one-line errors."""
+def build_app(names: tuple[str, ...] | None = None) -> typer.Typer:
+    """The ``gpocc`` app with the commands ``names`` (default: all), importing only their
+    modules."""
+    app = typer.Typer(
+        name="gpocc",
+        help="Gaussian-process occupancy maps from robot logs, with sensor and pose "
+             "uncertainty.",
+        no_args_is_help=True,
+        add_completion=True,
+        pretty_exceptions_enable=False,
+        context_settings={"help_option_names": ["-h", "--help"]},
+    )
+    app.callback()(_root)
+    for name, target in COMMANDS:
+        if names is None or name in names:
+            module, attribute = target.split(":")
+            register(app, name, getattr(importlib.import_module(module), attribute))
+    return app
+
+
+def register(app: typer.Typer, name: str, fn: Callable[..., Any]) -> None:
+    """Add ``fn`` to ``app`` as ``gpocc NAME`` with ``--quiet/--verbose`` and one-line
+    errors."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, quiet: bool = False, verbose: bool = False, **kwargs: Any) -> Any:
@@ -103,10 +116,19 @@ def register(name: str, fn: Callable[..., Any]) -> None:
     app.command(name)(wrapper)
 
 
-for _name, _fn in COMMANDS:
-    register(_name, _fn)
+def __getattr__(name: str) -> Any:
+    # ``gpocc.cli.app``: every command (tests, documentation tools), built on first use.
+    if name == "app":
+        globals()["app"] = build_app()
+        return globals()["app"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app(prog_name="gpocc")
+    """Console-script entry point: registers only the command named on the command line
+    (all of them for the top-level help, an unknown name, or shell completion)."""
+    words = [w for w in sys.argv[1:] if not w.startswith("-")]
+    known = {name for name, _ in COMMANDS}
+    completing = any(key.endswith("_COMPLETE") for key in os.environ)
+    chosen = (words[0],) if words and words[0] in known and not completing else None
+    build_app(chosen)(prog_name="gpocc")

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -175,3 +176,27 @@ def test_command_modules_do_not_import_the_cli() -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           cwd=REPO)
     assert done.returncode == 0 and done.stdout.strip() == "False", done.stderr
+
+
+def test_console_script_imports_only_the_command_it_runs() -> None:
+    """`gpocc map` does not pay for the other commands' imports (the learner's
+    scipy.optimize, the bag readers); the top-level help still lists every command."""
+    code = ("import sys\n"
+            "from gpocc.cli import main\n"
+            "sys.argv = ['gpocc'] + sys.argv[1:]\n"
+            "try:\n"
+            "    main()\n"
+            "except SystemExit:\n"
+            "    pass\n"
+            "mods = ('gpocc.commands.map', 'gpocc.commands.train', 'gpocc.commands.evaluate',"
+            " 'scipy.optimize')\n"
+            "print(*[m in sys.modules for m in mods], file=sys.stderr)\n")
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_COMPLETE")}
+    one = subprocess.run([sys.executable, "-c", code, "map", "-h"], capture_output=True,
+                         text=True, cwd=REPO, env=env)
+    assert "--resolution" in one.stdout
+    assert one.stderr.split()[-4:] == ["True", "False", "False", "False"], one.stderr
+    every = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True,
+                           text=True, cwd=REPO, env=env)
+    assert all(name in every.stdout for name, _ in COMMANDS)
+    assert every.stderr.split()[-4:-1] == ["True", "True", "True"], every.stderr

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import cho_solve
-from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
 
 from gpocc.gp.expected import expected_kernel_cross
@@ -169,6 +168,8 @@ def fit_platt(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray) -> Pla
     if mean.size == 0 or np.all(labels > 0) or np.all(labels < 0):
         # Nothing to calibrate against: keep the identity squashing.
         return PlattClassifier()
+    from scipy.optimize import minimize  # here: `gpocc map` never fits, and the import is slow
+
     result = minimize(_negative_log_probability, np.array([0.0, 1.0]),
                       args=(mean, variance, labels), jac=True, method="L-BFGS-B",
                       bounds=[(-C_BOUND, C_BOUND), (S_MIN, S_MAX)])
