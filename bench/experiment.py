@@ -67,6 +67,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     "learned-scale": {**_PUBLISHED, "model.training.learn_input_noise_scale": True},
     "learned-scale-floor-0.1": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
                                 "model.training.min_noise_variance": 0.1},
+    "beam-offset": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
+                    "model.training.min_noise_variance": 0.1,
+                    "model.training.classifier_offset": "beams"},
 }
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from gpocc.cli import app
@@ -43,6 +44,24 @@ def test_train_writes_a_self_contained_model(trained):
     assert model.training["log_marginal_likelihood"] > model.training[
         "initial_log_marginal_likelihood"]
     assert model.inputs == (str(SAMPLE),)
+    # The summary says how the classifier was fitted (the published leave-one-out).
+    assert model.training["classifier_holdout"] == "sample"
+    assert model.training["classifier_offset"] == "holdout"
+    assert "fitted leaving one sample out)" in output
+
+
+def test_train_can_take_the_classifier_offset_from_heldout_scans(tmp_path):
+    config = tmp_path / "beams.yaml"
+    text = SAMPLE_CONFIG.read_text()
+    data = yaml.safe_load(text)
+    data.setdefault("model", {}).setdefault("training", {})["classifier_offset"] = "beams"
+    config.write_text(yaml.safe_dump(data))
+    out = tmp_path / "beams.npz"
+    output = invoke("train", SAMPLE, "--config", config, "--out", out).output
+    model = load_model(out)
+    points = model.training["classifier_points"]
+    assert model.training["classifier_offset"] == "beams" and points > 100
+    assert f"offset from {points} points of held-out scans" in output
 
 
 def test_training_is_reproducible_with_a_seed(trained, tmp_path):

@@ -18,6 +18,7 @@ from gpocc.limits import check_seed
 from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
 from gpocc.samples.coverage import beam_coverage
+from gpocc.samples.heldout import calibration_points
 
 
 class Switch(StrEnum):
@@ -51,12 +52,18 @@ def train(
     log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
     samples = build_samples(batches, cfg)
     coverage = beam_coverage(batches, cfg)
+    training_cfg = cfg.model.training
+    calibration = (calibration_points(
+        batches, cfg, training_cfg.calibration_every,
+        max_position_std_m=training_cfg.calibration_max_position_std_m)
+        if training_cfg.classifier_offset == "beams" else None)
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
     budget = 2 + cfg.model.training.anneal_maxfun + 2 * cfg.model.training.lbfgs_maxiter
     with progress_bar(budget, "likelihood evaluations (at most)") as advance:
         model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs),
-                            on_evaluation=advance, coverage=coverage)
+                            on_evaluation=advance, coverage=coverage,
+                            calibration=calibration)
     learn_s = time.perf_counter() - started - read_s - samples_s
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
@@ -77,7 +84,16 @@ def train(
         typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}")
     typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
                f"{model.classifier.offset:.4g}, extra variance "
-               f"{model.classifier.extra_variance:.3g})")
+               f"{model.classifier.extra_variance:.3g}; {_fitted_on(model.training)})")
     typer.echo(f"stages: read {read_s:.1f} s, samples {samples_s:.1f} s, "
                f"hyperparameters+classifier {learn_s:.1f} s")
     typer.echo(f"time: {seconds:.1f} s")
+
+
+def _fitted_on(training: dict) -> str:
+    """What the classifier was fitted on, for the summary line."""
+    how = ("fitted leaving one scan out" if training.get("classifier_holdout") == "scan"
+           else "fitted leaving one sample out")
+    if training.get("classifier_offset") == "beams":
+        how += f"; offset from {training['classifier_points']} points of held-out scans"
+    return how

@@ -21,10 +21,9 @@ from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 from gpocc.samples import beam
+from gpocc.samples.heldout import heldout_mask, labelled_points, subset_batch
 
-#: Free points start this far from the laser and stop this far short of a hit, metres.
-FREE_MARGIN_M = 0.1
-
+__all__ = ["heldout_mask", "labelled_points", "subset_batch", "split_batch", "SplitResult"]
 
 @dataclass(frozen=True)
 class SplitResult:
@@ -43,26 +42,6 @@ class SplitResult:
     n_heldout: int
 
 
-def heldout_mask(n_scans: int, every: int) -> np.ndarray:
-    """(n_scans,) bool: True for the held-out scans, index % every == every - 1."""
-    if every < 2:
-        raise GpoccError(f"the hold-out period must be at least 2 (every scan would be held "
-                         f"out), got {every}")
-    return np.arange(n_scans) % every == every - 1
-
-
-def subset_batch(batch: ScanBatch, scans: np.ndarray, beam_every: int = 1) -> ScanBatch:
-    """The scans at integer indices ``scans``, keeping every ``beam_every``-th beam."""
-    return dataclasses.replace(
-        batch,
-        stamps=batch.stamps[scans],
-        angles=batch.angles[::beam_every],
-        ranges=batch.ranges[scans][:, ::beam_every],
-        poses=batch.poses[scans],
-        pose_covariances=batch.pose_covariances[scans],
-    )
-
-
 def with_pose_covariances(batch: ScanBatch, sensor: SensorConfig) -> ScanBatch:
     """The batch with the pose covariances that apply to it (:mod:`gpocc.samples.beam`).
 
@@ -73,61 +52,6 @@ def with_pose_covariances(batch: ScanBatch, sensor: SensorConfig) -> ScanBatch:
         return batch
     cov = np.broadcast_to(sensor.pose_covariance_matrix, (batch.n_scans, 3, 3)).copy()
     return dataclasses.replace(batch, pose_covariances=cov, has_pose_covariance=True)
-
-
-def beam_points(
-    poses: np.ndarray, angles: np.ndarray, distances: np.ndarray, sensor: SensorConfig
-) -> np.ndarray:
-    """Points at ``distances`` along beams, in the map frame (:mod:`gpocc.samples.beam`).
-
-    Args:
-        poses: (S, 3) base poses (x m, y m, yaw rad).
-        angles: (B,) beam bearings in the laser frame, radians.
-        distances: (S, B, F) metres along each beam.
-        sensor: gives the mount.
-
-    Returns:
-        (S, B, F, 2) metres.
-    """
-    lasers = beam.laser_poses(poses, beam.mount_vector(sensor))
-    return beam.beam_points(lasers[:, None, None, :], np.asarray(angles)[None, :, None],
-                            distances)
-
-
-def labelled_points(
-    batch: ScanBatch, sensor: SensorConfig, free_per_beam: int, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """Occupied and free points from scans, with the poses as recorded.
-
-    Ranges follow REP 117 (see :class:`ScanBatch`): a finite ``range_min <= r <
-    range_max`` is a hit, labelled 1 at its endpoint, with ``free_per_beam`` free points
-    at distances uniform in ``[0.1, r - 0.1)`` m; ``+inf`` or ``r >= range_max`` (no
-    return) gives free points uniform in ``[0.1, min(no_return_free_m, range_max))``;
-    NaN, ``-inf`` and ``r < range_min`` give nothing. A beam too short for the interval
-    gives no free points.
-
-    Returns:
-        ``(points, labels)``: (N, 2) metres and (N,) int8 (1 occupied, 0 free); hits first.
-    """
-    r = batch.ranges
-    classes = beam.classify_beams(r, batch.range_min, batch.range_max)
-    hit, no_return = classes.hit, classes.no_return
-    hit_r = np.where(hit, r, 0.0)
-    hits = beam_points(batch.poses, batch.angles, hit_r[:, :, None], sensor)[hit]
-
-    no_return_end = beam.no_return_free_m(sensor, batch.range_max)
-    end = np.where(hit, hit_r - FREE_MARGIN_M, np.where(no_return, no_return_end, 0.0))
-    ok = end > FREE_MARGIN_M
-    u = rng.random((batch.n_scans, batch.n_beams, free_per_beam))
-    free_d = FREE_MARGIN_M + u * (end - FREE_MARGIN_M)[:, :, None]
-    keep = np.broadcast_to(ok[:, :, None], free_d.shape)
-    free = beam_points(batch.poses, batch.angles, np.where(keep, free_d, 0.0), sensor)[keep]
-
-    points = np.concatenate([hits.reshape(-1, 2), free.reshape(-1, 2)])
-    labels = np.concatenate(
-        [np.ones(len(hits), dtype=np.int8), np.zeros(len(free), dtype=np.int8)]
-    )
-    return points, labels
 
 
 def split_batch(

@@ -21,13 +21,19 @@ import numpy as np
 from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
-from gpocc.gp.classify import PlattClassifier, fit_classifier
+from gpocc.gp.classify import (
+    PlattClassifier,
+    beam_holdout_predictions,
+    fit_classifier,
+    fit_offset,
+)
 from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import Kernel, make_kernel
 from gpocc.gp.modelfile import validate_contents, validate_coverage
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_output_file
 from gpocc.samples.coverage import Coverage
+from gpocc.samples.heldout import CalibrationPoints
 from gpocc.samples.sampleset import SampleSet
 from gpocc.versions import software_versions
 
@@ -89,10 +95,14 @@ def build_model(
     samples: SampleSet, config: Config, inputs: tuple[str, ...] = (),
     on_evaluation: Callable[[int], None] | None = None,
     coverage: Coverage | None = None,
+    calibration: CalibrationPoints | None = None,
 ) -> GPModel:
     """Learn hyperparameters and the classifier from ``samples`` under ``config``.
 
     ``on_evaluation(1)`` is called after each likelihood evaluation (progress display).
+    ``calibration``: labelled points of held-out scans for ``classifier_offset: beams``
+    (:func:`gpocc.samples.heldout.calibration_points`); without them, or if they lack
+    either class, the offset stays that of the hold-out fit.
     """
     model_cfg = config.model
     if not model_cfg.input_noise:
@@ -105,17 +115,15 @@ def build_model(
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale)
-        # Fresh patches (another seed) for the classifier: a and b fitted on the very
-        # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
-        patches = make_patches(samples, model_cfg.training, config.seed + 1)
-        classifier = fit_classifier(result.kernel, result.noise_variance, patches,
-                                    model_cfg.quadrature_level,
-                                    model_cfg.training.classifier_holdout)
+        classifier, offset, points = _fit_classifier(result, samples, config, calibration)
     training = {
         "log_marginal_likelihood": result.log_marginal_likelihood,
         "initial_log_marginal_likelihood": result.initial_log_marginal_likelihood,
         "evaluations": result.evaluations,
         "patches": list(result.patches),
+        "classifier_holdout": model_cfg.training.classifier_holdout,
+        "classifier_offset": offset,
+        "classifier_points": points,
     }
     return GPModel(
         kernel=result.kernel, noise_variance=result.noise_variance, classifier=classifier,
@@ -123,6 +131,30 @@ def build_model(
         training=training, inputs=tuple(inputs), coverage=coverage,
         input_noise_scale=result.input_noise_scale,
     )
+
+
+def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
+                    calibration: CalibrationPoints | None,
+                    ) -> tuple[PlattClassifier, str, int]:
+    """The Platt classifier of the learned GP, where its offset came from (``holdout`` or
+    ``beams``) and the number of held-out beam points it was fitted on (0 for holdout)."""
+    model_cfg = config.model
+    training = model_cfg.training
+    # Fresh patches (another seed) for the classifier: a and b fitted on the very
+    # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
+    patches = make_patches(samples, training, config.seed + 1)
+    classifier = fit_classifier(result.kernel, result.noise_variance, patches,
+                                model_cfg.quadrature_level, training.classifier_holdout)
+    if training.classifier_offset != "beams" or calibration is None or not calibration.usable:
+        return classifier, "holdout", 0
+    mean, variance, labels = beam_holdout_predictions(
+        result.kernel, result.noise_variance, samples, calibration,
+        model_cfg.quadrature_level, model_cfg.neighbours, model_cfg.block_size_m,
+        training.calibration_blocks, np.random.default_rng(config.seed + 2))
+    if not (np.any(labels > 0) and np.any(labels < 0)):
+        return classifier, "holdout", 0
+    return (fit_offset(mean, variance, labels, classifier.extra_variance), "beams",
+            int(labels.size))
 
 
 def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:

@@ -1,0 +1,111 @@
+"""Same GP, three classifiers: leave-one-sample-out (published, the default), fitted on
+held-out beams (c and s), and the leave-one-out s with the offset c fitted on held-out
+beams (``model.training.classifier_offset: beams``).
+
+For every finished case of a ``bench/experiment.py`` work folder whose variant was
+trained with ``classifier_holdout: sample``, re-squash the GP maps' probability with the
+other two classifiers (the latent mean recovered from p and the variance, as
+``experiment.reclassified`` does) and score all three with ``gpocc evaluate``. Prints
+one markdown table. Usage::
+
+    .venv/bin/python bench/classifier_offsets.py --work /tmp/exp/work \
+        --variant learned-scale-floor-0.1 --max-position-std 0.075
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.special import ndtri
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+from experiment import case_truths, evaluate  # noqa: E402
+
+from gpocc.config import load_config  # noqa: E402
+from gpocc.gp.classify import (  # noqa: E402
+    PlattClassifier,
+    beam_holdout_predictions,
+    fit_offset,
+    fit_platt,
+)
+from gpocc.gp.model import load_model  # noqa: E402
+from gpocc.io.inputs import read_inputs  # noqa: E402
+from gpocc.io.rasters import read_raster, write_geotiff  # noqa: E402
+from gpocc.samples.heldout import calibration_points  # noqa: E402
+
+
+def training_input(work: Path, case_dir: Path) -> Path:
+    if case_dir.parent.name == "sim":
+        return work / "sim" / case_dir.name / "sim.mcap"
+    return work / "real" / case_dir.name / "split" / "train-noisy.mcap"
+
+
+def beam_predictions(model, inputs: Path, config_path: Path,
+                     max_position_std_m: float | None = None):
+    config = load_config(config_path)
+    batches = read_inputs([inputs], config)
+    t = model.config.model.training
+    calib = calibration_points(batches, model.config, t.calibration_every,
+                               max_position_std_m=max_position_std_m)
+    m = model.config.model
+    return beam_holdout_predictions(model.kernel, model.noise_variance, model.samples, calib,
+                                    m.quadrature_level, m.neighbours, m.block_size_m,
+                                    t.calibration_blocks,
+                                    np.random.default_rng(model.config.seed + 2))
+
+
+def resquash(folder: Path, old: PlattClassifier, new: PlattClassifier, name: str) -> Path:
+    out = folder.with_name(f"{folder.name}-{name}")
+    out.mkdir(exist_ok=True)
+    p, spec, _ = read_raster(folder / "probability.tif")
+    v, _, _ = read_raster(folder / "variance.tif")
+    p, v = p.astype(float), v.astype(float)
+    mu = ndtri(np.clip(p, 1e-12, 1 - 1e-12)) * np.sqrt(old.extra_variance + v) - old.offset
+    write_geotiff(out / "probability.tif", new.probability(mu, v).astype(np.float32), spec,
+                  nodata=np.nan)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--variant", default="learned-scale-floor-0.1")
+    parser.add_argument("--max-position-std", type=float, default=0.075,
+                        help="metres: calibration points known at least this well "
+                             "(model.training.calibration_max_position_std_m)")
+    args = parser.parse_args()
+    print("| case | region | method | classifier | a | c | AUC | FPR@TPR0.97 | Brier | log-loss "
+          "| ECE |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    for case_dir in sorted((args.work / args.variant).glob("*/*")):
+        for method in ("gp-no-input-noise", "gp-input-noise"):
+            folder = case_dir / method
+            if not (folder / "probability.tif").is_file():
+                continue
+            model = load_model(folder.with_suffix(".npz"))
+            mean, var, labels = beam_predictions(model, training_input(args.work, case_dir),
+                                                 case_dir / "config.yaml",
+                                                 args.max_position_std)
+            old = model.classifier
+            both = fit_platt(mean, var, labels)
+            offset = fit_offset(mean, var, labels, old.extra_variance)
+            maps = {"sample": folder,
+                    "beams": resquash(folder, old, both, "beams"),
+                    "beams-offset": resquash(folder, old, offset, "beams-offset")}
+            fits = {"sample": old, "beams": both, "beams-offset": offset}
+            for scope, truth in case_truths(args.work, case_dir).items():
+                rows = evaluate(list(maps.values()), truth,
+                                case_dir / f"classifiers-{method}-{scope}")
+                for name, row in zip(maps, rows.values(), strict=True):
+                    fit = fits[name]
+                    print(f"| {case_dir.name} | {scope} | {method} | {name} | {fit.a:.3g} | "
+                          f"{fit.offset:.3f} | {row['auc']:.4f} | {row['fpr_at_tpr97']:.3f} | "
+                          f"{row['brier']:.4f} | {row['log_loss']:.3f} | {row['ece']:.3f} |",
+                          flush=True)
+
+
+if __name__ == "__main__":
+    main()

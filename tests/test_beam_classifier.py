@@ -1,0 +1,158 @@
+"""The classifier offset fitted on held-out beams (`model.training.classifier_offset`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from gpocc.config import Config, ModelConfig, SamplesConfig, TrainingConfig
+from gpocc.gp.classify import beam_holdout_predictions, fit_offset, held_out_log_probability
+from gpocc.gp.kernels import NeuralNetworkKernel
+from gpocc.gp.local import centred_problem, predict_local
+from gpocc.gp.model import build_model
+from gpocc.samples.beams import build_samples
+from gpocc.samples.heldout import (
+    CalibrationPoints,
+    calibration_points,
+    labelled_points,
+    position_std,
+    subset_batch,
+)
+from tests.test_split import SENSOR, room_batch
+
+CONFIG = Config(sensors=(SENSOR,), seed=3)
+
+
+def test_calibration_points_are_the_heldout_scans_numbered_like_the_samples():
+    first, second = room_batch(n_scans=23, seed=1), room_batch(n_scans=17, seed=2)
+    calib = calibration_points([first, second], CONFIG, every=5)
+    # Scans 4, 9, 14, 19 of the first batch, then 4, 9, 14 of the second after its 23.
+    np.testing.assert_array_equal(calib.scan_ids, [4, 9, 14, 19, 27, 32, 37])
+    samples = build_samples([first, second], CONFIG)
+    assert set(calib.scan_ids) <= set(samples.scan_ids.tolist())
+    # The points are those of the held-out scans alone, drawn with the config's seed.
+    rng = np.random.default_rng(CONFIG.seed)
+    a = labelled_points(subset_batch(first, np.array([4, 9, 14, 19])), SENSOR, 3, rng)
+    b = labelled_points(subset_batch(second, np.array([4, 9, 14])), SENSOR, 3, rng)
+    np.testing.assert_array_equal(calib.points, np.concatenate([a[0], b[0]]))
+    np.testing.assert_array_equal(calib.labels, np.where(np.concatenate([a[1], b[1]]) > 0,
+                                                         1.0, -1.0))
+    assert calib.usable
+    assert not CalibrationPoints(calib.points[:2], np.ones(2), calib.scan_ids).usable
+
+
+def test_heldout_predictions_equal_the_gp_of_the_other_scans():
+    """With every remaining sample in each local problem, each block's predictions are the
+    GP of the samples of the other scans (brute force, centred at the block's centre as
+    every local problem is), and no held-out scan's sample is used."""
+    batch = room_batch(n_scans=8, n_beams=8, seed=4)
+    config = dataclasses.replace(CONFIG, samples=SamplesConfig(free_spacing_m=1.5,
+                                                               thin_cell_m=0.6))
+    samples = build_samples([batch], config)
+    calib = calibration_points([batch], config, every=4)
+    kernel = NeuralNetworkKernel(2.0, 20.0, (30.0, 30.0))
+    mean, var, labels = beam_holdout_predictions(
+        kernel, 0.1, samples, calib, 2, neighbours=len(samples), block_size_m=1.0,
+        max_blocks=1000, rng=np.random.default_rng(0))
+    rest = samples.subset(np.flatnonzero(~np.isin(samples.scan_ids, calib.scan_ids)))
+    assert 0 < len(rest) < len(samples)
+    keys = np.floor(calib.points).astype(int)
+    want_mean, want_var, want_labels = [], [], []
+    for key in np.unique(keys, axis=0):  # blocks in the function's order
+        rows = np.flatnonzero((keys == key).all(axis=1))
+        problem = centred_problem(rest, np.arange(len(rest)), key + 0.5)
+        pred = predict_local(kernel, 0.1, problem, calib.points[rows], 2)
+        want_mean.append(pred.mean)
+        want_var.append(pred.variance)
+        want_labels.append(calib.labels[rows])
+    np.testing.assert_array_equal(labels, np.concatenate(want_labels))
+    np.testing.assert_allclose(mean, np.concatenate(want_mean), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(var, np.concatenate(want_var), rtol=0, atol=1e-9)
+
+
+def test_blocks_and_points_per_block_are_capped():
+    batch = room_batch(n_scans=40, n_beams=90, seed=5)
+    samples = build_samples([batch], CONFIG)
+    calib = calibration_points([batch], CONFIG, every=2)
+    kernel = NeuralNetworkKernel(2.0, 20.0, (30.0, 30.0))
+    _, _, few = beam_holdout_predictions(kernel, 0.1, samples, calib, 2, 64, 1.0, 3,
+                                         np.random.default_rng(0))
+    _, _, all_blocks = beam_holdout_predictions(kernel, 0.1, samples, calib, 2, 64, 1.0,
+                                                10_000, np.random.default_rng(0))
+    from gpocc.gp.classify import POINTS_PER_BLOCK
+    assert 0 < few.size <= 3 * POINTS_PER_BLOCK
+    assert few.size < all_blocks.size <= calib.labels.size
+
+
+def _training(offset: str) -> Config:
+    return dataclasses.replace(CONFIG, model=ModelConfig(
+        neighbours=64, block_size_m=1.0,
+        training=TrainingConfig(patches=2, patch_size=60, anneal_maxfun=4, lbfgs_maxiter=3,
+                                classifier_offset=offset, calibration_blocks=20)))
+
+
+def test_offset_maximises_the_heldout_log_probability():
+    rng = np.random.default_rng(8)
+    mean, var = rng.normal(0.2, 1.0, 400), rng.uniform(0.01, 0.2, 400)
+    labels = np.where(rng.random(400) < ndtr((mean - 0.3) / np.sqrt(0.05 + var)), 1.0, -1.0)
+    fit = fit_offset(mean, var, labels, 0.05)
+    assert fit.extra_variance == 0.05
+    grid = np.linspace(-2, 2, 4001)
+    scores = [held_out_log_probability(c, 0.05, mean, var, labels) for c in grid]
+    assert fit.offset == pytest.approx(grid[int(np.argmax(scores))], abs=2e-3)
+    assert held_out_log_probability(fit.offset, 0.05, mean, var, labels) >= max(scores) - 1e-9
+
+
+def test_model_refits_its_offset_on_the_heldout_beams():
+    batch = room_batch(n_scans=30, n_beams=40, seed=6)
+    config = _training("beams")
+    samples = build_samples([batch], config)
+    calib = calibration_points([batch], config, config.model.training.calibration_every)
+    model = build_model(samples, config, calibration=calib)
+    plain = build_model(samples, _training("holdout"))
+    assert model.training["classifier_offset"] == "beams"
+    assert plain.training["classifier_offset"] == "holdout"
+    assert model.kernel == plain.kernel  # the same GP; only the offset differs
+    mean, var, labels = beam_holdout_predictions(
+        model.kernel, model.noise_variance, model.samples, calib, model.level, 64, 1.0, 20,
+        np.random.default_rng(config.seed + 2))
+    assert model.training["classifier_points"] == labels.size > 0
+    assert model.classifier == fit_offset(mean, var, labels, plain.classifier.extra_variance)
+    assert model.classifier.offset != plain.classifier.offset
+
+
+@pytest.mark.parametrize("calibration", [None, "one class"])
+def test_without_usable_heldout_beams_the_offset_is_the_holdouts(calibration):
+    batch = room_batch(n_scans=30, n_beams=40, seed=6)
+    samples = build_samples([batch], _training("beams"))
+    calib = None
+    if calibration == "one class":
+        full = calibration_points([batch], CONFIG, 10)
+        calib = CalibrationPoints(full.points[full.labels > 0], full.labels[full.labels > 0],
+                                  full.scan_ids)
+    beams = build_model(samples, _training("beams"), calibration=calib)
+    plain = build_model(samples, _training("holdout"))
+    assert beams.training["classifier_offset"] == "holdout"
+    assert beams.classifier == plain.classifier
+
+
+def test_points_placed_by_uncertain_poses_are_left_out():
+    """A robot whose pose is known to 0.3 m gives no calibration points at a 0.075 m
+    limit; one known to 1 mm gives all of them."""
+    sharp = room_batch(n_scans=20, seed=9)
+    sharp = dataclasses.replace(sharp, pose_covariances=np.broadcast_to(
+        np.diag([1e-6, 1e-6, 1e-8]), (20, 3, 3)).copy(), has_pose_covariance=True)
+    blurred = dataclasses.replace(sharp, pose_covariances=np.broadcast_to(
+        np.diag([0.09, 0.09, 1e-4]), (20, 3, 3)).copy())
+    quiet = dataclasses.replace(CONFIG, sensors=(dataclasses.replace(
+        SENSOR, range_variance_m2=0.0, bearing_variance_deg2=0.0),))
+    everything = calibration_points([sharp], quiet, 4)
+    assert len(calibration_points([sharp], quiet, 4, max_position_std_m=0.075).points) == \
+        len(everything.points) > 0
+    assert len(calibration_points([blurred], quiet, 4, max_position_std_m=0.075).points) == 0
+    # Per point: the heading error grows with range; the limit keeps the near points.
+    std = position_std(blurred, quiet.sensors[0], np.array([0, 0]), np.array([0.0, 10.0]))
+    np.testing.assert_allclose(std, np.sqrt([0.09, 0.09 + 0.5 * 100 * 1e-4]))
