@@ -181,22 +181,40 @@ def test_command_modules_do_not_import_the_cli() -> None:
 def test_console_script_imports_only_the_command_it_runs() -> None:
     """`gpocc map` does not pay for the other commands' imports (the learner's
     scipy.optimize, the bag readers); the top-level help still lists every command."""
-    code = ("import sys\n"
-            "from gpocc.cli import main\n"
-            "sys.argv = ['gpocc'] + sys.argv[1:]\n"
-            "try:\n"
-            "    main()\n"
-            "except SystemExit:\n"
-            "    pass\n"
+    # The report runs as an exit handler: main() ends the process itself, after them.
+    code = ("import atexit, sys\n"
             "mods = ('gpocc.commands.map', 'gpocc.commands.train', 'gpocc.commands.evaluate',"
             " 'scipy.optimize')\n"
-            "print(*[m in sys.modules for m in mods], file=sys.stderr)\n")
+            "atexit.register(lambda: print(*[m in sys.modules for m in mods], file=sys.stderr))\n"
+            "from gpocc.cli import main\n"
+            "sys.argv = ['gpocc'] + sys.argv[1:]\n"
+            "main()\n")
     env = {k: v for k, v in os.environ.items() if not k.endswith("_COMPLETE")}
     one = subprocess.run([sys.executable, "-c", code, "map", "-h"], capture_output=True,
                          text=True, cwd=REPO, env=env)
-    assert "--resolution" in one.stdout
+    assert one.returncode == 0 and "--resolution" in one.stdout
     assert one.stderr.split()[-4:] == ["True", "False", "False", "False"], one.stderr
     every = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True,
                            text=True, cwd=REPO, env=env)
     assert all(name in every.stdout for name, _ in COMMANDS)
     assert every.stderr.split()[-4:-1] == ["True", "True", "True"], every.stderr
+
+
+def test_console_script_ends_without_teardown_but_with_all_its_output(tmp_path) -> None:
+    """main() skips the interpreter's teardown: exit statuses, the whole of stdout (also
+    into a pipe) and the error line must be as from the in-process app."""
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_COMPLETE")}
+
+    def console(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "gpocc", *args], capture_output=True,
+                              text=True, cwd=REPO, env=env)
+
+    full = console("config")
+    assert full.returncode == 0
+    assert full.stdout == runner.invoke(app, ["config"]).stdout and len(full.stdout) > 2000
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("model: [\n")
+    failed = console("config", str(bad))
+    assert failed.returncode == 2 and failed.stdout == ""
+    assert failed.stderr.strip().splitlines()[-1].startswith("gpocc config: error: ")
+    assert console("map").returncode == 2  # usage error: click's status

@@ -90,3 +90,19 @@ def test_roc_png(tmp_path):
     image = imread(tmp_path / "roc.png")
     assert image.shape[0] == image.shape[1] >= 600
     assert [f.name for f in tmp_path.iterdir()] == ["roc.png"]
+
+
+def test_preview_colour_ramps_match_matplotlibs():
+    """Free white, occupied black; viridis within 6/255 of matplotlib's table; no data in
+    its own colour."""
+    from matplotlib import colormaps
+
+    from gpocc.mapping.render import _GREY, _VIRIDIS, _colour
+
+    t = np.linspace(0.0, 1.0, 1001)
+    got = _colour(t[None, :], _VIRIDIS)[0].astype(float)
+    want = colormaps["viridis"](t)[:, :3] * 255
+    assert np.abs(got - want).max() <= 6
+    grey = _colour(np.array([[0.0, 0.5, 1.0, np.nan]]), _GREY)[0]
+    np.testing.assert_array_equal(grey[:3], [[255, 255, 255], [128, 128, 128], [0, 0, 0]])
+    np.testing.assert_array_equal(grey[3], np.round(np.array(to_rgb(NO_DATA_COLOUR)) * 255))
