@@ -147,10 +147,10 @@ def _exit_without_teardown(code: int | str | None) -> None:
     (Intel: ``gpocc map`` ends 1 s sooner). Every output is already written and closed
     (atomically), so only the exit handlers matter: they run (logging flush,
     multiprocessing clean-up), then stdout and stderr are flushed. With any other thread
-    alive the normal exit runs, so nothing still writing is cut short.
+    alive, or under a profiler or tracer, the normal exit runs.
     """
-    if threading.active_count() > 1:
-        sys.exit(code)
+    if threading.active_count() > 1 or sys.getprofile() or sys.gettrace():
+        sys.exit(code)  # a profiler or coverage tool writes its report at teardown
     if code is None:
         code = 0
     elif not isinstance(code, int):  # sys.exit("message"): printed, status 1

@@ -10,12 +10,22 @@ import scipy
 import gpocc
 
 
-def software_versions() -> dict[str, str]:
-    """Versions of gpocc, numpy, scipy, numba (the expected kernels), rasterio and GDAL
-    (every GeoTIFF byte) and Python, by name."""
+def software_versions(rasters: bool = True) -> dict[str, str]:
+    """Versions of gpocc, numpy, scipy, numba (the expected kernels) and Python, by name;
+    with ``rasters`` also rasterio and GDAL (every GeoTIFF byte of a map folder). A model
+    file writes no raster, and importing rasterio only to read its version cost 0.5 s of
+    every ``gpocc train``."""
     import numba
-    import rasterio
 
-    return {"gpocc": gpocc.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
-            "numba": numba.__version__, "rasterio": rasterio.__version__,
-            "gdal": rasterio.__gdal_version__, "python": platform.python_version()}
+    versions = {"gpocc": gpocc.__version__, "numpy": np.__version__,
+                "scipy": scipy.__version__, "numba": numba.__version__}
+    if rasters:
+        import rasterio
+
+        versions.update(rasterio=rasterio.__version__, gdal=rasterio.__gdal_version__)
+    return {**versions, "python": platform.python_version()}
+
+
+def model_versions() -> dict[str, str]:
+    """:func:`software_versions` of a model file (no raster libraries)."""
+    return software_versions(rasters=False)

@@ -35,7 +35,7 @@ from gpocc.io.atomic import atomic_output_file
 from gpocc.samples.coverage import Coverage
 from gpocc.samples.heldout import CalibrationPoints
 from gpocc.samples.sampleset import SampleSet
-from gpocc.versions import software_versions
+from gpocc.versions import model_versions
 
 FORMAT_NAME = "gpocc-model"
 #: 2: the classifier is stored as (offset, extra_variance); files of format 1 (a, b)
@@ -54,7 +54,7 @@ class GPModel:
     the learned ``input_noise_scale`` g (:mod:`gpocc.gp.inputscale`; 1 when not learned
     and in files written before it existed), so prediction code needs no switch; their
     ``sensor_names`` name the sensors they came from. ``versions``: the software that
-    trained the model (:func:`gpocc.versions.software_versions`). ``training``: the
+    trained the model (:func:`gpocc.versions.model_versions`). ``training``: the
     learning's record (likelihoods, evaluations, patches, ``timings_s``).
     ``coverage``: the cells the training beams crossed (None for models built from
     samples alone); maps are nodata far from it.
@@ -68,7 +68,7 @@ class GPModel:
     input_noise: bool
     training: dict[str, Any] = field(default_factory=dict)
     inputs: tuple[str, ...] = ()
-    versions: dict[str, str] = field(default_factory=software_versions)
+    versions: dict[str, str] = field(default_factory=model_versions)
     coverage: Coverage | None = None
     input_noise_scale: float = 1.0
 
