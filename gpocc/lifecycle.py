@@ -11,7 +11,9 @@ temporaries of :mod:`gpocc.io.atomic` are removed, map workers are terminated in
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 
@@ -47,6 +49,14 @@ def command_scope() -> Iterator[None]:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         yield
+    except BrokenPipeError as exc:
+        if exc.filename is not None:
+            raise GpoccError(f"{describe_os_error(exc)}; check the path") from None
+        # Whoever read our stdout went away (`gpocc ... | head`): the files are written;
+        # end quietly with the status of a process killed by SIGPIPE, as Unix tools do.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        raise SystemExit(128 + signal.SIGPIPE) from None
     except OSError as exc:
         raise GpoccError(
             f"{describe_os_error(exc)}; check the path, its permissions and free space"

@@ -218,3 +218,15 @@ def test_console_script_ends_without_teardown_but_with_all_its_output(tmp_path) 
     assert failed.returncode == 2 and failed.stdout == ""
     assert failed.stderr.strip().splitlines()[-1].startswith("gpocc config: error: ")
     assert console("map").returncode == 2  # usage error: click's status
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
+    """`gpocc config | head -1`-style: stdout's reader closes first; the command ends
+    with SIGPIPE's status and no error line or traceback."""
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_COMPLETE")}
+    proc = subprocess.Popen([sys.executable, "-m", "gpocc", "config"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
+    proc.stdout.close()  # before the interpreter has even started importing gpocc
+    stderr = proc.stderr.read()
+    assert proc.wait(timeout=60) == 141, stderr
+    assert "error" not in stderr and "Traceback" not in stderr
