@@ -282,17 +282,19 @@ def _nparams(kernel: Kernel) -> int:
 
 
 # Node sets never depend on the hyperparameters, and training evaluates the same patches a
-# hundred times: the last few node sets are kept, keyed by a digest of their inputs (a hash
-# of a few kB, microseconds). Mapping never repeats a problem; it only pays the digest.
+# hundred times: the last few expansions are kept, keyed by a digest of their inputs (a hash
+# of a few kB, microseconds). A map's anchor expands its samples for the training matrix and
+# again for the cross-covariance; mapping never repeats a problem otherwise.
 # The lock makes the cache safe for callers on threads (held for look-ups, not builds).
-_NODE_CACHE: OrderedDict[bytes, object] = OrderedDict()
+_NODE_CACHE: OrderedDict[bytes, _Expansion] = OrderedDict()
 _NODE_CACHE_ENTRIES = 48
 _NODE_CACHE_LOCK = threading.Lock()
 
 
-def _cached(kind: str, build, *arrays: np.ndarray):
-    digest = hashlib.blake2b(kind.encode(), digest_size=20)
-    for a in arrays:
+def _cached_expansion(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansion:
+    """:func:`_expand` through the node-set cache."""
+    digest = hashlib.blake2b(digest_size=20)
+    for a in (means, covariances, np.array([level])):
         a = np.ascontiguousarray(a)
         digest.update(str((a.dtype.str, a.shape)).encode())
         digest.update(a.data)
@@ -302,8 +304,8 @@ def _cached(kind: str, build, *arrays: np.ndarray):
         if hit is not None:
             _NODE_CACHE.move_to_end(key)
             return hit
-    value = build()
-    for a in vars(value).values() if isinstance(value, _Expansion) else (value,):
+    value = _expand(means, covariances, level)
+    for a in vars(value).values():
         if isinstance(a, np.ndarray):
             a.setflags(write=False)  # shared between calls: nobody may change it
     with _NODE_CACHE_LOCK:
@@ -311,12 +313,6 @@ def _cached(kind: str, build, *arrays: np.ndarray):
         while len(_NODE_CACHE) > _NODE_CACHE_ENTRIES:
             _NODE_CACHE.popitem(last=False)
     return value
-
-
-def _cached_expansion(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansion:
-    """:func:`_expand` through the node-set cache."""
-    return _cached("expand", functools.partial(_expand, means, covariances, level), means,
-                   covariances, np.array([level]))
 
 
 def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
