@@ -5,7 +5,7 @@ beams (``model.training.classifier_offset: beams``).
 For every finished case of a ``bench/experiment.py`` work folder whose variant was
 trained with ``classifier_holdout: sample``, re-squash the GP maps' probability with the
 other two classifiers (the latent mean recovered from p and the variance, as
-``experiment.reclassified`` does) and score all three with ``gpocc evaluate``. Prints
+``experiment.resquashed``) and score all three with ``gpocc evaluate``. Prints
 one markdown table. Usage::
 
     .venv/bin/python bench/classifier_offsets.py --work /tmp/exp/work \
@@ -19,22 +19,19 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtri
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from experiment import case_truths, evaluate  # noqa: E402
+from experiment import case_truths, evaluate, resquashed  # noqa: E402
 
 from gpocc.config import load_config  # noqa: E402
 from gpocc.gp.classify import (  # noqa: E402
-    PlattClassifier,
     beam_holdout_predictions,
     fit_offset,
     fit_platt,
 )
 from gpocc.gp.model import load_model  # noqa: E402
 from gpocc.io.inputs import read_inputs  # noqa: E402
-from gpocc.io.rasters import read_raster, write_geotiff  # noqa: E402
 from gpocc.samples.heldout import calibration_points  # noqa: E402
 
 
@@ -56,18 +53,6 @@ def beam_predictions(model, inputs: Path, config_path: Path,
                                     m.quadrature_level, m.neighbours, m.block_size_m,
                                     t.calibration_blocks,
                                     np.random.default_rng(model.config.seed + 2))
-
-
-def resquash(folder: Path, old: PlattClassifier, new: PlattClassifier, name: str) -> Path:
-    out = folder.with_name(f"{folder.name}-{name}")
-    out.mkdir(exist_ok=True)
-    p, spec, _ = read_raster(folder / "probability.tif")
-    v, _, _ = read_raster(folder / "variance.tif")
-    p, v = p.astype(float), v.astype(float)
-    mu = ndtri(np.clip(p, 1e-12, 1 - 1e-12)) * np.sqrt(old.extra_variance + v) - old.offset
-    write_geotiff(out / "probability.tif", new.probability(mu, v).astype(np.float32), spec,
-                  nodata=np.nan)
-    return out
 
 
 def main() -> None:
@@ -93,8 +78,10 @@ def main() -> None:
             both = fit_platt(mean, var, labels)
             offset = fit_offset(mean, var, labels, old.extra_variance)
             maps = {"sample": folder,
-                    "beams": resquash(folder, old, both, "beams"),
-                    "beams-offset": resquash(folder, old, offset, "beams-offset")}
+                    "beams": resquashed(folder, old, both,
+                                        folder.with_name(f"{folder.name}-beams")),
+                    "beams-offset": resquashed(folder, old, offset,
+                                               folder.with_name(f"{folder.name}-beams-offset"))}
             fits = {"sample": old, "beams": both, "beams-offset": offset}
             for scope, truth in case_truths(args.work, case_dir).items():
                 rows = evaluate(list(maps.values()), truth,

@@ -244,28 +244,18 @@ def run_real(work: Path, variant: str, logs: list[str], seed: int) -> list[dict]
     return cases
 
 
-def reclassified(model_path: Path, folder: Path, holdout: str) -> Path:
-    """``folder``'s map with the classifier re-fitted by ``holdout``, same GP.
+def resquashed(folder: Path, old, new, out: Path) -> Path:
+    """``folder``'s map squashed by classifier ``new`` instead of ``old``, same GP, in
+    ``out`` (probability.tif only).
 
     The latent mean is recovered from the stored p and variance by inverting
-    p = Phi((mu + c) / sqrt(s + var)); the new classifier is fitted exactly as
-    ``gpocc train`` does (same patches, seed + 1). Writes ``<folder>-<holdout>-cv``.
+    p = Phi((mu + c) / sqrt(s + var)).
     """
     from scipy.special import ndtri
 
-    from gpocc.gp.classify import fit_classifier
-    from gpocc.gp.model import load_model
-    from gpocc.gp.train import make_patches
     from gpocc.io.rasters import read_raster, write_geotiff
 
-    out = folder.with_name(f"{folder.name}-{holdout}-cv")
     out.mkdir(exist_ok=True)
-    model = load_model(model_path)
-    cfg = model.config.model
-    patches = make_patches(model.samples, cfg.training, model.config.seed + 1)
-    new = fit_classifier(model.kernel, model.noise_variance, patches, cfg.quadrature_level,
-                         holdout)
-    old = model.classifier
     p, spec, _ = read_raster(folder / "probability.tif")
     v, _, _ = read_raster(folder / "variance.tif")
     p, v = p.astype(float), v.astype(float)
@@ -273,6 +263,25 @@ def reclassified(model_path: Path, folder: Path, holdout: str) -> Path:
     mu = z * np.sqrt(old.extra_variance + v) - old.offset
     q = new.probability(mu, v).astype(np.float32)
     write_geotiff(out / "probability.tif", q, spec, nodata=np.nan)
+    return out
+
+
+def reclassified(model_path: Path, folder: Path, holdout: str) -> Path:
+    """``folder``'s map with the classifier re-fitted by ``holdout``, same GP
+    (:func:`resquashed`); the new classifier is fitted exactly as ``gpocc train`` does
+    (same patches, seed + 1). Writes ``<folder>-<holdout>-cv``.
+    """
+    from gpocc.gp.classify import fit_classifier
+    from gpocc.gp.model import load_model
+    from gpocc.gp.train import make_patches
+
+    model = load_model(model_path)
+    cfg = model.config.model
+    patches = make_patches(model.samples, cfg.training, model.config.seed + 1)
+    new = fit_classifier(model.kernel, model.noise_variance, patches, cfg.quadrature_level,
+                         holdout)
+    old = model.classifier
+    out = resquashed(folder, old, new, folder.with_name(f"{folder.name}-{holdout}-cv"))
     (out / "classifier.json").write_text(json.dumps(
         {"from": dataclasses.asdict(old), "to": dataclasses.asdict(new)}) + "\n")
     return out

@@ -436,17 +436,17 @@ def _validate(config: Config, source: str) -> Config:
             f"{source}: key 'map.georef.epsg' must be a projected EPSG code (e.g. 32633 for "
             f"UTM 33N), got {georef.epsg}"
         )
-    if config.model.training.classifier_holdout not in ("scan", "sample"):
+    t = config.model.training
+    if t.classifier_holdout not in ("scan", "sample"):
         raise GpoccError(
             f"{source}: key 'model.training.classifier_holdout' must be 'scan' or 'sample', "
-            f"got {config.model.training.classifier_holdout!r}"
+            f"got {t.classifier_holdout!r}"
         )
-    if config.model.training.classifier_offset not in ("holdout", "beams"):
+    if t.classifier_offset not in ("holdout", "beams"):
         raise GpoccError(
             f"{source}: key 'model.training.classifier_offset' must be 'holdout' or 'beams', "
-            f"got {config.model.training.classifier_offset!r}"
+            f"got {t.classifier_offset!r}"
         )
-    t = config.model.training
     if t.calibration_every < 2:
         raise GpoccError(
             f"{source}: key 'model.training.calibration_every' must be at least 2 (one "

@@ -59,7 +59,7 @@ def train(
         if training_cfg.classifier_offset == "beams" else None)
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
-    budget = 2 + cfg.model.training.anneal_maxfun + 2 * cfg.model.training.lbfgs_maxiter
+    budget = 2 + training_cfg.anneal_maxfun + 2 * training_cfg.lbfgs_maxiter
     with progress_bar(budget, "likelihood evaluations (at most)") as advance:
         model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs),
                             on_evaluation=advance, coverage=coverage,

@@ -23,7 +23,6 @@ from gpocc.io.scans import ScanBatch
 from gpocc.samples import beam
 from gpocc.samples.heldout import heldout_mask, labelled_points, subset_batch
 
-__all__ = ["heldout_mask", "labelled_points", "subset_batch", "split_batch", "SplitResult"]
 
 @dataclass(frozen=True)
 class SplitResult:

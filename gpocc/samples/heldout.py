@@ -106,7 +106,6 @@ def labelled_points(
     return points, labels, scans, distances
 
 
-
 @dataclass(frozen=True)
 class CalibrationPoints:
     """Labelled points of held-out scans, for the classifier.
