@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 DEMO_OUT ?= demo-out
 
-.PHONY: install demo test lint bench experiment clean
+.PHONY: install demo test lint fuzz bench experiment clean
 
 install: $(STAMP)
 
@@ -27,6 +27,12 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check gpocc tests bench
+
+# Fresh random inputs for the fuzz tests (make test runs a fixed set); FUZZ_EXAMPLES each.
+FUZZ_EXAMPLES ?= 2000
+fuzz: $(STAMP)
+	GPOCC_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(BIN)/python -m pytest -n 2 -q \
+		tests/test_fuzz.py tests/test_io_messages.py::test_decoding_gives_a_clean_error_or_a_valid_batch
 
 BENCH_STAMP := $(VENV)/.bench-stamp
 

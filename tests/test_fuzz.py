@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
+from fuzzing import fuzz_settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from gpocc.config import (
@@ -35,8 +36,7 @@ from gpocc.samples.beams import build_samples
 from gpocc.samples.sampleset import SampleSet
 
 _SENSOR = SensorConfig(name="fuzz")
-FUZZ = settings(max_examples=40, deadline=None, derandomize=True, database=None,
-                suppress_health_check=[HealthCheck.too_slow])
+FUZZ = fuzz_settings(40)
 
 # ------------------------------------------------------------------ CARMEN logs
 

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from fuzzing import fuzz_settings
+from hypothesis import given
 from hypothesis import strategies as st
 from rosbag_scenes import T0, BagWriter, cov6, quat
 from typer.testing import CliRunner
@@ -60,6 +61,16 @@ def test_zero_or_nan_quaternion_is_an_error(tmp_path: Path, q: tuple) -> None:
         read_inputs([path], Config(sensors=(SENSOR,)))
 
 
+@pytest.mark.parametrize("x", [math.inf, 3e8])
+def test_position_not_finite_or_too_far_is_an_error(tmp_path: Path, x: float) -> None:
+    poses = steady()
+    poses[1] = (poses[1][0], (x, 2.0, 0.0), poses[1][2], poses[1][3])
+    path = pose_bag(tmp_path / "far", poses)
+    with pytest.raises(GpoccError, match=r"far: topic /pose at t=1700000000\.100000 s: field "
+                                         r"pose\.position is .* not finite or beyond 1e\+08 m"):
+        read_inputs([path], Config(sensors=(SENSOR,)))
+
+
 def test_negative_and_non_psd_covariances(tmp_path: Path) -> None:
     negative = cov6(0.01, -0.02, 0.003)
     not_psd = cov6(0.01, 0.01, 0.003, xy=0.05)  # |xy| > sqrt(0.01 * 0.01)
@@ -85,6 +96,24 @@ def test_negative_and_non_psd_covariances(tmp_path: Path) -> None:
         np.testing.assert_allclose(np.linalg.eigvalsh(repaired), np.sort(np.maximum(w, 0)),
                                    atol=1e-6)
         assert np.linalg.eigvalsh(batch.pose_covariances).min() >= -1e-12
+
+
+@pytest.mark.parametrize("block", [
+    # an off-diagonal entry past the sentinel (possible only in a non-PSD block)
+    cov6(0.0, 0.0, 0.0, xy=-4001.0),
+    # every entry below the sentinel, but clipping the negative eigenvalue of
+    # [[990, 990], [990, -990]] lifts the x variance to about 1195
+    cov6(990.0, -990.0, 0.0, xy=990.0),
+])
+def test_sentinel_applies_to_magnitudes_and_to_repairs(tmp_path: Path, block) -> None:
+    poses = steady()
+    poses[2] = (poses[2][0], poses[2][1], poses[2][2], block)
+    fix = SensorConfig(name="r", scan_topic="/scan", pose_topic="/pose",
+                       repair_pose_covariance=True)
+    [batch] = read_inputs([pose_bag(tmp_path / "big", poses)], Config(sensors=(fix,)))
+    assert np.abs(batch.pose_covariances).max() < fix.covariance_sentinel
+    assert any("1 of 3 covariances unknown (1 with entries >= sensors[].covariance_sentinel"
+               in n for n in batch.provenance.notes), batch.provenance.notes
 
 
 def test_duplicate_stamps(tmp_path: Path) -> None:
@@ -167,7 +196,7 @@ def pose_messages(draw):
         pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov))
 
 
-@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@fuzz_settings(80)
 @given(scan=scan_messages(), poses=st.lists(pose_messages(), min_size=1, max_size=3),
        repair=st.booleans())
 def test_decoding_gives_a_clean_error_or_a_valid_batch(scan, poses, repair: bool) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 
 from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
-from gpocc.io.scans import ScanBatch
+from gpocc.io.scans import MAX_POSITION_M, ScanBatch, position_in_range
 
 #: Readings at or above this are CARMEN's "no return" code (81.83 m, 81.91 m in practice).
 NO_RETURN_M = 81.8
@@ -231,6 +231,11 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
     if not np.isfinite(poses).all():
         bad = scans[int(np.flatnonzero(~np.isfinite(poses).all(axis=1))[0])].lineno
         raise GpoccError(f"{path}: line {bad}: the pose is not finite; fix or delete that line")
+    far = ~position_in_range(poses[:, :2])
+    if far.any():
+        bad = scans[int(np.flatnonzero(far)[0])].lineno
+        raise GpoccError(f"{path}: line {bad}: the pose's position is more than "
+                         f"{MAX_POSITION_M:g} m from the origin; fix or delete that line")
     logger = np.array([s.logger_stamp for s in scans])
     monotonic = bool(np.isfinite(logger).all() and np.all(np.diff(logger) > 0))
     stamps = logger if monotonic else np.arange(len(scans), dtype=float)

@@ -9,11 +9,12 @@ message is checked as it is read (issue 13, class 4):
 * two messages with one stamp and different poses (more than 1 mm or 1 mrad apart) are an
   error naming both: which one is right cannot be told (two publishers on one topic, or a
   replayed segment); identical repeats are dropped;
-* the covariance's x, y, yaw block: an entry ``>= covariance_sentinel`` (ROS drivers fill
-  unused entries with 1e3..1e6) or NaN, or an all-zero block, means "unknown" and the
-  sensor config's ``pose_covariance`` is used instead; a negative variance or a block that
-  is not positive semi-definite is an error naming file, topic, stamp and field, or with
-  ``repair_pose_covariance: true`` its negative eigenvalues are set to zero and counted.
+* the covariance's x, y, yaw block: an entry of magnitude ``>= covariance_sentinel`` (ROS
+  drivers fill unused entries with 1e3..1e6) or NaN, or an all-zero block, means "unknown"
+  and the sensor config's ``pose_covariance`` is used instead; a negative variance or a
+  block that is not positive semi-definite is an error naming file, topic, stamp and field,
+  or with ``repair_pose_covariance: true`` its negative eigenvalues are set to zero and
+  counted (a repair whose entries then reach the sentinel is "unknown" too).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from gpocc.errors import GpoccError
+from gpocc.io.scans import MAX_POSITION_M, position_in_range
 from gpocc.io.tf import checked_quaternion, frame_name
 
 #: Pose message types, and whether each carries a covariance.
@@ -98,9 +100,9 @@ class PoseCollector:
         t = message_stamp(msg, record_ns)
         where = f"{self.path}: topic {self.topic} at t={t:.6f} s"
         xy = (float(pose.position.x), float(pose.position.y))
-        if not all(math.isfinite(v) for v in xy):
-            raise GpoccError(f"{where}: field pose.position is not finite {xy}; fix the "
-                             "publisher or drop these messages")
+        if not position_in_range(np.array(xy)):
+            raise GpoccError(f"{where}: field pose.position is {xy}, not finite or beyond "
+                             f"{MAX_POSITION_M:g} m; fix the publisher or drop these messages")
         o = pose.orientation
         q, repaired = checked_quaternion((o.x, o.y, o.z, o.w), f"{where}, field pose.orientation")
         self.normalised += int(repaired)
@@ -176,18 +178,12 @@ def check_covariances(series: PoseSeries, path: Path, sentinel: float, repair: b
     if not series.has_covariance:
         return CovarianceCheck(cov, np.zeros(p, bool), f"{series.msgtype} has no covariance", 0)
     with np.errstate(invalid="ignore"):
-        sentinel_hit = np.any(cov >= sentinel, axis=(1, 2))
+        # Magnitude: a PSD matrix cannot have |c_ij| >= sentinel without a diagonal entry
+        # >= sentinel, so a huge off-diagonal entry is as unknown as a huge variance.
+        sentinel_hit = np.any(np.abs(cov) >= sentinel, axis=(1, 2))
     nan = np.any(~np.isfinite(cov), axis=(1, 2))
     zero = np.all(cov == 0, axis=(1, 2))
     known = ~(sentinel_hit | nan | zero)
-    reasons = []
-    if sentinel_hit.any():
-        reasons.append(f"{int(sentinel_hit.sum())} with entries >= {key}.covariance_sentinel="
-                       f"{sentinel:g}")
-    if nan.any():
-        reasons.append(f"{int(nan.sum())} with NaN entries")
-    if zero.any():
-        reasons.append(f"{int(zero.sum())} all zero")
     sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
     sym[~known] = 0.0
     eig = np.linalg.eigvalsh(sym)
@@ -209,6 +205,20 @@ def check_covariances(series: PoseSeries, path: Path, sentinel: float, repair: b
         w, v = np.linalg.eigh(sym[bad])
         sym[bad] = (v * np.maximum(w, 0.0)[:, None, :]) @ np.swapaxes(v, 1, 2)
         repaired = int(bad.sum())
+        # Clipping can lift a variance past the sentinel (e.g. a zero diagonal with a
+        # large off-diagonal entry): such a repair is no measurement either.
+        lifted = bad & np.any(np.abs(sym) >= sentinel, axis=(1, 2))
+        sym[lifted] = 0.0
+        known &= ~lifted
+        sentinel_hit |= lifted
+    reasons = []
+    if sentinel_hit.any():
+        reasons.append(f"{int(sentinel_hit.sum())} with entries >= {key}.covariance_sentinel="
+                       f"{sentinel:g}")
+    if nan.any():
+        reasons.append(f"{int(nan.sum())} with NaN entries")
+    if zero.any():
+        reasons.append(f"{int(zero.sum())} all zero")
     return CovarianceCheck(sym, known, "; ".join(reasons), repaired)
 
 

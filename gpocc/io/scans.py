@@ -8,6 +8,23 @@ import numpy as np
 
 from gpocc.config import SensorConfig
 
+#: Largest |x| or |y| a pose may have, metres: beyond any planetary frame (UTM northings
+#: stay below 1e7), and far below where squaring a coordinate overflows.
+MAX_POSITION_M = 1e8
+
+
+def position_in_range(values: np.ndarray) -> np.ndarray:
+    """Whether each position is finite and within :data:`MAX_POSITION_M` (all axes).
+
+    Args:
+        values: (..., D) metres.
+
+    Returns:
+        (...,) bool.
+    """
+    with np.errstate(invalid="ignore"):
+        return np.all(np.abs(np.asarray(values, dtype=float)) <= MAX_POSITION_M, axis=-1)
+
 
 @dataclass(frozen=True)
 class Provenance:

@@ -24,7 +24,6 @@ Frame names lose a leading ``/`` (ROS 1 tf used ``/base_link``).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from gpocc.errors import GpoccError
+from gpocc.io.scans import MAX_POSITION_M, position_in_range
 from gpocc.io.timeline import brackets
 
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
@@ -310,9 +310,10 @@ class TfCollector:
             where = f"{self.path}: topic {topic} at t={t:.6f} s, transform {parent}->{child}"
             tr = tf.transform.translation
             xyz = (float(tr.x), float(tr.y), float(tr.z))
-            if not all(math.isfinite(v) for v in xyz):
-                raise GpoccError(f"{where}: field transform.translation is not finite {xyz}; "
-                                 "fix the publisher or drop these messages")
+            if not position_in_range(np.array(xyz)):
+                raise GpoccError(f"{where}: field transform.translation is {xyz}, not finite "
+                                 f"or beyond {MAX_POSITION_M:g} m; fix the publisher or drop "
+                                 "these messages")
             r = tf.transform.rotation
             q, repaired = checked_quaternion((r.x, r.y, r.z, r.w),
                                              f"{where}, field transform.rotation")
