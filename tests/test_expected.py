@@ -87,6 +87,31 @@ def test_gaussian_nodes_reproduce_moments_and_handle_singular():
     np.testing.assert_allclose(cross, 0.0, atol=1e-14)
 
 
+def test_closed_form_root_gives_the_eigh_node_sets():
+    """The 2 x 2 closed form against LAPACK's eigenvectors (the 3 x 3 path of the same
+    function, on the matrix padded with a zero row and column): every point's node set is
+    the same set, and R R' = S; the cases where the angle is degenerate or flips."""
+    rng = np.random.default_rng(5)
+    covs = np.concatenate([_covariances(rng, 20, 0.2), np.array([
+        np.zeros((2, 2)), np.diag([0.04, 0.04]), np.diag([0.01, 0.09]), np.diag([0.09, 0.01]),
+        [[0.04, -0.02], [-0.02, 0.01]], [[1e-30, 0.0], [0.0, 0.04]]])])
+    root = ex.sqrt_psd(covs)
+    np.testing.assert_allclose(root @ np.swapaxes(root, 1, 2), covs, rtol=0, atol=1e-16)
+    padded = np.zeros((len(covs), 3, 3))
+    padded[:, :2, :2] = covs
+    lapack = ex.sqrt_psd(padded)[:, :2, :]
+    unit, _ = ex.gauss_hermite(3, 2)
+    for r2, r3 in zip(root, lapack, strict=True):
+        # the padded root's extra column is zero; keep the two live ones
+        live = r3[:, np.sort(np.argsort(-np.abs(r3).sum(axis=0))[:2])]
+
+        def node_set(r):
+            nodes = np.round(unit @ r.T, 12) + 0.0  # + 0.0: no -0.0 in the sort
+            return nodes[np.lexsort(nodes.T[::-1])]
+
+        np.testing.assert_allclose(node_set(r2), node_set(live), rtol=0, atol=1e-11)
+
+
 # --------------------------------------------------------------------------- SE closed form
 
 
@@ -482,3 +507,22 @@ def test_compiled_nn_path_matches_numpy_reference(level, monkeypatch):
     assert ex._correlated_pairs(covs, scan_ids, factors)[0].shape[0] > 50
     for got, want in zip(fused, reference, strict=True):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):
+    """Same pairs in the same order: unsorted scans, zero covariances, pose shares on both
+    sides of POSE_SHARE_MIN, and integer scan ids of either width."""
+    rng = np.random.default_rng(31)
+    n = 90
+    covs = _covariances(rng, n, 0.1)
+    factors = rng.normal(size=(n, 2, 3)) * 0.05
+    factors[::7] *= 1e-3  # pose share below the threshold
+    covs[::11] = 0.0
+    for scan_ids in (rng.integers(0, 9, n), rng.integers(0, 9, n).astype(np.int32)):
+        compiled = ex._correlated_pairs(covs, scan_ids, factors)
+        monkeypatch.setattr(ex, "USE_FUSED", False)
+        reference = ex._correlated_pairs(covs, scan_ids, factors)
+        monkeypatch.setattr(ex, "USE_FUSED", True)
+        assert reference[0].shape[0] > 100
+        for got, want in zip(compiled, reference, strict=True):
+            np.testing.assert_array_equal(got, want)

@@ -113,10 +113,37 @@ def sqrt_psd(covariances: np.ndarray) -> np.ndarray:
         (..., d, d).
     """
     s = np.asarray(covariances, dtype=np.float64)
+    if s.shape[-2:] == (2, 2):
+        return _sqrt_psd2(s)
     s = 0.5 * (s + np.swapaxes(s, -1, -2))
     lam, vec = np.linalg.eigh(s)
     lam[lam < 1e-13 * lam[..., -1:]] = 0.0  # eigh sorts ascending
     return vec * np.sqrt(lam)[..., None, :]
+
+
+def _sqrt_psd2(s: np.ndarray) -> np.ndarray:
+    """:func:`sqrt_psd` of 2 x 2 matrices in closed form (the eigenvalues of
+    ``[[a, b], [b, c]]`` are ``(a + c) / 2 +- hypot((a - c) / 2, b)``, the larger one's
+    eigenvector at angle ``atan2(b, (a - c) / 2) / 2``): a third of the time of a batched
+    LAPACK call for the 128 points of a map anchor. The columns may differ from
+    ``eigh``'s in sign and order, which leaves a Gauss-Hermite node set unchanged (the
+    rule is the same along both axes and symmetric)."""
+    a, c = s[..., 0, 0], s[..., 1, 1]
+    b = 0.5 * (s[..., 0, 1] + s[..., 1, 0])
+    half = 0.5 * (a - c)
+    radius = np.hypot(half, b)
+    high = 0.5 * (a + c) + radius
+    low = 0.5 * (a + c) - radius
+    low = np.where(low < 1e-13 * high, 0.0, low)
+    angle = 0.5 * np.arctan2(b, half)
+    cos, sin = np.cos(angle), np.sin(angle)
+    root_low, root_high = np.sqrt(low), np.sqrt(high)
+    out = np.empty(s.shape)
+    out[..., 0, 0] = -sin * root_low
+    out[..., 1, 0] = cos * root_low
+    out[..., 0, 1] = cos * root_high
+    out[..., 1, 1] = sin * root_high
+    return out
 
 
 def cholesky_psd(covariances: np.ndarray) -> np.ndarray:
@@ -346,6 +373,10 @@ def _correlated_pairs(
     # A pair is treated as correlated only when the shared pose error is a noticeable
     # part (POSE_SHARE_MIN) of both points' covariances: below that the cross-covariance
     # is negligible and the product rule is both cheaper and exactly positive definite.
+    if USE_FUSED and _fused_module is not None:
+        return _fused_module.correlated_pairs(
+            np.ascontiguousarray(covariances, dtype=np.float64), scan_ids,
+            np.ascontiguousarray(pose_factors), POSE_SHARE_MIN, ZERO_VARIANCE_M2)
     pose_part = np.einsum("nij,nij->n", pose_factors, pose_factors)
     trace = covariances[:, 0, 0] + covariances[:, 1, 1]
     live = pose_part > POSE_SHARE_MIN * trace

@@ -9,7 +9,8 @@ pairs need a batched 4 x 4 Cholesky factor of each joint covariance. Here:
   libm's scalar ``asin`` is ten times slower than numpy's SIMD one, which it now matches;
 * each expected entry is reduced from one row of node values at a time, so nothing of
   size (nodes x nodes) exists and gradients cost one pass instead of five temporaries;
-* the 4 x 4 roots of same-scan pairs are Cholesky factors computed in registers.
+* the 4 x 4 roots of same-scan pairs are Cholesky factors computed in registers, and the
+  pairs themselves are listed without (N, N) masks.
 
 Inputs are *scaled* nodes ``u`` in coordinate-major layout (3, M), as built by
 ``NeuralNetworkKernel._scaled`` (``z = u_a . u_b`` is the kernel's arcsin argument),
@@ -364,3 +365,46 @@ def nn_same_scan_pairs(means: np.ndarray, covariances: np.ndarray, pose_factors:
                 centres[2, p], centres[3, p] = means[j[lo + p], 0], means[j[lo + p], 1]
         nn_node_pairs(nodes, weights, root, scale, out[:, lo:hi], with_gradient, centres,
                       with_scale)
+
+
+@_jit
+def correlated_pairs(covariances: np.ndarray, scan_ids: np.ndarray, pose_factors: np.ndarray,
+                     pose_share_min: float, zero_variance: float) -> tuple[np.ndarray, np.ndarray]:
+    """The same-scan pairs of ``gpocc.gp.expected._correlated_pairs`` (its rule, its
+    row-major order), without the (N, N) masks: about 10 us instead of 0.4 ms for the
+    128 points of a map anchor.
+
+    Args:
+        covariances: (N, 2, 2); scan_ids: (N,) integers; pose_factors: (N, 2, 3).
+
+    Returns:
+        (i, j), (P,) each, i < j.
+    """
+    n = covariances.shape[0]
+    live = np.empty(n, dtype=np.bool_)
+    for a in range(n):
+        pose_part = 0.0
+        for r in range(2):
+            for c in range(3):
+                pose_part += pose_factors[a, r, c] * pose_factors[a, r, c]
+        trace = covariances[a, 0, 0] + covariances[a, 1, 1]
+        biggest = max(max(abs(covariances[a, 0, 0]), abs(covariances[a, 0, 1])),
+                      max(abs(covariances[a, 1, 0]), abs(covariances[a, 1, 1])))
+        live[a] = pose_part > pose_share_min * trace and biggest > zero_variance
+    count = 0
+    for a in range(n):
+        if live[a]:
+            for b in range(a + 1, n):
+                if live[b] and scan_ids[b] == scan_ids[a]:
+                    count += 1
+    first = np.empty(count, dtype=np.intp)
+    second = np.empty(count, dtype=np.intp)
+    k = 0
+    for a in range(n):
+        if live[a]:
+            for b in range(a + 1, n):
+                if live[b] and scan_ids[b] == scan_ids[a]:
+                    first[k] = a
+                    second[k] = b
+                    k += 1
+    return first, second
