@@ -81,3 +81,36 @@ def worker_pool(workers: int, initializer: Callable[..., None],
         raise
     pool.close()
     pool.join()
+
+
+@contextlib.contextmanager
+def prefetched(items: Iterator[Any]) -> Iterator[Iterator[Any]]:
+    """``items`` with the next one produced on a helper thread while the caller works on
+    the current one: two pipeline stages on two cores when the producer releases the
+    GIL (compiled ``nogil`` loops, numpy's large operations). Same items, same order;
+    an exception of the producer is raised where its item would have been. The thread
+    has ended when the block exits, so that no fork (worker pools) happens beside it.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    done = object()
+
+    def produce() -> Any:
+        return next(items, done)
+
+    with ThreadPoolExecutor(1, thread_name_prefix="gpocc-prefetch") as pool:
+
+        def generate() -> Iterator[Any]:
+            future = pool.submit(produce)
+            while True:
+                item = future.result()
+                if item is done:
+                    return
+                future = pool.submit(produce)
+                yield item
+
+        stream = generate()
+        try:
+            yield stream
+        finally:
+            stream.close()

@@ -19,6 +19,7 @@ from gpocc.config import Config, SamplesConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 from gpocc.limits import MAX_SAMPLES_PER_SCAN
+from gpocc.parallel import prefetched
 from gpocc.samples import beam
 from gpocc.samples.beam_unscented import beam_unscented
 from gpocc.samples.sampleset import SampleSet
@@ -109,19 +110,23 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
         sensor = beam.sensor_config(batch, config)
         sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
         n_batch = 0
-        for part in _batch_samples(batch, sensor, config.samples, offset, sensor_id):
-            n_batch += len(part)
-            if votes is not None:
-                votes.add(part)
-            if thin_cell > 0:
-                part = thin_samples(part, thin_cell)
-                pending += len(part)
-                parts.append(part)
-                if pending > max(thinned_size, CHUNK_SAMPLES):
-                    parts = [thin_samples(SampleSet.concatenate(parts), thin_cell)]
-                    thinned_size, pending = len(parts[0]), 0
-            else:
-                parts.append(part)
+        # The next chunk's unscented transform (compiled, GIL-free) runs while this chunk
+        # is thinned and counted.
+        with prefetched(_batch_samples(batch, sensor, config.samples, offset,
+                                       sensor_id)) as chunks:
+            for part in chunks:
+                n_batch += len(part)
+                if votes is not None:
+                    votes.add(part)
+                if thin_cell > 0:
+                    part = thin_samples(part, thin_cell)
+                    pending += len(part)
+                    parts.append(part)
+                    if pending > max(thinned_size, CHUNK_SAMPLES):
+                        parts = [thin_samples(SampleSet.concatenate(parts), thin_cell)]
+                        thinned_size, pending = len(parts[0]), 0
+                else:
+                    parts.append(part)
         if n_batch == 0:
             raise GpoccError(
                 f"{batch.source}: sensor '{batch.sensor}' gave no training samples: none of "
@@ -164,8 +169,9 @@ class LabelVotes:
     @staticmethod
     def _reduce(keys: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         unique, inverse = np.unique(keys, return_inverse=True)
-        total = np.zeros((len(unique), 2), dtype=np.int64)
-        np.add.at(total, inverse, counts)
+        # bincount, not np.add.at (several times slower); float64 sums of counts are exact.
+        total = np.stack([np.bincount(inverse, weights=counts[:, k], minlength=len(unique))
+                          for k in range(2)], axis=1).astype(np.int64)
         return unique, total
 
     def add(self, samples: SampleSet) -> None:
