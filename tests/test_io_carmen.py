@@ -94,7 +94,7 @@ def test_robotlaser1(tmp_path: Path) -> None:
         ("FLASER four 1 2 3 4 0 0 0 0 0 0 1.0 pippo 1.0", "beam count"),
         ("FLASER 4 1 2 3 4 nan 0 0 0 0 0 1.0 pippo 1.0", "pose is not finite"),
         # finite, but its beams' samples would overflow (found by make fuzz)
-        ("FLASER 4 1 2 3 4 0 1.8e188 0 0 0 0 1.0 pippo 1.0", "more than 1e\\+08 m"),
+        ("FLASER 4 1 2 3 4 0 1.8e188 0 0 0 0 1.0 pippo 1.0", "coordinate beyond 1e\\+08 m"),
     ],
 )
 def test_corrupt_line_names_file_and_line(tmp_path: Path, bad: str, why: str) -> None:

@@ -114,6 +114,7 @@ def test_sentinel_applies_to_magnitudes_and_to_repairs(tmp_path: Path, block) ->
     assert np.abs(batch.pose_covariances).max() < fix.covariance_sentinel
     assert any("1 of 3 covariances unknown (1 with entries >= sensors[].covariance_sentinel"
                in n for n in batch.provenance.notes), batch.provenance.notes
+    assert not any("repaired" in n for n in batch.provenance.notes)  # counted once
 
 
 def test_duplicate_stamps(tmp_path: Path) -> None:

@@ -15,18 +15,22 @@ def _threads() -> set[str]:
 
 def test_same_items_in_order_and_produced_ahead() -> None:
     produced: list[int] = []
+    reached = [threading.Event() for _ in range(7)]
 
     def items():
         for k in range(6):
             produced.append(k)
+            reached[k].set()
             yield k
 
     seen = []
     with prefetched(items()) as stream:
         for item in stream:
             seen.append(item)
-            # while the caller holds item k, the producer has moved on to k + 1 (or is
-            # at it): it is at most one item ahead
+            if item < 5:
+                # while the caller holds item k, the helper produces k + 1 by itself...
+                assert reached[item + 1].wait(timeout=10.0)
+            # ...and goes no further
             assert len(produced) - 1 - item <= 1
     assert seen == list(range(6))
     assert not any(name.startswith("gpocc-prefetch") for name in _threads())

@@ -132,8 +132,11 @@ def _sqrt_psd2(s: np.ndarray) -> np.ndarray:
     b = 0.5 * (s[..., 0, 1] + s[..., 1, 0])
     half = 0.5 * (a - c)
     radius = np.hypot(half, b)
-    high = 0.5 * (a + c) + radius
-    low = 0.5 * (a + c) - radius
+    # A negative largest eigenvalue (rounding of a zero matrix) is zeroed as eigh's path
+    # zeroes it; the smaller one as det / larger, free of the cancellation in mean - radius.
+    high = np.maximum(0.5 * (a + c) + radius, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        low = np.where(high > 0.0, (a * c - b * b) / high, 0.0)
     low = np.where(low < 1e-13 * high, 0.0, low)
     angle = 0.5 * np.arctan2(b, half)
     cos, sin = np.cos(angle), np.sin(angle)
@@ -373,7 +376,8 @@ def _correlated_pairs(
     # A pair is treated as correlated only when the shared pose error is a noticeable
     # part (POSE_SHARE_MIN) of both points' covariances: below that the cross-covariance
     # is negligible and the product rule is both cheaper and exactly positive definite.
-    if USE_FUSED and _fused_module is not None:
+    if USE_FUSED and _fused_module is not None and scan_ids.dtype.kind in "iu" \
+            and scan_ids.dtype.isnative:
         return _fused_module.correlated_pairs(
             np.ascontiguousarray(covariances, dtype=np.float64), scan_ids,
             np.ascontiguousarray(pose_factors), POSE_SHARE_MIN, ZERO_VARIANCE_M2)

@@ -136,8 +136,9 @@ def negative_log_likelihood(
 
     ``params`` = ``[kernel.theta..., log noise_variance]``. Without ``with_gradient`` the
     gradient is returned as zeros (and not computed: the global stage needs values only).
-    ``executor`` (anything with ``map``: worker processes, threads) evaluates the patches
-    concurrently; the sum is taken in patch order, so the result does not depend on it.
+    ``executor`` (a ``multiprocessing`` pool or a ``concurrent.futures`` executor: a
+    ``map`` that takes ``chunksize``) evaluates the patches concurrently; the sum is taken
+    in patch order, so the result does not depend on it.
     ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1);
     ``scale_gradient`` (with gradients): the gradient gains d/dlog g.
     """

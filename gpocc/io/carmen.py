@@ -234,8 +234,8 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
     far = ~position_in_range(poses[:, :2])
     if far.any():
         bad = scans[int(np.flatnonzero(far)[0])].lineno
-        raise GpoccError(f"{path}: line {bad}: the pose's position is more than "
-                         f"{MAX_POSITION_M:g} m from the origin; fix or delete that line")
+        raise GpoccError(f"{path}: line {bad}: the pose has a coordinate beyond "
+                         f"{MAX_POSITION_M:g} m; fix or delete that line")
     logger = np.array([s.logger_stamp for s in scans])
     monotonic = bool(np.isfinite(logger).all() and np.all(np.diff(logger) > 0))
     stamps = logger if monotonic else np.arange(len(scans), dtype=float)

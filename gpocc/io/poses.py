@@ -10,11 +10,13 @@ message is checked as it is read (issue 13, class 4):
   error naming both: which one is right cannot be told (two publishers on one topic, or a
   replayed segment); identical repeats are dropped;
 * the covariance's x, y, yaw block: an entry of magnitude ``>= covariance_sentinel`` (ROS
-  drivers fill unused entries with 1e3..1e6) or NaN, or an all-zero block, means "unknown"
-  and the sensor config's ``pose_covariance`` is used instead; a negative variance or a
-  block that is not positive semi-definite is an error naming file, topic, stamp and field,
-  or with ``repair_pose_covariance: true`` its negative eigenvalues are set to zero and
-  counted (a repair whose entries then reach the sentinel is "unknown" too).
+  drivers fill unused entries with 1e3..1e6; this includes a huge negative entry, which
+  no measured covariance has) or NaN, or an all-zero block, means "unknown" and the
+  sensor config's ``pose_covariance`` is used instead; otherwise a negative variance or a
+  block that is not positive semi-definite is an error naming file, topic, stamp and
+  field, or with ``repair_pose_covariance: true`` its negative eigenvalues are set to
+  zero and counted (a repair whose entries then reach the sentinel counts as "unknown"
+  instead).
 """
 
 from __future__ import annotations
@@ -211,6 +213,7 @@ def check_covariances(series: PoseSeries, path: Path, sentinel: float, repair: b
         sym[lifted] = 0.0
         known &= ~lifted
         sentinel_hit |= lifted
+        repaired -= int(lifted.sum())  # counted once, as unknown
     reasons = []
     if sentinel_hit.any():
         reasons.append(f"{int(sentinel_hit.sum())} with entries >= {key}.covariance_sentinel="
