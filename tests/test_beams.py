@@ -209,6 +209,37 @@ def test_thin_samples_ties_keep_the_first():
     assert thin_samples(samples, 0.0) is samples
 
 
+@pytest.mark.parametrize("cell_m", [0.5, 1e-8])  # 1e-8: cell indices past 2**31
+def test_thin_samples_matches_a_brute_force_oracle(cell_m):
+    """Per (label, cell): the smallest single-precision trace, the earliest on ties; kept
+    in input order. Cells on both sides of zero, many ties."""
+    rng = np.random.default_rng(11)
+    n = 400
+    scale = 3.0 if cell_m > 1e-3 else 40.0
+    means = rng.uniform(-scale, scale, (n, 2))
+    if cell_m < 1e-3:  # every 7th point repeats its predecessor: same cell
+        dup = np.arange(0, n - 1, 7)
+        means[dup + 1] = means[dup]
+    traces = rng.choice([0.01, 0.02, 0.03], n)
+    covs = np.zeros((n, 2, 2))
+    covs[:, 0, 0] = covs[:, 1, 1] = traces / 2
+    samples = SampleSet(
+        means=means, covariances=covs, labels=rng.choice([-1.0, 1.0], n),
+        scan_ids=np.arange(n), pose_factors=np.zeros((n, 2, 3)),
+        sensor_ids=np.zeros(n, dtype=np.int16),
+    )
+    best: dict[tuple, int] = {}
+    cells = np.floor(means / cell_m).astype(np.int64)
+    trace32 = traces.astype(np.float32)
+    for i in range(n):
+        group = (samples.labels[i], int(cells[i, 0]), int(cells[i, 1]))
+        if group not in best or trace32[i] < trace32[best[group]]:
+            best[group] = i
+    assert len(best) < n  # some groups hold several samples
+    kept = thin_samples(samples, cell_m)
+    np.testing.assert_array_equal(kept.scan_ids, sorted(best.values()))
+
+
 def test_scan_ids_unique_across_batches_and_sensor_ids_by_first_appearance():
     rng = np.random.default_rng(2)
     a = _batch(rng.uniform(1, 3, (3, 4)), ANGLES, np.zeros((3, 3)), sensor="r1")

@@ -220,12 +220,20 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     # round-off (which differs between code paths and BLAS builds) must not decide which
     # of them is kept.
     trace = (samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]).astype(np.float32)
+    if np.abs(cells).max() < 2**31:
+        # One int64 key per cell (the row in the high half): a three-key sort instead of
+        # four, about a third faster. The groups' order changes, the kept samples do not.
+        cell_key = (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
+        keys: tuple[np.ndarray, ...] = (trace, cell_key, samples.labels)
+    else:
+        keys = (trace, cells[:, 1], cells[:, 0], samples.labels)
     # lexsort is stable, so within one (label, cell) and trace the earliest sample leads.
-    order = np.lexsort((trace, cells[:, 1], cells[:, 0], samples.labels))
-    label_s = samples.labels[order]
-    cells_s = cells[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (label_s[1:] != label_s[:-1]) | np.any(cells_s[1:] != cells_s[:-1], axis=1)
+    order = np.lexsort(keys)
+    first = np.zeros(len(order), dtype=bool)
+    first[0] = True
+    for key in keys[1:]:
+        sorted_key = key[order]
+        first[1:] |= sorted_key[1:] != sorted_key[:-1]
     return samples.subset(np.sort(order[first]))
 
 
