@@ -231,10 +231,9 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
     if not np.isfinite(poses).all():
         bad = scans[int(np.flatnonzero(~np.isfinite(poses).all(axis=1))[0])].lineno
         raise GpoccError(f"{path}: line {bad}: the pose is not finite; fix or delete that line")
-    far = ~position_in_range(poses[:, :2])
-    if far.any():
-        bad = scans[int(np.flatnonzero(far)[0])].lineno
-        raise GpoccError(f"{path}: line {bad}: the pose has a coordinate beyond "
+    far = next((s for s in scans if not position_in_range(*s.pose[:2])), None)
+    if far is not None:
+        raise GpoccError(f"{path}: line {far.lineno}: the pose has a coordinate beyond "
                          f"{MAX_POSITION_M:g} m; fix or delete that line")
     logger = np.array([s.logger_stamp for s in scans])
     monotonic = bool(np.isfinite(logger).all() and np.all(np.diff(logger) > 0))

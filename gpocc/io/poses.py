@@ -102,7 +102,7 @@ class PoseCollector:
         t = message_stamp(msg, record_ns)
         where = f"{self.path}: topic {self.topic} at t={t:.6f} s"
         xy = (float(pose.position.x), float(pose.position.y))
-        if not position_in_range(np.array(xy)):
+        if not position_in_range(*xy):
             raise GpoccError(f"{where}: field pose.position is {xy}, not finite or beyond "
                              f"{MAX_POSITION_M:g} m; fix the publisher or drop these messages")
         o = pose.orientation

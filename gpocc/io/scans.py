@@ -13,17 +13,13 @@ from gpocc.config import SensorConfig
 MAX_POSITION_M = 1e8
 
 
-def position_in_range(values: np.ndarray) -> np.ndarray:
-    """Whether each position is finite and within :data:`MAX_POSITION_M` (all axes).
+def position_in_range(*coordinates: float) -> bool:
+    """Whether every coordinate (metres) is finite and within :data:`MAX_POSITION_M`.
 
-    Args:
-        values: (..., D) metres.
-
-    Returns:
-        (...,) bool.
+    Plain Python on purpose: readers call it once per pose message or TF transform, where
+    building a numpy array cost 23 us against under 1 us.
     """
-    with np.errstate(invalid="ignore"):
-        return np.all(np.abs(np.asarray(values, dtype=float)) <= MAX_POSITION_M, axis=-1)
+    return all(abs(v) <= MAX_POSITION_M for v in coordinates)  # NaN compares False
 
 
 @dataclass(frozen=True)

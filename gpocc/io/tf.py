@@ -310,7 +310,7 @@ class TfCollector:
             where = f"{self.path}: topic {topic} at t={t:.6f} s, transform {parent}->{child}"
             tr = tf.transform.translation
             xyz = (float(tr.x), float(tr.y), float(tr.z))
-            if not position_in_range(np.array(xyz)):
+            if not position_in_range(*xyz):
                 raise GpoccError(f"{where}: field transform.translation is {xyz}, not finite "
                                  f"or beyond {MAX_POSITION_M:g} m; fix the publisher or drop "
                                  "these messages")
