@@ -55,7 +55,7 @@ from gpocc.gp.local import (
     predict_local,
 )
 from gpocc.samples.heldout import CalibrationPoints
-from gpocc.samples.sampleset import SampleSet
+from gpocc.samples.sampleset import SampleSet, has_both_labels
 
 #: Ways to hold labels out when fitting the classifier (see the module docstring).
 HOLDOUTS = ("scan", "sample")
@@ -189,7 +189,7 @@ def fit_platt(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray) -> Pla
     Bounded L-BFGS-B in (c, s) with the analytic gradient: where the objective keeps
     rising towards a -> infinity, s stops at the bound :data:`S_MIN` exactly.
     """
-    if mean.size == 0 or np.all(labels > 0) or np.all(labels < 0):
+    if not has_both_labels(labels):
         # Nothing to calibrate against: keep the identity squashing.
         return PlattClassifier()
     from scipy.optimize import minimize  # here: `gpocc map` never fits, and the import is slow

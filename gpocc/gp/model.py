@@ -34,7 +34,7 @@ from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_output_file
 from gpocc.samples.coverage import Coverage
 from gpocc.samples.heldout import CalibrationPoints
-from gpocc.samples.sampleset import SampleSet
+from gpocc.samples.sampleset import SampleSet, has_both_labels
 from gpocc.versions import model_versions
 
 FORMAT_NAME = "gpocc-model"
@@ -151,7 +151,7 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         result.kernel, result.noise_variance, samples, calibration,
         model_cfg.quadrature_level, model_cfg.neighbours, model_cfg.block_size_m,
         training.calibration_blocks, np.random.default_rng(config.seed + 2))
-    if not (np.any(labels > 0) and np.any(labels < 0)):
+    if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0
     return (fit_offset(mean, variance, labels, classifier.extra_variance), "beams",
             int(labels.size))

@@ -19,6 +19,7 @@ from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 from gpocc.samples import beam
+from gpocc.samples.sampleset import has_both_labels
 
 #: Free points start this far from the laser and stop this far short of a hit, metres.
 FREE_MARGIN_M = 0.1
@@ -124,7 +125,7 @@ class CalibrationPoints:
     @property
     def usable(self) -> bool:
         """Both classes present: a classifier can be fitted on them."""
-        return bool(np.any(self.labels > 0) and np.any(self.labels < 0))
+        return has_both_labels(self.labels)
 
 
 def position_std(batch: ScanBatch, sensor: SensorConfig, scans: np.ndarray,

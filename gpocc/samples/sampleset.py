@@ -7,6 +7,12 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def has_both_labels(labels: np.ndarray) -> bool:
+    """Whether ``labels`` (+1 occupied, -1 free) hold both classes: what fitting a
+    classifier on them needs."""
+    return bool(np.any(labels > 0) and np.any(labels < 0))
+
+
 @dataclass(frozen=True)
 class SampleSet:
     """Training samples x_i ~ N(means[i], covariances[i]) with label labels[i].
