@@ -144,6 +144,12 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     return dataclasses.replace(result, sensor_names=tuple(sensor_index))
 
 
+def _packed_cells(cells: np.ndarray) -> np.ndarray:
+    """(N,) int64, one key per (N, 2) integer cell, the first index in the high half:
+    distinct for indices within 32 bits."""
+    return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
+
+
 class LabelVotes:
     """Running counts of occupied and free samples per square cell of side ``cell_m``.
 
@@ -163,8 +169,7 @@ class LabelVotes:
         self._pending_size = 0
 
     def _keys(self, samples: SampleSet) -> np.ndarray:
-        cells = np.floor(samples.means / self.cell_m).astype(np.int64)
-        return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
+        return _packed_cells(np.floor(samples.means / self.cell_m).astype(np.int64))
 
     @staticmethod
     def _reduce(keys: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -221,10 +226,9 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     # of them is kept.
     trace = (samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]).astype(np.float32)
     if np.abs(cells).max() < 2**31:
-        # One int64 key per cell (the row in the high half): a three-key sort instead of
-        # four, about a third faster. The groups' order changes, the kept samples do not.
-        cell_key = (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
-        keys: tuple[np.ndarray, ...] = (trace, cell_key, samples.labels)
+        # One int64 key per cell: a three-key sort instead of four, about a third faster.
+        # The groups' order changes, the kept samples do not.
+        keys: tuple[np.ndarray, ...] = (trace, _packed_cells(cells), samples.labels)
     else:
         keys = (trace, cells[:, 1], cells[:, 0], samples.labels)
     # lexsort is stable, so within one (label, cell) and trace the earliest sample leads.
