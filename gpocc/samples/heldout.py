@@ -1,11 +1,11 @@
 """Labelled points from held-out scans: occupied at each hit, free along each beam.
 
 The points a user checks a map against: ``gpocc split`` makes them the ground truth of
-held-out scans (:mod:`gpocc.evaluation.split`), and ``gpocc train`` fits the classifier
-on them (``model.training.classifier_holdout: beams``, :mod:`gpocc.gp.classify`), so the
-classifier is calibrated on points drawn like a map's queries rather than on thinned
-training samples. Of a batch's scans, those with index ``i % every == every - 1`` are
-held out.
+held-out scans (:mod:`gpocc.evaluation.split`), and with ``model.training.
+classifier_offset: beams`` ``gpocc train`` re-fits the classifier's offset on them
+(:mod:`gpocc.gp.classify`), so that it is calibrated at points where beams end rather
+than on thinned training samples. Of a batch's scans, those with index
+``i % every == every - 1`` are held out.
 """
 
 from __future__ import annotations
