@@ -24,24 +24,20 @@ import time
 from gpocc.blas import single_threaded_blas
 from gpocc.gp.local import NeighbourIndex
 from gpocc.gp.model import load_model
+from gpocc.mapping.blend import supported_anchors
 from gpocc.mapping.blocks import Anchor, AnchorLattice, block_cells, predict_anchor
 from gpocc.mapping.mapper import default_spec
 from gpocc.mapping.support import model_support
 
 
-def supported_anchors(model, resolution: float) -> tuple[AnchorLattice, list[Anchor]]:
+def map_anchors(model, resolution: float) -> tuple[AnchorLattice, list[Anchor]]:
     """The map's anchor lattice and its anchors with at least one supported cell."""
     spec = default_spec(model, resolution, model.config.map.margin_m)
     lattice = AnchorLattice(spec, block_cells(model.config.model.block_size_m, resolution))
-    mask = model_support(model).mask(spec, lattice.cells)
-    anchors = []
     rows, cols = lattice.shape
-    for r in range(rows):
-        for c in range(cols):
-            block, _ = lattice.footprint(Anchor(r, c))
-            inside = mask[block.row0:block.row0 + block.rows, block.col0:block.col0 + block.cols]
-            if inside.any():
-                anchors.append(Anchor(r, c, inside=inside.copy()))
+    every = [Anchor(r, c) for r in range(rows) for c in range(cols)]
+    mask = model_support(model).mask(spec, lattice.cells)
+    anchors, _ = supported_anchors(lattice, every, mask)
     return lattice, anchors
 
 
@@ -54,7 +50,7 @@ def main() -> None:
     args = parser.parse_args()
     single_threaded_blas()
     model = load_model(args.model)
-    lattice, anchors = supported_anchors(model, args.resolution)
+    lattice, anchors = map_anchors(model, args.resolution)
     index = NeighbourIndex(model.samples)
     chosen = anchors[:: max(1, len(anchors) // args.anchors)][: args.anchors]
     predict_anchor(model, index, lattice, chosen[0])  # numba and caches warm

@@ -40,6 +40,24 @@ class TileLayers:
     anchors: int
 
 
+def supported_anchors(lattice: AnchorLattice, anchors: list[Anchor], mask: np.ndarray,
+                      row0: int = 0, col0: int = 0) -> tuple[list[Anchor], list[Anchor]]:
+    """Split ``anchors`` into those whose footprint holds a supported cell, each with its
+    ``inside`` mask (only those cells are predicted: the others become nodata anyway),
+    and the rest. ``mask`` (H, W) bool covers the lattice's cells from (row0, col0) on
+    and holds every footprint."""
+    kept, skipped = [], []
+    for anchor in anchors:
+        fp, _ = lattice.footprint(anchor)
+        inside = mask[fp.row0 - row0:fp.row0 + fp.rows - row0,
+                      fp.col0 - col0:fp.col0 + fp.cols - col0]
+        if inside.any():
+            kept.append(Anchor(anchor.row, anchor.col, inside=inside.copy()))
+        else:
+            skipped.append(anchor)
+    return kept, skipped
+
+
 def predict_tile(
     model,
     lattice: AnchorLattice,
@@ -70,17 +88,7 @@ def predict_tile(
         er1 = min(spec.height, row0 + tile.rows + 2 * cells)
         ec1 = min(spec.width, col0 + tile.cols + 2 * cells)
         around = support.mask(spec.window(er0, ec0, er1 - er0, ec1 - ec0), cells)
-        kept, skipped = [], []
-        for anchor in anchors:
-            fp, _ = lattice.footprint(anchor)
-            cells_inside = around[fp.row0 - er0:fp.row0 + fp.rows - er0,
-                                  fp.col0 - ec0:fp.col0 + fp.cols - ec0]
-            if cells_inside.any():
-                # Only supported cells are predicted: the others become nodata anyway.
-                kept.append(Anchor(anchor.row, anchor.col, inside=cells_inside.copy()))
-            else:
-                skipped.append(anchor)
-        anchors = kept
+        anchors, skipped = supported_anchors(lattice, anchors, around, er0, ec0)
         inside = around[row0 - er0:row0 + tile.rows - er0, col0 - ec0:col0 + tile.cols - ec0]
         if progress:
             progress(sum(owned(a) for a in skipped))
