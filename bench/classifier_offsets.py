@@ -10,11 +10,17 @@ one markdown table. Usage::
 
     .venv/bin/python bench/classifier_offsets.py --work /tmp/exp/work \
         --variant learned-scale-floor-0.1 --max-position-std 0.075
+
+``--cell-jitter`` moves every held-out beam point by a uniform offset within one map cell
+(``map.resolution_m``) before the two beam fits: a point then stands for the centre of the
+cell holding it on a randomly shifted grid, the way a raster is read. It also prints the
+occupied share of the held-out beam points and of each truth raster.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -32,6 +38,7 @@ from gpocc.gp.classify import (  # noqa: E402
 )
 from gpocc.gp.model import load_model  # noqa: E402
 from gpocc.io.inputs import read_inputs  # noqa: E402
+from gpocc.io.rasters import read_raster  # noqa: E402
 from gpocc.samples.heldout import calibration_points  # noqa: E402
 
 
@@ -42,12 +49,19 @@ def training_input(work: Path, case_dir: Path) -> Path:
 
 
 def beam_predictions(model, inputs: Path, config_path: Path,
-                     max_position_std_m: float | None = None):
+                     max_position_std_m: float | None = None, cell_jitter: bool = False):
     config = load_config(config_path)
     batches = read_inputs([inputs], config)
     t = model.config.model.training
     calib = calibration_points(batches, model.config, t.calibration_every,
                                max_position_std_m=max_position_std_m)
+    if cell_jitter:
+        half = 0.5 * model.config.map.resolution_m
+        jitter = np.random.default_rng(model.config.seed + 3).uniform(-half, half,
+                                                                      calib.points.shape)
+        calib = dataclasses.replace(calib, points=calib.points + jitter)
+    print(f"<!-- {inputs}: occupied share of held-out beam points "
+          f"{np.mean(calib.labels > 0):.3f} -->", flush=True)
     m = model.config.model
     return beam_holdout_predictions(model.kernel, model.noise_variance, model.samples, calib,
                                     m.quadrature_level, m.neighbours, m.block_size_m,
@@ -62,6 +76,8 @@ def main() -> None:
     parser.add_argument("--max-position-std", type=float, default=0.075,
                         help="metres: calibration points known at least this well "
                              "(model.training.calibration_max_position_std_m)")
+    parser.add_argument("--cell-jitter", action="store_true",
+                        help="fit on beam points moved uniformly within a map cell")
     args = parser.parse_args()
     print("| case | region | method | classifier | a | c | AUC | FPR@TPR0.97 | Brier | log-loss "
           "| ECE |\n|---|---|---|---|---|---|---|---|---|---|---|")
@@ -73,7 +89,7 @@ def main() -> None:
             model = load_model(folder.with_suffix(".npz"))
             mean, var, labels = beam_predictions(model, training_input(args.work, case_dir),
                                                  case_dir / "config.yaml",
-                                                 args.max_position_std)
+                                                 args.max_position_std, args.cell_jitter)
             old = model.classifier
             both = fit_platt(mean, var, labels)
             offset = fit_offset(mean, var, labels, old.extra_variance)
@@ -84,6 +100,11 @@ def main() -> None:
                                                folder.with_name(f"{folder.name}-beams-offset"))}
             fits = {"sample": old, "beams": both, "beams-offset": offset}
             for scope, truth in case_truths(args.work, case_dir).items():
+                if truth.suffix == ".tif":
+                    labels_raster = read_raster(truth)[0]
+                    labelled = labels_raster[(labels_raster == 0) | (labels_raster == 1)]
+                    print(f"<!-- {truth}: occupied share of labelled cells "
+                          f"{labelled.mean():.3f} -->", flush=True)
                 rows = evaluate(list(maps.values()), truth,
                                 case_dir / f"classifiers-{method}-{scope}")
                 for name, row in zip(maps, rows.values(), strict=True):

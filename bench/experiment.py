@@ -73,6 +73,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     "beam-offset": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
                     "model.training.min_noise_variance": 0.1,
                     "model.training.classifier_offset": "beams"},
+    "dense-samples": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
+                      "model.training.min_noise_variance": 0.1,
+                      "samples.thin_cell_m": 0.1, "model.neighbours": 256},
 }
 
 
