@@ -13,8 +13,9 @@ one markdown table. Usage::
 
 ``--cell-jitter`` moves every held-out beam point by a uniform offset within one map cell
 (``map.resolution_m``) before the two beam fits: a point then stands for the centre of the
-cell holding it on a randomly shifted grid, the way a raster is read. It also prints the
-occupied share of the held-out beam points and of each truth raster.
+cell holding it on a randomly shifted grid, the way a raster is read. Every run also
+prints (as HTML comments) the occupied share of the held-out beam points and of each
+case's truth rasters.
 """
 
 from __future__ import annotations
@@ -82,6 +83,12 @@ def main() -> None:
     print("| case | region | method | classifier | a | c | AUC | FPR@TPR0.97 | Brier | log-loss "
           "| ECE |\n|---|---|---|---|---|---|---|---|---|---|---|")
     for case_dir in sorted((args.work / args.variant).glob("*/*")):
+        for truth in case_truths(args.work, case_dir).values():
+            if truth.suffix == ".tif":
+                labels_raster = read_raster(truth)[0]
+                labelled = labels_raster[(labels_raster == 0) | (labels_raster == 1)]
+                print(f"<!-- {truth}: occupied share of labelled cells "
+                      f"{labelled.mean():.3f} -->", flush=True)
         for method in ("gp-no-input-noise", "gp-input-noise"):
             folder = case_dir / method
             if not (folder / "probability.tif").is_file():
@@ -100,11 +107,6 @@ def main() -> None:
                                                folder.with_name(f"{folder.name}-beams-offset"))}
             fits = {"sample": old, "beams": both, "beams-offset": offset}
             for scope, truth in case_truths(args.work, case_dir).items():
-                if truth.suffix == ".tif":
-                    labels_raster = read_raster(truth)[0]
-                    labelled = labels_raster[(labels_raster == 0) | (labels_raster == 1)]
-                    print(f"<!-- {truth}: occupied share of labelled cells "
-                          f"{labelled.mean():.3f} -->", flush=True)
                 rows = evaluate(list(maps.values()), truth,
                                 case_dir / f"classifiers-{method}-{scope}")
                 for name, row in zip(maps, rows.values(), strict=True):
