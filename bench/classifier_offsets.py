@@ -9,7 +9,7 @@ other two classifiers (the latent mean recovered from p and the variance, as
 one markdown table. Usage::
 
     .venv/bin/python bench/classifier_offsets.py --work /tmp/exp/work \
-        --variant learned-scale-floor-0.1 --max-position-std 0.075
+        --variant hit-patches-clearance-0.05 --max-position-std 0.075
 
 ``--cell-jitter`` moves every held-out beam point by a uniform offset within one map cell
 (``map.resolution_m``) before the two beam fits: a point then stands for the centre of the
@@ -73,7 +73,7 @@ def beam_predictions(model, inputs: Path, config_path: Path,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--work", type=Path, required=True)
-    parser.add_argument("--variant", default="learned-scale-floor-0.1")
+    parser.add_argument("--variant", default="hit-patches-clearance-0.05")
     parser.add_argument("--max-position-std", type=float, default=0.075,
                         help="metres: calibration points known at least this well "
                              "(model.training.calibration_max_position_std_m)")

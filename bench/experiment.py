@@ -50,10 +50,12 @@ METHODS = ("grid", "gp-no-input-noise", "gp-input-noise")
 
 #: Config overrides (dotted keys) of the GP rows per variant. Every variant names the
 #: classifier hold-out, the label-noise floor and whether g is learned, so that it keeps
-#: its meaning when defaults change (today's default is ``learned-scale-floor-0.1``).
+#: its meaning when defaults change (today's default is ``hit-patches-clearance-0.05``).
 _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "model.training.min_noise_variance": 0.01,
-              "model.training.learn_input_noise_scale": False}
+              "model.training.learn_input_noise_scale": False,
+              "model.training.patch_centres": "samples",
+              "samples.free_clearance_m": 0.0}
 VARIANTS: dict[str, dict[str, object]] = {
     "published": _PUBLISHED,
     "scan-cv": {**_PUBLISHED, "model.training.classifier_holdout": "scan"},
@@ -76,6 +78,16 @@ VARIANTS: dict[str, dict[str, object]] = {
     "dense-samples": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
                       "model.training.min_noise_variance": 0.1,
                       "samples.thin_cell_m": 0.1, "model.neighbours": 256},
+    "clearance-0.05": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
+                       "model.training.min_noise_variance": 0.1,
+                       "samples.free_clearance_m": 0.05},
+    "hit-patches": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
+                    "model.training.min_noise_variance": 0.1,
+                    "model.training.patch_centres": "hits"},
+    "hit-patches-clearance-0.05": {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
+                                   "model.training.min_noise_variance": 0.1,
+                                   "model.training.patch_centres": "hits",
+                                   "samples.free_clearance_m": 0.05},
 }
 
 
@@ -382,7 +394,7 @@ def main() -> None:
     # Checked by hand: argparse (3.11) checks an empty or default list against choices.
     parser.add_argument("what", nargs="*", help=f"steps of {steps} (default: sim real loop)")
     parser.add_argument("--work", type=Path, default=ROOT / "out" / "experiment")
-    parser.add_argument("--variant", default="learned-scale-floor-0.1",
+    parser.add_argument("--variant", default="hit-patches-clearance-0.05",
                         choices=list(VARIANTS))
     parser.add_argument("--worlds", nargs="*", default=list(WORLDS))
     parser.add_argument("--logs", nargs="*", default=list(REAL_LOGS))

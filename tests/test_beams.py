@@ -20,7 +20,7 @@ NOISELESS = SensorConfig(
     name="r1", range_variance_m2=0.0, bearing_variance_deg2=0.0, pose_covariance=ZERO_POSE_COV,
     no_return_free_m=2.0, mount=MountConfig(x_m=0.2, y_m=0.1, yaw_deg=30.0),
 )
-SAMPLES = SamplesConfig(free_spacing_m=0.5, hit_gap_m=0.25, thin_cell_m=0.0)
+SAMPLES = SamplesConfig(free_spacing_m=0.5, hit_gap_m=0.25, thin_cell_m=0.0, free_clearance_m=0.0)
 
 
 def _batch(ranges, angles, poses, *, sensor="r1", range_min=0.1, range_max=8.0, covs=None):
@@ -373,3 +373,40 @@ def test_free_range_variance_gives_free_samples_of_hit_beams_the_range_variance(
     exact = np.array([np.allclose(c, 0.0, atol=1e-15) for c in free])
     assert spread.sum() == 4  # 0.5 .. 2.0 m on the hit beam
     assert exact.sum() == len(free) - 4 > 0  # the no-return beam
+
+
+def test_clear_free_near_hits_matches_a_brute_force_oracle():
+    """A free sample goes when some occupied sample lies strictly within the radius;
+    occupied samples and far free samples stay, in order."""
+    rng = np.random.default_rng(5)
+    n = 300
+    means = rng.uniform(-2.0, 2.0, (n, 2))
+    labels = rng.choice([-1.0, 1.0], n, p=[0.7, 0.3])
+    samples = SampleSet(
+        means=means, covariances=np.zeros((n, 2, 2)), labels=labels,
+        scan_ids=np.arange(n), pose_factors=np.zeros((n, 2, 3)),
+        sensor_ids=np.zeros(n, dtype=np.int16),
+    )
+    radius = 0.2
+    distance = np.linalg.norm(means[:, None] - means[labels > 0][None], axis=2).min(axis=1)
+    expected = np.flatnonzero((labels > 0) | (distance >= radius))
+    assert 0 < len(expected) < n
+    kept = beams.clear_free_near_hits(samples, radius)
+    np.testing.assert_array_equal(kept.scan_ids, expected)
+    assert beams.clear_free_near_hits(samples, 0.0) is samples
+
+
+def test_free_clearance_keeps_grazing_beams_off_the_wall():
+    """A beam grazing a wall 3 cm away leaves free samples next to the wall's hits; with
+    ``free_clearance_m`` 0.05 exactly those within 5 cm of a hit go."""
+    # Wall x = 2; scan 0 looks straight at it, scan 1 runs along it 3 cm in front.
+    batch = _batch([[2.0], [3.9]], [0.0], [[0.0, 0.0, 0.0], [1.97, -2.0, math.pi / 2]])
+    sensor = replace(NOISELESS, mount=MountConfig())
+    plain = build_samples([batch], _config(sensor, free_spacing_m=0.1, hit_gap_m=0.1))
+    cleared = build_samples([batch], _config(sensor, free_spacing_m=0.1, hit_gap_m=0.1,
+                                             free_clearance_m=0.05))
+    near = (plain.labels < 0) & (np.linalg.norm(plain.means - [2.0, 0.0], axis=1) < 0.05)
+    assert near.sum() == 1  # the grazing beam's sample at (1.97, 0.0)
+    assert len(cleared) == len(plain) - 1
+    assert not ((cleared.labels < 0)
+                & (np.linalg.norm(cleared.means - [2.0, 0.0], axis=1) < 0.05)).any()

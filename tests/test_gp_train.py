@@ -81,6 +81,28 @@ def test_value_only_path_and_threads_give_the_same_likelihood():
     np.testing.assert_array_equal(threaded_grad, grad)
 
 
+@pytest.mark.parametrize("centres", ["hits", "samples"])
+def test_patch_centres_are_hits_or_any_samples(centres):
+    """``hits``: every patch is centred on an occupied sample, so it holds a boundary;
+    ``samples``: centres come from all samples (here mostly free ones)."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    means = rng.uniform(-10, 10, (n, 2))
+    labels = np.where(rng.random(n) < 0.05, 1.0, -1.0)
+    samples = samples_from(means, labels)
+    patches = make_patches(samples, TrainingConfig(patches=12, patch_size=30,
+                                                   patch_centres=centres), seed=0)
+    assert len(patches) == 12
+    on_hit = [bool(np.any(np.all(means[labels > 0] == p.centre, axis=1))) for p in patches]
+    if centres == "hits":
+        assert all(on_hit)
+    else:
+        assert sum(on_hit) < 6
+    for p in patches:
+        assert np.any(np.all(means == p.centre, axis=1))
+        np.testing.assert_allclose(p.samples.means + p.centre, means[p.index])
+
+
 def test_learned_hyperparameters_do_not_depend_on_the_worker_count():
     samples = _correlated_problem()
     config = TrainingConfig(patches=3, patch_size=40, anneal_maxfun=8, lbfgs_maxiter=5)

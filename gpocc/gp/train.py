@@ -78,7 +78,11 @@ def spread_patch_centres(means: np.ndarray, count: int, rng: np.random.Generator
 
 
 def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[LocalProblem]:
-    """Training patches: ``config.patches`` neighbourhoods of ``config.patch_size`` samples."""
+    """Training patches: ``config.patches`` neighbourhoods of ``config.patch_size`` samples.
+
+    ``config.patch_centres``: ``hits`` spreads the centres over the occupied samples, so
+    that every patch holds a boundary; ``samples`` spreads them over all samples.
+    """
     if len(samples) < 10:
         raise GpoccError(
             f"only {len(samples)} training samples: too few to learn hyperparameters; "
@@ -86,7 +90,10 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
         )
     rng = np.random.default_rng(seed)
     index = NeighbourIndex(samples)
-    centres = spread_patch_centres(samples.means, config.patches, rng)
+    pool = samples.means
+    if config.patch_centres == "hits" and np.any(samples.labels > 0):
+        pool = samples.means[samples.labels > 0]
+    centres = spread_patch_centres(pool, config.patches, rng)
     return [index.problem(c, config.patch_size) for c in centres]
 
 
