@@ -113,8 +113,9 @@ class SamplesConfig:
     ``free_clearance_m`` drops free samples within that distance of an occupied sample
     (after thinning): beams that graze a wall leave free samples centimetres from its
     hits, and held-out hits on that wall then come out free. 0 keeps them (the method as
-    published); 0.05 (default) gave a better held-out AUC and Brier score on both real
-    logs, dense and sparse, and a better AUC in all 8 cases of the experiment suite
+    published). With ``patch_centres: hits``, 0.05 (default) gave a better held-out Brier
+    score on both real logs, dense and sparse, at two seeds, and a higher AUC in all 8
+    cases of the experiment suite; alone (with the older patches) its results were mixed
     (docs/results.md, session 6).
 
     ``free_range_variance``: free samples of a beam that hit carry that beam's range
@@ -160,7 +161,8 @@ class TrainingConfig:
     ``patch_centres``: ``hits`` (default) draws the centres from the occupied samples, so
     every patch holds a boundary; ``samples`` (as before) from all samples, where a draw
     of mostly open space can learn a kernel far too smooth for the walls (docs/results.md,
-    session 6: Freiburg held-out AUC 0.937-0.942 in 2 of 5 seeds). Global
+    session 6: Freiburg held-out AUC 0.937-0.942 in 2 of 6 runs). The classifier is fitted
+    on the same patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations;
     then L-BFGS-B for at most ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
     (natural log) of the initial values. The label-noise variance is kept at or above

@@ -101,6 +101,10 @@ def test_patch_centres_are_hits_or_any_samples(centres):
     for p in patches:
         assert np.any(np.all(means == p.centre, axis=1))
         np.testing.assert_allclose(p.samples.means + p.centre, means[p.index])
+    # Fewer hits than patches: centres from all samples, still 12 patches.
+    few = samples_from(means, np.where(np.arange(n) < 3, 1.0, -1.0))
+    assert len(make_patches(few, TrainingConfig(patches=12, patch_size=30,
+                                                patch_centres=centres), seed=0)) == 12
 
 
 def test_learned_hyperparameters_do_not_depend_on_the_worker_count():
@@ -227,3 +231,30 @@ def test_one_scan_patch_cannot_be_held_out():
     patch = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(30))
     _, _, mask = leave_one_scan_out(NeuralNetworkKernel(1.0, 1.0, (2.0, 2.0)), 0.1, patch, 2)
     assert not mask.any()
+
+
+def test_model_files_without_the_new_keys_load_with_the_settings_they_were_trained_with(
+        tmp_path):
+    """A file written before ``patch_centres`` and ``free_clearance_m`` existed was trained
+    with all-sample patches and no clearance; a new file keeps what it states."""
+    import json
+
+    from gpocc.config import Config
+    from gpocc.gp.model import GPModel, load_model, save_model
+
+    model = GPModel(kernel=NeuralNetworkKernel(), noise_variance=0.1,
+                    classifier=PlattClassifier(), samples=_correlated_problem(),
+                    config=Config(), input_noise=True)
+    path = tmp_path / "m.npz"
+    save_model(model, path)
+    new = load_model(path).config
+    assert (new.model.training.patch_centres, new.samples.free_clearance_m) == ("hits", 0.05)
+    with np.load(path) as data:
+        arrays = dict(data)
+    meta = json.loads(bytes(arrays["metadata"]).decode())
+    del meta["config"]["model"]["training"]["patch_centres"]
+    del meta["config"]["samples"]["free_clearance_m"]
+    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(path, **arrays)
+    old = load_model(path).config
+    assert (old.model.training.patch_centres, old.samples.free_clearance_m) == ("samples", 0.0)

@@ -8,6 +8,7 @@ problem is one :class:`GpoccError` naming the file and saying to re-create it.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -150,12 +151,32 @@ def _classifier(record: Any, version: Any) -> PlattClassifier:
                                       positive=True))
 
 
+#: Settings whose default changed after model files were written without them: the value
+#: such a file was trained with (dotted key, value).
+_OLDER_DEFAULTS = (("samples.free_clearance_m", 0.0), ("model.training.patch_centres", "samples"))
+
+
+def _with_settings_of_older_files(config: dict) -> dict:
+    """The embedded config with each key of ``_OLDER_DEFAULTS`` it lacks set to the value
+    its file was trained with, so that rebuilding its patches or samples gives the same."""
+    config = copy.deepcopy(config)
+    for key, value in _OLDER_DEFAULTS:
+        *parents, last = key.split(".")
+        node = config
+        for name in parents:
+            node = node.get(name) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.setdefault(last, value)
+    return config
+
+
 def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelContents:
     if not isinstance(meta, dict):
         raise _Damaged("its metadata is not a JSON object")
     if not isinstance(meta.get("config"), dict):
         raise _Damaged("the embedded config is missing")
-    config = config_from_dict(meta["config"], f"{source} (embedded config)")
+    config = config_from_dict(_with_settings_of_older_files(meta["config"]),
+                              f"{source} (embedded config)")
     kernel = _kernel(meta)
     noise = _finite_number(meta.get("noise_variance"), "noise_variance", positive=True)
     platt = _classifier(meta.get("classifier"), meta.get("format_version"))

@@ -81,7 +81,9 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
     """Training patches: ``config.patches`` neighbourhoods of ``config.patch_size`` samples.
 
     ``config.patch_centres``: ``hits`` spreads the centres over the occupied samples, so
-    that every patch holds a boundary; ``samples`` spreads them over all samples.
+    that every patch holds a boundary (over all samples when there are fewer hits than
+    patches); ``samples`` spreads them over all samples. The Platt classifier is fitted
+    on the same patches (gpocc.gp.model).
     """
     if len(samples) < 10:
         raise GpoccError(
@@ -90,10 +92,11 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
         )
     rng = np.random.default_rng(seed)
     index = NeighbourIndex(samples)
-    pool = samples.means
-    if config.patch_centres == "hits" and np.any(samples.labels > 0):
-        pool = samples.means[samples.labels > 0]
-    centres = spread_patch_centres(pool, config.patches, rng)
+    hits = samples.labels > 0
+    centre_pool = samples.means
+    if config.patch_centres == "hits" and hits.sum() >= config.patches:
+        centre_pool = samples.means[hits]
+    centres = spread_patch_centres(centre_pool, config.patches, rng)
     return [index.problem(c, config.patch_size) for c in centres]
 
 
