@@ -23,7 +23,7 @@ from gpocc.limits import MAX_SAMPLES_PER_SCAN
 from gpocc.parallel import prefetched
 from gpocc.samples import beam
 from gpocc.samples.beam_unscented import beam_unscented
-from gpocc.samples.sampleset import SampleSet
+from gpocc.samples.sampleset import SampleSet, has_both_labels
 from gpocc.samples.unscented import matrix_sqrt
 
 #: Upper bound (approximately: whole scans are never split) on the samples pushed through
@@ -165,9 +165,9 @@ def clear_free_near_hits(samples: SampleSet, radius_m: float) -> SampleSet:
         samples: any sample set.
         radius_m: clearance, metres.
     """
-    occupied = samples.labels > 0
-    if radius_m <= 0 or not occupied.any() or occupied.all():
+    if radius_m <= 0 or not has_both_labels(samples.labels):
         return samples
+    occupied = samples.labels > 0
     free = np.flatnonzero(~occupied)
     distance, _ = cKDTree(samples.means[occupied]).query(
         samples.means[free], distance_upper_bound=radius_m)
