@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from modelfiles import read_model_file, write_model_file
 from scipy.special import ndtr
 
 from gpocc.config import TrainingConfig
@@ -237,7 +238,6 @@ def test_model_files_without_the_new_keys_load_with_the_settings_they_were_train
         tmp_path):
     """A file written before ``patch_centres`` and ``free_clearance_m`` existed was trained
     with all-sample patches and no clearance; a new file keeps what it states."""
-    import json
 
     from gpocc.config import Config
     from gpocc.gp.model import GPModel, load_model, save_model
@@ -249,12 +249,9 @@ def test_model_files_without_the_new_keys_load_with_the_settings_they_were_train
     save_model(model, path)
     new = load_model(path).config
     assert (new.model.training.patch_centres, new.samples.free_clearance_m) == ("hits", 0.05)
-    with np.load(path) as data:
-        arrays = dict(data)
-    meta = json.loads(bytes(arrays["metadata"]).decode())
+    arrays, meta = read_model_file(path)
     del meta["config"]["model"]["training"]["patch_centres"]
     del meta["config"]["samples"]["free_clearance_m"]
-    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    np.savez(path, **arrays)
+    write_model_file(path, arrays, meta)
     old = load_model(path).config
     assert (old.model.training.patch_centres, old.samples.free_clearance_m) == ("samples", 0.0)

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from modelfiles import read_model_file, write_model_file
 
 from gpocc.config import Config, ModelConfig, TrainingConfig
 from gpocc.gp.expected import expected_kernel_matrix, expected_se_closed_form_pairs
@@ -146,7 +147,6 @@ def test_model_applies_the_learned_scale_and_files_keep_it(tmp_path):
 
 
 def test_files_without_a_scale_load_with_the_stated_covariances(tmp_path):
-    import json
 
     from gpocc.gp.classify import PlattClassifier
     from gpocc.gp.model import GPModel, load_model, save_model
@@ -160,13 +160,10 @@ def test_files_without_a_scale_load_with_the_stated_covariances(tmp_path):
                     input_noise_scale=3.0)
     path = tmp_path / "m.npz"
     save_model(model, path)
-    with np.load(path) as data:
-        arrays = dict(data)
-    meta = json.loads(bytes(arrays["metadata"]).decode())
+    arrays, meta = read_model_file(path)
     assert meta["input_noise_scale"] == 3.0
     del meta["input_noise_scale"]
-    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    np.savez(path, **arrays)
+    write_model_file(path, arrays, meta)
     old = load_model(path)
     assert old.input_noise_scale == 1.0
     np.testing.assert_array_equal(old.samples.covariances, samples.covariances)

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import rasterio
+from modelfiles import read_model_file, write_model_file
 from typer.testing import CliRunner
 
 from gpocc.cli import app
@@ -81,12 +82,9 @@ def test_newer_or_corrupt_model_file_is_a_clear_error(model_path, tmp_path):
     corrupt = tmp_path / "corrupt.npz"
     corrupt.write_bytes(model_path.read_bytes()[:500])
     newer = tmp_path / "newer.npz"
-    with np.load(model_path) as data:
-        arrays = dict(data)
-    meta = json.loads(bytes(arrays["metadata"]).decode())
+    arrays, meta = read_model_file(model_path)
     meta["format_version"] = FORMAT_VERSION + 1
-    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    np.savez(newer, **arrays)
+    write_model_file(newer, arrays, meta)
     for path, words in ((corrupt, "corrupt"), (newer, "newer")):
         result = runner.invoke(app, ["map", str(path), "--resolution", "0.2",
                                      "--out", str(tmp_path / "m")])

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
+from modelfiles import read_model_file, write_model_file
 from scipy.special import ndtr
 
 from gpocc.config import TrainingConfig
@@ -113,21 +112,14 @@ def _saved_model(tmp_path, classifier: PlattClassifier):
                     input_noise=True)
     path = tmp_path / "model.npz"
     save_model(model, path)
-    with np.load(path) as data:
-        arrays = dict(data)
-    return path, arrays, json.loads(bytes(arrays["metadata"]).decode())
-
-
-def _rewrite(path, arrays, meta):
-    arrays["metadata"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    np.savez(path, **arrays)
+    return (path, *read_model_file(path))
 
 
 def test_format_1_model_files_with_a_and_b_still_load(tmp_path):
     path, arrays, meta = _saved_model(tmp_path, PlattClassifier())
     meta["format_version"] = 1
     meta["classifier"] = {"a": 527.0, "b": -28.1}
-    _rewrite(path, arrays, meta)
+    write_model_file(path, arrays, meta)
     loaded = load_model(path).classifier
     mean, var = np.linspace(-1, 1, 11), np.linspace(0.001, 0.1, 11)
     np.testing.assert_allclose(loaded.probability(mean, var),
@@ -144,7 +136,7 @@ def test_classifier_record_of_the_wrong_form_is_a_clear_error(tmp_path, version,
     path, arrays, meta = _saved_model(tmp_path, PlattClassifier())
     meta["format_version"] = version
     meta["classifier"] = record
-    _rewrite(path, arrays, meta)
+    write_model_file(path, arrays, meta)
     with pytest.raises(GpoccError, match="classifier.*gpocc train"):
         load_model(path)
 

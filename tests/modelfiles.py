@@ -1,0 +1,22 @@
+"""Reading and rewriting a saved model file's arrays and JSON metadata, for tests that
+make old, newer or damaged files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def read_model_file(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    """The file's arrays and its decoded metadata."""
+    with np.load(path) as data:
+        arrays = dict(data)
+    return arrays, json.loads(bytes(arrays["metadata"]).decode())
+
+
+def write_model_file(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    """Write ``arrays`` with ``meta`` as their metadata to ``path``."""
+    arrays = {**arrays, "metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
+    np.savez(path, **arrays)
