@@ -49,7 +49,7 @@ def main() -> None:
     problems = [index.problem(samples.means[rng.integers(len(samples))], neighbours).samples
                 for _ in range(20)]
     queries = rng.uniform(-0.5, 0.5, (100, 2))
-    pairs = np.mean([ex._correlated_pairs(p.covariances, p.scan_ids, p.pose_factors)[0].size
+    pairs = np.mean([ex.same_scan_pairs(p.covariances, p.scan_ids, p.pose_factors)[0].size
                      for p in problems])
 
     def run(what: str):

@@ -163,8 +163,11 @@ class TrainingConfig:
     of mostly open space can learn a kernel far too smooth for the walls (docs/results.md,
     session 6: Freiburg held-out AUC 0.937-0.942 in 2 of 6 runs). The classifier is fitted
     on the same patches. Global
-    stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations;
-    then L-BFGS-B for at most ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
+    stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
+    (20: on ten logs and worlds, 60 reached the same optimum with 30-65 more evaluations,
+    docs/benchmarks.md, seventh session; its job is to leave a start whose covariance is
+    not positive definite, where L-BFGS-B alone stays); then L-BFGS-B for at most
+    ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
     (natural log) of the initial values. The label-noise variance is kept at or above
     ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
     input-induced noise, and without a floor the likelihood of a few patches can drive
@@ -190,7 +193,7 @@ class TrainingConfig:
     patches: int = 10
     patch_size: int = 128
     patch_centres: str = "hits"
-    anneal_maxfun: int = 60
+    anneal_maxfun: int = 20
     lbfgs_maxiter: int = 40
     log_bounds_width: float = 4.0
     min_noise_variance: float = 0.1

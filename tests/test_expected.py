@@ -405,7 +405,7 @@ def test_input_scale_gradient_matches_finite_differences(level, scale):
     covs[4], factors[4] = 0.0, 0.0
     kernel = NeuralNetworkKernel(2.3, 30.0, (45.0, 70.0))
     kw = dict(scan_ids=scan_ids, pose_factors=factors)
-    assert ex._correlated_pairs(covs, scan_ids, factors)[0].shape[0] > 10
+    assert ex.same_scan_pairs(covs, scan_ids, factors)[0].shape[0] > 10
     k, dk = expected_kernel_matrix(kernel, means, covs, level, with_gradient=True,
                                    input_scale=scale, with_scale_gradient=True, **kw)
     plain, dplain = expected_kernel_matrix(kernel, means, covs, level, with_gradient=True,
@@ -460,7 +460,7 @@ def test_compiled_root_of_joint_covariance_reproduces_it():
     from gpocc.gp import fused
 
     means, covs, scan_ids, factors, _ = _scan_problem(21, n=30)
-    i, j = ex._correlated_pairs(covs, scan_ids, factors)
+    i, j = ex.same_scan_pairs(covs, scan_ids, factors)
     joint = np.empty((i.shape[0], 4, 4))
     joint[:, :2, :2], joint[:, 2:, 2:] = covs[i], covs[j]
     joint[:, :2, 2:] = factors[i] @ factors[j].transpose(0, 2, 1)
@@ -506,7 +506,7 @@ def test_compiled_nn_path_matches_numpy_reference(level, monkeypatch):
     fused = run()
     monkeypatch.setattr(ex, "USE_FUSED", False)
     reference = run()
-    assert ex._correlated_pairs(covs, scan_ids, factors)[0].shape[0] > 50
+    assert ex.same_scan_pairs(covs, scan_ids, factors)[0].shape[0] > 50
     for got, want in zip(fused, reference, strict=True):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
 
@@ -523,9 +523,9 @@ def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):
     ids = rng.integers(0, 9, n)
     # big-endian ids are not compiled for: they take the numpy rule
     for scan_ids in (ids, ids.astype(np.int32), ids.astype(">i8")):
-        compiled = ex._correlated_pairs(covs, scan_ids, factors)
+        compiled = ex.same_scan_pairs(covs, scan_ids, factors)
         monkeypatch.setattr(ex, "USE_FUSED", False)
-        reference = ex._correlated_pairs(covs, scan_ids, factors)
+        reference = ex.same_scan_pairs(covs, scan_ids, factors)
         monkeypatch.setattr(ex, "USE_FUSED", True)
         assert reference[0].shape[0] > 100
         for got, want in zip(compiled, reference, strict=True):

@@ -18,7 +18,12 @@ from gpocc.gp.classify import (
 )
 from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
 from gpocc.gp.local import leave_one_out, training_covariance
-from gpocc.gp.train import learn_hyperparameters, make_patches, negative_log_likelihood
+from gpocc.gp.train import (
+    learn_hyperparameters,
+    make_patches,
+    negative_log_likelihood,
+    resident_patch_pool,
+)
 from gpocc.samples.sampleset import SampleSet
 
 
@@ -80,6 +85,24 @@ def test_value_only_path_and_threads_give_the_same_likelihood():
         threaded, threaded_grad = negative_log_likelihood(x, kernel, patches, 2, executor=pool)
     assert threaded == value
     np.testing.assert_array_equal(threaded_grad, grad)
+
+
+def test_workers_holding_the_patches_give_the_serial_likelihood():
+    """Patches installed in the workers once and handed out most expensive first: the
+    terms are still summed in patch order, so the value is the serial one exactly."""
+    patches = make_patches(_correlated_problem(), TrainingConfig(patches=5, patch_size=40),
+                           seed=2)
+    kernel = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
+    x = np.append(kernel.theta, math.log(0.2))
+    value, grad = negative_log_likelihood(x, kernel, patches, 2)
+    with resident_patch_pool(patches, 2) as pool:
+        assert sorted(pool.order) == list(range(len(patches)))
+        assert pool.order != tuple(range(len(patches)))  # the costs do reorder them here
+        held, held_grad = negative_log_likelihood(x, kernel, patches, 2, executor=pool)
+        with pytest.raises(ValueError, match="other patches"):
+            negative_log_likelihood(x, kernel, patches[:-1], 2, executor=pool)
+    assert held == value
+    np.testing.assert_array_equal(held_grad, grad)
 
 
 @pytest.mark.parametrize("centres", ["hits", "samples"])

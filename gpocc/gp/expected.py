@@ -359,7 +359,7 @@ def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarra
     return means, covariances
 
 
-def _correlated_pairs(
+def same_scan_pairs(
     covariances: np.ndarray, scan_ids: np.ndarray | None, pose_factors: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(i, j) with i < j, same scan and both with nonzero pose factors and covariances."""
@@ -576,7 +576,7 @@ def expected_kernel_matrix(
             k[r0:r1, c0:c1] = block
             k[c0:c1, r0:r1] = block.T
 
-    i, j = _correlated_pairs(covariances, scan_ids, pose_factors)
+    i, j = same_scan_pairs(covariances, scan_ids, pose_factors)
     if i.shape[0] and level > 1:  # a 1-node rule puts both points at their means anyway
         values, grads = _correlated_values(
             kernel, means, covariances, np.asarray(pose_factors, dtype=np.float64),

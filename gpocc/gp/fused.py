@@ -370,7 +370,7 @@ def nn_same_scan_pairs(means: np.ndarray, covariances: np.ndarray, pose_factors:
 @_jit
 def correlated_pairs(covariances: np.ndarray, scan_ids: np.ndarray, pose_factors: np.ndarray,
                      pose_share_min: float, zero_variance: float) -> tuple[np.ndarray, np.ndarray]:
-    """The same-scan pairs of ``gpocc.gp.expected._correlated_pairs`` (its rule, its
+    """The same-scan pairs of ``gpocc.gp.expected.same_scan_pairs`` (its rule, its
     row-major order), without the (N, N) masks: about 10 us instead of 0.4 ms for the
     128 points of a map anchor.
 
