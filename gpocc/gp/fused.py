@@ -84,28 +84,33 @@ def asin_array(x: np.ndarray) -> np.ndarray:
 @_jit
 def nn_matrix(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, scale: float,
               out: np.ndarray) -> None:
-    """out[i, j] = out[j, i] = E k(x_i, x_j) for i < j (product rule); diagonal untouched."""
+    """out[i, j] = out[j, i] = E k(x_i, x_j) for i < j (product rule); diagonal untouched.
+
+    Point i's nodes are summed into one row against every later node first, and that row
+    is reduced per point j once: reducing after every node (four small sums per pair and
+    node) took a quarter of the time.
+    """
     n = starts.shape[0] - 1
     total = starts[n]
-    row = np.empty(total)
+    acc = np.empty(total)
     for i in range(n):
-        for j in range(i + 1, n):
-            out[i, j] = 0.0
         b0 = starts[i + 1]
+        later = total - b0
         # 1-D views of the later nodes: the loop below vectorises only on those (2x).
         u0, u1, u2, wb = u[0, b0:], u[1, b0:], u[2, b0:], weights[b0:]
+        for b in range(later):
+            acc[b] = 0.0
         for a in range(starts[i], b0):
             x0, x1, x2 = u[0, a], u[1, a], u[2, a]
-            for b in range(total - b0):  # one node against every later node
-                row[b] = wb[b] * _asin(_clip(x0 * u0[b] + x1 * u1[b] + x2 * u2[b]))
             wa = weights[a] * scale
-            for j in range(i + 1, n):
-                acc = 0.0
-                for b in range(starts[j] - b0, starts[j + 1] - b0):
-                    acc += row[b]
-                out[i, j] += wa * acc
+            for b in range(later):  # one node against every later node
+                acc[b] += wa * _asin(_clip(x0 * u0[b] + x1 * u1[b] + x2 * u2[b]))
         for j in range(i + 1, n):
-            out[j, i] = out[i, j]
+            value = 0.0
+            for b in range(starts[j] - b0, starts[j + 1] - b0):
+                value += acc[b] * wb[b]
+            out[i, j] = value
+            out[j, i] = value
 
 
 @_inline
@@ -136,48 +141,49 @@ def nn_matrix_gradient(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, s
     ``with_scale``: out[4] is also the derivative in log g of the input-noise scale (every
     node at ``mean + sqrt(g) offset``), from ``offsets`` (2, M), each node's scaled offset
     from its point's mean (see :func:`_dz_scale`); otherwise ``offsets`` is not read.
+    Rows are accumulated over point i's nodes and reduced once, as in :func:`nn_matrix`.
     """
     n = starts.shape[0] - 1
     total = starts[n]
     count = 5 if with_scale else 4
-    rows = np.empty((count, total))
+    acc = np.empty((count, total))
     for i in range(n):
-        for p in range(count):
-            for j in range(i + 1, n):
-                out[p, i, j] = 0.0
         b0 = starts[i + 1]
-        u0, u1, u2, wb = u[0, b0:], u[1, b0:], u[2, b0:], weights[b0:]
+        later = total - b0
+        u0, u1, u2 = u[0, b0:], u[1, b0:], u[2, b0:]
+        a0, a1, a2, a3 = acc[0], acc[1], acc[2], acc[3]
+        for p in range(count):
+            for b in range(later):
+                acc[p, b] = 0.0
         for a in range(starts[i], b0):
             x0, x1, x2 = u[0, a], u[1, a], u[2, a]
-            for b in range(total - b0):
+            wa = weights[a] * scale
+            for b in range(later):
                 y0, y1, y2 = u0[b], u1[b], u2[b]
                 z = _clip(x0 * y0 + x1 * y1 + x2 * y2)
-                w = wb[b]
                 # dk/dz = 1/sqrt(1 - z^2)
-                wg = w / math.sqrt(1.0 - z * z)
+                wg = wa / math.sqrt(1.0 - z * z)
                 hz = 0.5 * z
-                rows[0, b] = w * _asin(z)
-                rows[1, b] = wg * _dz(x0, y0, hz)
-                rows[2, b] = wg * _dz(x1, y1, hz)
-                rows[3, b] = wg * _dz(x2, y2, hz)
+                a0[b] += wa * _asin(z)
+                a1[b] += wg * _dz(x0, y0, hz)
+                a2[b] += wg * _dz(x1, y1, hz)
+                a3[b] += wg * _dz(x2, y2, hz)
             if with_scale:  # a loop of its own keeps the one above free of branches
                 da1, da2 = offsets[0, a], offsets[1, a]
                 o1, o2 = offsets[0, b0:], offsets[1, b0:]
-                for b in range(total - b0):
+                a4 = acc[4]
+                for b in range(later):
                     y0, y1, y2 = u0[b], u1[b], u2[b]
                     z = _clip(x0 * y0 + x1 * y1 + x2 * y2)
-                    rows[4, b] = wb[b] / math.sqrt(1.0 - z * z) * _dz_scale(
+                    a4[b] += wa / math.sqrt(1.0 - z * z) * _dz_scale(
                         x0, x1, x2, y0, y1, y2, z, da1, da2, o1[b], o2[b])
-            wa = weights[a] * scale
-            for j in range(i + 1, n):
-                for p in range(count):
-                    acc = 0.0
-                    for b in range(starts[j] - b0, starts[j + 1] - b0):
-                        acc += rows[p, b]
-                    out[p, i, j] += wa * acc
-        for p in range(count):
-            for j in range(i + 1, n):
-                out[p, j, i] = out[p, i, j]
+        for j in range(i + 1, n):
+            for p in range(count):
+                value = 0.0
+                for b in range(starts[j] - b0, starts[j + 1] - b0):
+                    value += acc[p, b] * weights[b0 + b]
+                out[p, i, j] = value
+                out[p, j, i] = value
 
 
 @_jit
@@ -202,46 +208,62 @@ def nn_cross(q: np.ndarray, u: np.ndarray, weights: np.ndarray, starts: np.ndarr
 # --------------------------------------------------------------------------- same-scan pairs
 
 
-@_jit
-def cholesky_psd4(s: np.ndarray) -> np.ndarray:
-    """Lower-triangular R (4, 4, P) with R R' = s for P symmetric positive semi-definite
-    4 x 4 matrices s (4, 4, P), pair-minor: ``expected.cholesky_psd`` in registers.
+@_inline
+def _cholesky4(a00: float, a10: float, a11: float, a20: float, a21: float, a22: float,
+               a30: float, a31: float, a32: float, a33: float
+               ) -> tuple[float, float, float, float, float, float, float, float, float, float]:
+    """The lower Cholesky factor (l00, l10, l11, l20, l21, l22, l30, l31, l32, l33) of one
+    symmetric positive semi-definite 4 x 4 matrix given by its lower triangle.
 
     A pivot below 1e-10 of the largest diagonal entry is rounding noise of a singular
     matrix: its column is zero (for a PSD matrix the entries below it vanish with it).
     """
+    tiny = 1e-10 * max(max(a00, a11), max(a22, a33))
+    l00 = l10 = l20 = l30 = l11 = l21 = l31 = l22 = l32 = l33 = 0.0
+    if a00 > tiny:
+        l00 = math.sqrt(a00)
+        l10, l20, l30 = a10 / l00, a20 / l00, a30 / l00
+    d = a11 - l10 * l10
+    if d > tiny:
+        l11 = math.sqrt(d)
+        l21 = (a21 - l20 * l10) / l11
+        l31 = (a31 - l30 * l10) / l11
+    d = a22 - l20 * l20 - l21 * l21
+    if d > tiny:
+        l22 = math.sqrt(d)
+        l32 = (a32 - l30 * l20 - l31 * l21) / l22
+    d = a33 - l30 * l30 - l31 * l31 - l32 * l32
+    if d > tiny:
+        l33 = math.sqrt(d)
+    return l00, l10, l11, l20, l21, l22, l30, l31, l32, l33
+
+
+@_jit
+def cholesky_psd4(s: np.ndarray) -> np.ndarray:
+    """Lower-triangular R (4, 4, P) with R R' = s for P symmetric positive semi-definite
+    4 x 4 matrices s (4, 4, P), pair-minor: ``expected.cholesky_psd`` in registers
+    (:func:`_cholesky4`, the off-diagonal entries symmetrised)."""
     size = s.shape[2]
     out = np.zeros((4, 4, size))
     for m in range(size):
-        a00, a11, a22, a33 = s[0, 0, m], s[1, 1, m], s[2, 2, m], s[3, 3, m]
-        a10 = 0.5 * (s[1, 0, m] + s[0, 1, m])
-        a20 = 0.5 * (s[2, 0, m] + s[0, 2, m])
-        a30 = 0.5 * (s[3, 0, m] + s[0, 3, m])
-        a21 = 0.5 * (s[2, 1, m] + s[1, 2, m])
-        a31 = 0.5 * (s[3, 1, m] + s[1, 3, m])
-        a32 = 0.5 * (s[3, 2, m] + s[2, 3, m])
-        tiny = 1e-10 * max(max(a00, a11), max(a22, a33))
-        l00 = l10 = l20 = l30 = l11 = l21 = l31 = l22 = l32 = l33 = 0.0
-        if a00 > tiny:
-            l00 = math.sqrt(a00)
-            l10, l20, l30 = a10 / l00, a20 / l00, a30 / l00
-        d = a11 - l10 * l10
-        if d > tiny:
-            l11 = math.sqrt(d)
-            l21 = (a21 - l20 * l10) / l11
-            l31 = (a31 - l30 * l10) / l11
-        d = a22 - l20 * l20 - l21 * l21
-        if d > tiny:
-            l22 = math.sqrt(d)
-            l32 = (a32 - l30 * l20 - l31 * l21) / l22
-        d = a33 - l30 * l30 - l31 * l31 - l32 * l32
-        if d > tiny:
-            l33 = math.sqrt(d)
+        l00, l10, l11, l20, l21, l22, l30, l31, l32, l33 = _cholesky4(
+            s[0, 0, m], 0.5 * (s[1, 0, m] + s[0, 1, m]), s[1, 1, m],
+            0.5 * (s[2, 0, m] + s[0, 2, m]), 0.5 * (s[2, 1, m] + s[1, 2, m]), s[2, 2, m],
+            0.5 * (s[3, 0, m] + s[0, 3, m]), 0.5 * (s[3, 1, m] + s[1, 3, m]),
+            0.5 * (s[3, 2, m] + s[2, 3, m]), s[3, 3, m])
         out[0, 0, m] = l00
         out[1, 0, m], out[1, 1, m] = l10, l11
         out[2, 0, m], out[2, 1, m], out[2, 2, m] = l20, l21, l22
         out[3, 0, m], out[3, 1, m], out[3, 2, m], out[3, 3, m] = l30, l31, l32, l33
     return out
+
+
+@_inline
+def _pose_cross(pose_factors: np.ndarray, a: int, b: int, r: int, c: int) -> float:
+    """Cov(x_a[r], x_b[c]) = (A_a A_b')[r, c] of two points of one scan."""
+    return (pose_factors[a, r, 0] * pose_factors[b, c, 0]
+            + pose_factors[a, r, 1] * pose_factors[b, c, 1]
+            + pose_factors[a, r, 2] * pose_factors[b, c, 2])
 
 
 @_jit
@@ -251,36 +273,37 @@ def correlated_nodes(means: np.ndarray, covariances: np.ndarray, pose_factors: n
     """(4, P L) nodes of the joint 4-D rule of each pair (x_i then x_j), pair-major.
 
     The joint covariance is ``[[S_i, A_i A_j'], [A_j A_i', S_j]]`` (S symmetrised) times
-    ``input_scale``, its root :func:`cholesky_psd4` (times the scale's square root); nodes
-    are ``mean + R unit_k``.
+    ``input_scale``, its root :func:`_cholesky4` (times the scale's square root); nodes
+    are ``mean + R unit_k``. Each pair's covariance and root stay in registers: building
+    them as (4, 4, P) arrays first took 40% of the same-scan pairs' time.
     """
     size = unit.shape[0]
     pairs = i.shape[0]
-    joint = np.empty((4, 4, pairs))
-    for p in range(pairs):
-        a, b = i[p], j[p]
-        for r in range(2):
-            for c in range(2):
-                joint[r, c, p] = 0.5 * (covariances[a, r, c] + covariances[a, c, r])
-                joint[2 + r, 2 + c, p] = 0.5 * (covariances[b, r, c] + covariances[b, c, r])
-                cross = 0.0
-                for k in range(3):
-                    cross += pose_factors[a, r, k] * pose_factors[b, c, k]
-                joint[r, 2 + c, p] = cross
-                joint[2 + c, r, p] = cross
-    factor = cholesky_psd4(joint)
-    if input_scale != 1.0:
-        factor *= math.sqrt(input_scale)
+    root_scale = math.sqrt(input_scale)
     nodes = np.empty((4, pairs * size))
+    n0, n1, n2, n3 = nodes[0], nodes[1], nodes[2], nodes[3]
+    columns = np.ascontiguousarray(unit.T)
+    u0, u1, u2, u3 = columns[0], columns[1], columns[2], columns[3]
     for p in range(pairs):
         a, b = i[p], j[p]
+        l00, l10, l11, l20, l21, l22, l30, l31, l32, l33 = _cholesky4(
+            covariances[a, 0, 0], 0.5 * (covariances[a, 1, 0] + covariances[a, 0, 1]),
+            covariances[a, 1, 1],
+            _pose_cross(pose_factors, a, b, 0, 0), _pose_cross(pose_factors, a, b, 1, 0),
+            covariances[b, 0, 0],
+            _pose_cross(pose_factors, a, b, 0, 1), _pose_cross(pose_factors, a, b, 1, 1),
+            0.5 * (covariances[b, 1, 0] + covariances[b, 0, 1]), covariances[b, 1, 1])
+        l00, l10, l11 = l00 * root_scale, l10 * root_scale, l11 * root_scale
+        l20, l21, l22 = l20 * root_scale, l21 * root_scale, l22 * root_scale
+        l30, l31 = l30 * root_scale, l31 * root_scale
+        l32, l33 = l32 * root_scale, l33 * root_scale
+        ma0, ma1, mb0, mb1 = means[a, 0], means[a, 1], means[b, 0], means[b, 1]
         base = p * size
-        for r in range(4):
-            mu = means[a, r] if r < 2 else means[b, r - 2]
-            f0, f1, f2, f3 = factor[r, 0, p], factor[r, 1, p], factor[r, 2, p], factor[r, 3, p]
-            for m in range(size):
-                nodes[r, base + m] = mu + (f0 * unit[m, 0] + f1 * unit[m, 1]
-                                           + f2 * unit[m, 2] + f3 * unit[m, 3])
+        for m in range(size):
+            n0[base + m] = ma0 + l00 * u0[m]
+            n1[base + m] = ma1 + (l10 * u0[m] + l11 * u1[m])
+            n2[base + m] = mb0 + (l20 * u0[m] + l21 * u1[m] + l22 * u2[m])
+            n3[base + m] = mb1 + (l30 * u0[m] + l31 * u1[m] + l32 * u2[m] + l33 * u3[m])
     return nodes
 
 
@@ -303,36 +326,54 @@ def nn_node_pairs(nodes: np.ndarray, weights: np.ndarray, root: np.ndarray, scal
     ``nodes`` as from :func:`correlated_nodes`; out (4, P) with gradients (row 0 the
     value), else (1, P); with ``with_scale`` (gradients only) out (5, P), row 4 the
     derivative in log g (:func:`_dz_scale`), ``centres`` (4, P) the two means of each pair.
+    Each case has a loop of its own without branches, so that all of them vectorise.
     """
     size = weights.shape[0]
     total = nodes.shape[1]
     count = (5 if with_scale else 4) if with_gradient else 1
     rows = np.empty((count, total))
-    for m in range(total):  # vectorised over every node of every pair
-        a0, a1, a2, ia = _scaled_row(nodes[0, m], nodes[1, m], root)
-        b0, b1, b2, ib = _scaled_row(nodes[2, m], nodes[3, m], root)
-        z = _clip(a0 * b0 + a1 * b1 + a2 * b2)
-        w = weights[m % size]
-        rows[0, m] = w * _asin(z)
-        if with_gradient:
-            wg = w / math.sqrt(1.0 - z * z)
+    n0, n1, n2, n3 = nodes[0], nodes[1], nodes[2], nodes[3]
+    if not with_gradient:
+        values = rows[0]
+        for m in range(total):  # vectorised over every node of every pair
+            a0, a1, a2, _ = _scaled_row(n0[m], n1[m], root)
+            b0, b1, b2, _ = _scaled_row(n2[m], n3[m], root)
+            values[m] = _asin(_clip(a0 * b0 + a1 * b1 + a2 * b2))
+    else:
+        r0, r1, r2, r3 = rows[0], rows[1], rows[2], rows[3]
+        for m in range(total):
+            a0, a1, a2, _ = _scaled_row(n0[m], n1[m], root)
+            b0, b1, b2, _ = _scaled_row(n2[m], n3[m], root)
+            z = _clip(a0 * b0 + a1 * b1 + a2 * b2)
+            slope = 1.0 / math.sqrt(1.0 - z * z)  # dk/dz
             hz = 0.5 * z
-            rows[1, m] = wg * _dz(a0, b0, hz)
-            rows[2, m] = wg * _dz(a1, b1, hz)
-            rows[3, m] = wg * _dz(a2, b2, hz)
-            if with_scale:
-                p = m // size
-                rows[4, m] = wg * _dz_scale(
-                    a0, a1, a2, b0, b1, b2, z,
-                    root[1] * (nodes[0, m] - centres[0, p]) * ia,
-                    root[2] * (nodes[1, m] - centres[1, p]) * ia,
-                    root[1] * (nodes[2, m] - centres[2, p]) * ib,
-                    root[2] * (nodes[3, m] - centres[3, p]) * ib)
+            r0[m] = _asin(z)
+            r1[m] = slope * _dz(a0, b0, hz)
+            r2[m] = slope * _dz(a1, b1, hz)
+            r3[m] = slope * _dz(a2, b2, hz)
+        if with_scale:
+            # Each node's offset from its pair's means, so that the loop below is flat.
+            offsets = np.empty((4, total))
+            for p in range(total // size):
+                for m in range(p * size, (p + 1) * size):
+                    offsets[0, m] = n0[m] - centres[0, p]
+                    offsets[1, m] = n1[m] - centres[1, p]
+                    offsets[2, m] = n2[m] - centres[2, p]
+                    offsets[3, m] = n3[m] - centres[3, p]
+            r4, d0, d1, d2, d3 = rows[4], offsets[0], offsets[1], offsets[2], offsets[3]
+            for m in range(total):
+                a0, a1, a2, ia = _scaled_row(n0[m], n1[m], root)
+                b0, b1, b2, ib = _scaled_row(n2[m], n3[m], root)
+                z = _clip(a0 * b0 + a1 * b1 + a2 * b2)
+                r4[m] = _dz_scale(a0, a1, a2, b0, b1, b2, z,
+                                  root[1] * d0[m] * ia, root[2] * d1[m] * ia,
+                                  root[1] * d2[m] * ib, root[2] * d3[m] * ib
+                                  ) / math.sqrt(1.0 - z * z)
     for p in range(out.shape[1]):
-        for r in range(rows.shape[0]):
+        for r in range(count):
             acc = 0.0
-            for m in range(p * size, (p + 1) * size):
-                acc += rows[r, m]
+            for k in range(size):
+                acc += weights[k] * rows[r, p * size + k]
             out[r, p] = scale * acc
 
 
