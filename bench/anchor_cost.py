@@ -25,7 +25,7 @@ from gpocc.blas import single_threaded_blas
 from gpocc.gp.local import NeighbourIndex
 from gpocc.gp.model import load_model
 from gpocc.mapping.blend import supported_anchors
-from gpocc.mapping.blocks import Anchor, AnchorLattice, block_cells, predict_anchor
+from gpocc.mapping.blocks import Anchor, AnchorLattice, predict_anchor
 from gpocc.mapping.mapper import default_spec
 from gpocc.mapping.support import model_support
 
@@ -33,7 +33,7 @@ from gpocc.mapping.support import model_support
 def map_anchors(model, resolution: float) -> tuple[AnchorLattice, list[Anchor]]:
     """The map's anchor lattice and its anchors with at least one supported cell."""
     spec = default_spec(model, resolution, model.config.map.margin_m)
-    lattice = AnchorLattice(spec, block_cells(model.config.model.block_size_m, resolution))
+    lattice = AnchorLattice.of_model(spec, model.config.model)
     rows, cols = lattice.shape
     every = [Anchor(r, c) for r in range(rows) for c in range(cols)]
     mask = model_support(model).mask(spec, lattice.cells)

@@ -215,7 +215,11 @@ class ModelConfig:
     the samples' covariances (false is the GP-without-input-uncertainty baseline).
     ``quadrature_level``: Gauss-Hermite nodes per dimension. ``neighbours``: training
     samples per local problem. ``block_size_m``: side of the square block of queries that
-    shares one neighbourhood.
+    shares one neighbourhood. ``blend_overlap``: the share of a block, across each block
+    boundary, over which two neighbouring blocks' predictions are blended (0 < o <= 1).
+    1 blends bilinearly across whole blocks, so every cell is predicted by four local
+    problems; smaller values predict a block's central (1 - o)^2 by its own problem
+    alone, so each cell costs (1 + o)^2 problems on average instead of four.
     """
 
     kernel: str = "nn"
@@ -223,6 +227,7 @@ class ModelConfig:
     quadrature_level: int = 2
     neighbours: int = 128
     block_size_m: float = 1.0
+    blend_overlap: float = 1.0
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
 
@@ -484,6 +489,9 @@ def _validate(config: Config, source: str) -> Config:
         )
     if config.model.quadrature_level > 10:
         raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")
+    if not 0.0 < config.model.blend_overlap <= 1.0:
+        raise GpoccError(f"{source}: key 'model.blend_overlap' must be above 0 and at most 1 "
+                         f"(1: bilinear across whole blocks), got {config.model.blend_overlap}")
     return config
 
 

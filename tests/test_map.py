@@ -100,7 +100,21 @@ def run_map(model_path, out, *extra):
     return out
 
 
-def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path):
+def blend_weight(distance_blocks: float, overlap: float) -> float:
+    """An anchor's weight along one axis from the definition in gpocc.mapping.blocks:
+    1 within (1 - o) / 2 blocks of it, 0 from (1 + o) / 2, linear between (o = 1: the
+    bilinear tent)."""
+    inner, outer = (1 - overlap) / 2, (1 + overlap) / 2
+    return float(np.clip((outer - distance_blocks) / (outer - inner), 0.0, 1.0))
+
+
+@pytest.mark.parametrize("overlap", [1.0, 0.4])
+def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path, overlap):
+    if overlap != 1.0:  # the same model, mapped with another blend overlap
+        arrays, meta = read_model_file(model_path)
+        meta["config"]["model"]["blend_overlap"] = overlap
+        model_path = tmp_path / "model.npz"
+        write_model_file(model_path, arrays, meta)
     out = run_map(model_path, tmp_path / "map", "--resolution", "0.1", "--workers", "1")
     for name in ("probability.tif", "variance.tif", "class.tif", "map.yaml", "map.pgm",
                  "preview.png", "metadata.json"):
@@ -115,19 +129,21 @@ def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path)
     with rasterio.open(out / "class.tif") as ds:
         classes = ds.read(1)
     # Re-predict a few cells directly from the model: the blend of the local problems
-    # centred on the (up to) four block centres around the cell, with bilinear weights
-    # (clamped at the map's edges).
+    # centred on the (up to) four block centres around the cell, with the trapezoid
+    # weights of the blend overlap (bilinear at 1; clamped at the map's edges).
     index = NeighbourIndex(model.samples)
     cells = 6  # block_size_m 0.6 / 0.1
     n_rows, n_cols = -(-prob.shape[0] // cells), -(-prob.shape[1] // cells)
-    for row, col in ((3, 4), (20, 30), (35, 10), (9, 9)):
+    # Blocks are 6 cells: (26, 21) lies within 0.1 blocks of its block's centre, where at
+    # overlap 0.4 its own anchor alone counts; (24, 20) lies in the blended band.
+    for row, col in ((3, 4), (20, 30), (35, 10), (9, 9), (26, 21), (24, 20)):
         x, y = transform @ (col + 0.5, row + 0.5)
         u = np.clip((row + 0.5) / cells - 0.5, 0, n_rows - 1)
         v = np.clip((col + 0.5) / cells - 0.5, 0, n_cols - 1)
         mix_w, mix_mu, mix_var = [], [], []
         for i in {int(np.floor(u)), int(np.ceil(u))}:
             for j in {int(np.floor(v)), int(np.ceil(v))}:
-                w = (1 - abs(u - i)) * (1 - abs(v - j))
+                w = blend_weight(abs(u - i), overlap) * blend_weight(abs(v - j), overlap)
                 cx, cy = transform @ (j * cells + cells / 2, i * cells + cells / 2)
                 pred = predict_local(
                     model.kernel, model.noise_variance,

@@ -17,7 +17,7 @@ from gpocc.gp.model import build_model, load_model, save_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
 from gpocc.mapping.blend import predict_tile
-from gpocc.mapping.blocks import Anchor, AnchorLattice, block_cells
+from gpocc.mapping.blocks import Anchor, AnchorLattice
 from gpocc.mapping.support import Support
 from gpocc.samples.beam import beam_endpoint
 from gpocc.samples.beams import build_samples
@@ -178,7 +178,7 @@ def test_skipped_problems_and_unmasked_map_agree_inside_the_support(room_model):
     # cell.
     model, _ = room_model
     spec = GridSpec.from_bounds(-6, -4.5, 6, 4.5, 0.25)
-    lattice = AnchorLattice(spec, block_cells(model.config.model.block_size_m, 0.25))
+    lattice = AnchorLattice.of_model(spec, model.config.model)
     masked = predict_tile(model, lattice, 0, 0, spec, Support(model.coverage, 1.5))
     full = predict_tile(model, lattice, 0, 0, spec, None)
     inside = np.isfinite(masked.probability)
@@ -203,7 +203,7 @@ def room_tile(room_model):
     """The room at 0.05 m (0.8 m blocks of 16 cells), blended, without a support mask."""
     model, _ = room_model
     spec = GridSpec.from_bounds(-2.4, -3.2, 2.4, 3.2, 0.05)
-    lattice = AnchorLattice(spec, block_cells(model.config.model.block_size_m, 0.05))
+    lattice = AnchorLattice.of_model(spec, model.config.model)
     return lattice, predict_tile(model, lattice, 0, 0, spec, None)
 
 

@@ -3,10 +3,15 @@
 A map is covered by square blocks of ``cells`` x ``cells``. One local GP problem (the
 ``neighbours`` training samples nearest a point, centred there) is anchored at the centre
 of every block. Each cell is predicted by the (up to) four anchors around it and the
-predictions are blended with bilinear weights: a smooth partition of unity over the anchor
-lattice, so probability and variance have no seams where the anchors change. An anchor's
-weight is positive on the cells less than one block away from it along both axes (along
-the map's edges the weights are clamped, so edge cells keep full weight).
+predictions are blended with weights that form a continuous partition of unity over the
+anchor lattice, so probability and variance have no seams where the anchors change.
+
+Along each axis an anchor's weight is a trapezoid in the distance d (in blocks) from it:
+1 for d <= (1 - o) / 2, falling linearly to 0 at d = (1 + o) / 2, with ``o`` the blend
+overlap (``model.blend_overlap``). With o = 1 this is the bilinear tent, positive on the
+cells less than one block away; with o < 1 a block's centre is predicted by its own
+anchor alone and each cell by (1 + o)^2 anchors on average. Along the map's edges the
+weights are clamped, so edge cells keep full weight.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gpocc.config import ModelConfig
 from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
 from gpocc.gridspec import GridSpec
@@ -77,15 +83,18 @@ def plan_blocks(spec: GridSpec, cells: int) -> list[Block]:
 
 
 @functools.lru_cache(maxsize=4096)
-def _axis(cells: int, index: int, n_cells: int, n_anchors: int) -> tuple[int, np.ndarray]:
+def _axis(cells: int, index: int, n_cells: int, n_anchors: int,
+          overlap: float = 1.0) -> tuple[int, np.ndarray]:
     """First cell and (n,) weights of anchor ``index`` along one axis of ``n_cells`` cells
-    and ``n_anchors`` anchors, ``cells`` a block. Cached: a map asks for the same few rows
-    and columns thousands of times (0.5 s of the Intel map's main process before)."""
+    and ``n_anchors`` anchors, ``cells`` a block, ``overlap`` the blend overlap (see the
+    module docstring). Cached: a map asks for the same few rows and columns thousands of
+    times (0.5 s of the Intel map's main process before)."""
     lo = max(0, (index - 1) * cells)
     hi = min(n_cells, (index + 2) * cells)
     u = (np.arange(lo, hi) + 0.5) / cells - 0.5  # anchor coordinate of each cell
     u = np.clip(u, 0.0, n_anchors - 1)
-    w = np.maximum(0.0, 1.0 - np.abs(u - index))
+    # The trapezoid; with overlap 1 exactly the tent max(0, 1 - d).
+    w = np.clip((1.0 + overlap) / (2.0 * overlap) - np.abs(u - index) / overlap, 0.0, 1.0)
     nonzero = np.flatnonzero(w > 0)
     weights = w[nonzero[0]:nonzero[-1] + 1]
     weights.setflags(write=False)  # shared by every caller
@@ -94,10 +103,17 @@ def _axis(cells: int, index: int, n_cells: int, n_anchors: int) -> tuple[int, np
 
 @dataclass(frozen=True)
 class AnchorLattice:
-    """The anchors of a whole map ``spec`` with blocks of ``cells`` a side."""
+    """The anchors of a whole map ``spec`` with blocks of ``cells`` a side, blended with
+    ``overlap`` (``model.blend_overlap``)."""
 
     spec: GridSpec
     cells: int
+    overlap: float = 1.0
+
+    @classmethod
+    def of_model(cls, spec: GridSpec, model: ModelConfig) -> AnchorLattice:
+        """The lattice of a map ``spec`` under ``model``'s block size and blend overlap."""
+        return cls(spec, block_cells(model.block_size_m, spec.resolution), model.blend_overlap)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -114,8 +130,8 @@ class AnchorLattice:
     def footprint(self, anchor: Anchor) -> tuple[Block, np.ndarray]:
         """The cells where ``anchor``'s weight is positive, and the (rows, cols) weights."""
         n_rows, n_cols = self.shape
-        r0, wr = _axis(self.cells, anchor.row, self.spec.height, n_rows)
-        c0, wc = _axis(self.cells, anchor.col, self.spec.width, n_cols)
+        r0, wr = _axis(self.cells, anchor.row, self.spec.height, n_rows, self.overlap)
+        c0, wc = _axis(self.cells, anchor.col, self.spec.width, n_cols, self.overlap)
         return Block(r0, c0, len(wr), len(wc)), np.outer(wr, wc)
 
     def anchors_over(self, block: Block) -> list[Anchor]:

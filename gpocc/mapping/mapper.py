@@ -22,7 +22,7 @@ from gpocc.gp.model import GPModel, kernel_parameters
 from gpocc.gridspec import GridSpec
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.mapping.blend import predict_tile
-from gpocc.mapping.blocks import AnchorLattice, block_cells
+from gpocc.mapping.blocks import AnchorLattice
 from gpocc.mapping.folder import MapFolder, folder_metadata
 from gpocc.mapping.support import model_support
 
@@ -68,8 +68,8 @@ def make_map(
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
     check_map_server_size(spec, config.map.max_pgm_pixels)  # before any work
-    cells = block_cells(config.model.block_size_m, spec.resolution)
-    lattice = AnchorLattice(spec, cells)
+    lattice = AnchorLattice.of_model(spec, config.model)
+    cells = lattice.cells
     support = model_support(model)
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)

@@ -1,0 +1,79 @@
+"""The anchor lattice's blending weights: a partition of unity for every blend overlap."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpocc.config import config_from_dict
+from gpocc.errors import GpoccError
+from gpocc.gridspec import GridSpec
+from gpocc.mapping.blocks import Anchor, AnchorLattice
+
+
+def summed_weights(lattice: AnchorLattice) -> tuple[np.ndarray, np.ndarray]:
+    """Every cell's summed weight and number of anchors with a positive weight there."""
+    total = np.zeros(lattice.spec.shape)
+    count = np.zeros(lattice.spec.shape, dtype=int)
+    rows, cols = lattice.shape
+    for r in range(rows):
+        for c in range(cols):
+            block, weight = lattice.footprint(Anchor(r, c))
+            window = (slice(block.row0, block.row0 + block.rows),
+                      slice(block.col0, block.col0 + block.cols))
+            assert np.all((weight >= 0) & (weight <= 1))
+            total[window] += weight
+            count[window] += weight > 0
+    return total, count
+
+
+def trapezoid(distance_blocks: float, overlap: float) -> float:
+    """The weight of an anchor ``distance_blocks`` away along one axis, from its
+    definition: 1 up to (1 - o) / 2, 0 from (1 + o) / 2, linear between."""
+    inner, outer = (1 - overlap) / 2, (1 + overlap) / 2
+    if distance_blocks <= inner:
+        return 1.0
+    if distance_blocks >= outer:
+        return 0.0
+    return (outer - distance_blocks) / overlap
+
+
+@pytest.mark.parametrize("overlap", [1.0, 0.5, 0.25, 0.1])
+def test_weights_are_a_partition_of_unity_with_the_stated_overlap(overlap):
+    cells = 10
+    spec = GridSpec.from_bounds(0.0, 0.0, 5.3, 4.7, 0.1)  # 53 x 47 cells: partial blocks
+    lattice = AnchorLattice(spec, cells, overlap)
+    total, count = summed_weights(lattice)
+    np.testing.assert_allclose(total, 1.0, rtol=0, atol=1e-12)
+    # Away from the edges, each axis has 1 + o anchors per cell on average (one cell of
+    # rounding either way), so a cell costs (1 + o)^2 local problems.
+    interior = count[cells:3 * cells, cells:3 * cells]
+    per_axis = np.sqrt(interior.mean())
+    assert abs(per_axis - (1 + overlap)) <= 1.0 / cells + 1e-9
+    # The weights themselves, against the definition, at cells inside the lattice.
+    anchor = Anchor(2, 1)
+    block, weight = lattice.footprint(anchor)
+    for r in range(block.rows):
+        for c in range(block.cols):
+            dr = abs((block.row0 + r + 0.5) / cells - 0.5 - anchor.row)
+            dc = abs((block.col0 + c + 0.5) / cells - 0.5 - anchor.col)
+            assert weight[r, c] == pytest.approx(trapezoid(dr, overlap) * trapezoid(dc, overlap),
+                                                 abs=1e-12)
+
+
+def test_smaller_overlap_shrinks_the_footprint_and_keeps_the_centre():
+    spec = GridSpec.from_bounds(0.0, 0.0, 6.0, 6.0, 0.1)
+    full, _ = AnchorLattice(spec, 10, 1.0).footprint(Anchor(3, 3))
+    half, weight = AnchorLattice(spec, 10, 0.5).footprint(Anchor(3, 3))
+    assert (full.rows, full.cols) == (20, 20)
+    # Cells whose centres lie less than 0.75 blocks from the anchor (at cell 35.0).
+    assert (half.row0, half.rows, half.cols) == (28, 14, 14)
+    # The block's own central half is its anchor's alone.
+    inner = weight[(32 - half.row0):(38 - half.row0), (32 - half.col0):(38 - half.col0)]
+    np.testing.assert_array_equal(inner, 1.0)
+
+
+@pytest.mark.parametrize("overlap", [0.0, -0.5, 1.5])
+def test_blend_overlap_outside_its_range_is_a_config_error(overlap):
+    with pytest.raises(GpoccError, match="model.blend_overlap"):
+        config_from_dict({"model": {"blend_overlap": overlap}}, "job.yaml")
