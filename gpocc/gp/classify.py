@@ -42,7 +42,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_solve
 from scipy.special import log_ndtr, ndtr
 
 from gpocc.gp.expected import expected_kernel_cross
@@ -50,6 +49,7 @@ from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import (
     LocalProblem,
     NeighbourIndex,
+    cholesky_solve,
     factor_training_covariance,
     leave_one_out,
     predict_local,
@@ -139,7 +139,7 @@ def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProble
     s = patch.samples
     m = len(s)
     chol = factor_training_covariance(kernel, noise_variance, s, level)
-    inverse = cho_solve((chol, True), np.eye(m))
+    inverse = cholesky_solve(chol, np.eye(m))
     alpha = inverse @ s.labels
     cross = expected_kernel_cross(kernel, s.means, s.means, s.covariances, level)
     prior = kernel.diag(s.means)

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from multiprocessing.pool import Pool
 
 import numpy as np
-from scipy.linalg import cho_solve
 
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
@@ -31,7 +30,7 @@ from gpocc.gp.expected import (
 )
 from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel
-from gpocc.gp.local import LocalProblem, NeighbourIndex, try_cholesky
+from gpocc.gp.local import LocalProblem, NeighbourIndex, cholesky_solve, try_cholesky
 from gpocc.parallel import default_workers, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
@@ -126,11 +125,11 @@ def _patch_negative_log_likelihood(
     chol = try_cholesky(cov, jitter=False)
     if chol is None:
         return None
-    alpha = cho_solve((chol, True), s.labels)
+    alpha = cholesky_solve(chol, s.labels)
     value = 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
     if not with_gradient:
         return float(value), None
-    inner = cho_solve((chol, True), np.eye(len(s))) - np.outer(alpha, alpha)
+    inner = cholesky_solve(chol, np.eye(len(s))) - np.outer(alpha, alpha)
     nkernel = len(kernel.theta)
     grad = np.empty(nkernel + (2 if scale_gradient else 1))
     # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
