@@ -28,12 +28,34 @@ _N_INPUTS = 5
 def _transform(dist, bearing, range_sd, bearing_sd, scan, poses, pose_root, pose_map, mount,
                wm, wc, gamma, means, covariances, factors):  # pragma: no cover - compiled
     mx, my, myaw = mount[0], mount[1], mount[2]
-    points = np.empty((2 * _N_INPUTS + 1, _N_INPUTS))
-    ys = np.empty((2 * _N_INPUTS + 1, 2))
+    sigma = 2 * _N_INPUTS + 1
+    points = np.empty((sigma, _N_INPUTS))
+    ys = np.empty((sigma, 2))
+    # Each sigma point's yaw and beam angle differ from the centre's by a step that is the
+    # same for every sample of a scan (bearing: +-gamma sd; yaw: +-gamma L[2, j] of the
+    # scan's pose root): cos and sin of the steps are computed once per scan and turned
+    # into the points' by the angle-addition formulas, so a sample needs the sines and
+    # cosines of its centre only (4 calls instead of up to 16; equal to round-off).
+    step_cos = np.empty((sigma, 2))  # columns: yaw, beam angle
+    step_sin = np.empty((sigma, 2))
+    last_scan = -1
     for i in range(dist.shape[0]):
         s = scan[i]
+        if s != last_scan:
+            last_scan = s
+            for k in range(sigma):
+                yaw_step, bearing_step = 0.0, 0.0
+                if k == 2 or k == 2 + _N_INPUTS:
+                    bearing_step = gamma * bearing_sd if k == 2 else -gamma * bearing_sd
+                elif 3 <= k < 3 + 3:
+                    yaw_step = gamma * pose_root[s, 2, k - 3]
+                elif 3 + _N_INPUTS <= k < 3 + 3 + _N_INPUTS:
+                    yaw_step = -gamma * pose_root[s, 2, k - 3 - _N_INPUTS]
+                step_cos[k, 0], step_sin[k, 0] = math.cos(yaw_step), math.sin(yaw_step)
+                angle = yaw_step + bearing_step
+                step_cos[k, 1], step_sin[k, 1] = math.cos(angle), math.sin(angle)
         centre = (dist[i], bearing[i], poses[s, 0], poses[s, 1], poses[s, 2])
-        for k in range(2 * _N_INPUTS + 1):
+        for k in range(sigma):
             for d in range(_N_INPUTS):
                 points[k, d] = centre[d]
         # Columns of the block-diagonal root: range, bearing, then the pose root's columns.
@@ -48,24 +70,16 @@ def _transform(dist, bearing, range_sd, bearing_sd, scan, poses, pose_root, pose
                 points[3 + j + _N_INPUTS, 2 + d] -= step
         mean_x = 0.0
         mean_y = 0.0
-        # Most sigma points move the range or the position only: their angles are the
-        # centre's, so its sines and cosines are reused (the same arguments, the same
-        # values); only bearing and yaw points need their own. Two to three times fewer
-        # calls, bit-identical results.
-        th0, phi0 = points[0, 4], points[0, 4] + myaw + points[0, 1]
+        th0 = centre[4]
+        phi0 = th0 + myaw + centre[1]
         c0, s0 = math.cos(th0), math.sin(th0)
         cp0, sp0 = math.cos(phi0), math.sin(phi0)
-        for k in range(2 * _N_INPUTS + 1):
-            r, b, x, y, th = points[k, 0], points[k, 1], points[k, 2], points[k, 3], points[k, 4]
-            if th == th0:
-                c, sn = c0, s0
-            else:
-                c, sn = math.cos(th), math.sin(th)
-            phi = th + myaw + b
-            if phi == phi0:
-                cp, sp = cp0, sp0
-            else:
-                cp, sp = math.cos(phi), math.sin(phi)
+        for k in range(sigma):
+            r, x, y = points[k, 0], points[k, 2], points[k, 3]
+            c = c0 * step_cos[k, 0] - s0 * step_sin[k, 0]
+            sn = s0 * step_cos[k, 0] + c0 * step_sin[k, 0]
+            cp = cp0 * step_cos[k, 1] - sp0 * step_sin[k, 1]
+            sp = sp0 * step_cos[k, 1] + cp0 * step_sin[k, 1]
             ys[k, 0] = x + c * mx - sn * my + r * cp
             ys[k, 1] = y + sn * mx + c * my + r * sp
             mean_x += wm[k] * ys[k, 0]
