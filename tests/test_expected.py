@@ -114,6 +114,25 @@ def test_closed_form_root_gives_the_eigh_node_sets():
         np.testing.assert_allclose(node_set(r2), node_set(live), rtol=0, atol=1e-11)
 
 
+@pytest.mark.parametrize("level", [2, 3])
+def test_compiled_node_sets_equal_the_numpy_ones(level, monkeypatch):
+    """The compiled expansion of points that all have a covariance against the numpy
+    path (closed-form roots, tensordot): the same nodes, weights and layout."""
+    rng = np.random.default_rng(11)
+    covs = np.concatenate([_covariances(rng, 30, 0.2), np.array([
+        np.diag([0.04, 0.04]), np.diag([0.01, 0.09]), [[0.04, -0.02], [-0.02, 0.01]],
+        [[1e-30, 0.0], [0.0, 0.04]], [[0.02, 0.02], [0.02, 0.02]]])])  # singular ones
+    means = rng.normal(0.0, 5.0, (len(covs), 2))
+    compiled = ex._expand(means, covs, level)
+    monkeypatch.setattr(ex, "USE_FUSED", False)
+    reference = ex._expand(means, covs, level)
+    np.testing.assert_allclose(compiled.nodes, reference.nodes, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(compiled.weights, reference.weights)
+    np.testing.assert_array_equal(compiled.starts, reference.starts)
+    assert compiled.uniform == reference.uniform == level**2
+    assert compiled.nodes.T.flags.c_contiguous and reference.nodes.T.flags.c_contiguous
+
+
 # --------------------------------------------------------------------------- SE closed form
 
 

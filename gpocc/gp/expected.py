@@ -242,10 +242,13 @@ def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansio
     if zero.all() or unit.shape[0] == 1:
         return _Expansion(means.copy(), np.ones(n), np.arange(n + 1, dtype=np.intp), 1)
     if not zero.any():
-        nodes, w = gaussian_nodes(means, covariances, level)
-        # (M, 2) with contiguous columns: what the kernels read fastest.
-        flat = np.transpose(nodes, (2, 0, 1)).reshape(2, -1).T
         starts = np.arange(n + 1, dtype=np.intp) * w.shape[0]
+        if USE_FUSED and _fused_module is not None:
+            # (M, 2) with contiguous columns: what the kernels read fastest.
+            flat = _fused_module.gaussian_nodes_2d(means, covariances, unit).T
+        else:
+            nodes, w = gaussian_nodes(means, covariances, level)
+            flat = np.transpose(nodes, (2, 0, 1)).reshape(2, -1).T
         return _Expansion(flat, np.tile(w, n), starts, w.shape[0])
     counts = np.where(zero, 1, w.shape[0])
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)

@@ -86,6 +86,40 @@ def asin_array(x: np.ndarray) -> np.ndarray:
 
 
 @_jit
+def gaussian_nodes_2d(means: np.ndarray, covariances: np.ndarray, unit: np.ndarray
+                      ) -> np.ndarray:
+    """(2, N L) nodes ``mean_i + R_i unit_k`` of N 2-D Gaussians, point-major (node k of
+    point i in column i L + k), coordinate-major rows.
+
+    R_i is ``gpocc.gp.expected._sqrt_psd2``'s closed-form root, the same formulas in
+    the same order: the node sets equal the numpy path's to round-off. A map anchor's
+    128 points took 0.5 ms through numpy's small-array calls; here a few microseconds.
+    """
+    n = means.shape[0]
+    size = unit.shape[0]
+    out = np.empty((2, n * size))
+    for i in range(n):
+        a, c = covariances[i, 0, 0], covariances[i, 1, 1]
+        b = 0.5 * (covariances[i, 0, 1] + covariances[i, 1, 0])
+        half = 0.5 * (a - c)
+        radius = math.hypot(half, b)
+        high = max(0.5 * (a + c) + radius, 0.0)
+        low = (a * c - b * b) / high if high > 0.0 else 0.0
+        if low < 1e-13 * high:
+            low = 0.0
+        angle = 0.5 * math.atan2(b, half)
+        cos, sin = math.cos(angle), math.sin(angle)
+        root_low, root_high = math.sqrt(low), math.sqrt(high)
+        r00, r01 = -sin * root_low, cos * root_high
+        r10, r11 = cos * root_low, sin * root_high
+        mx, my = means[i, 0], means[i, 1]
+        for k in range(size):
+            out[0, i * size + k] = mx + (r00 * unit[k, 0] + r01 * unit[k, 1])
+            out[1, i * size + k] = my + (r10 * unit[k, 0] + r11 * unit[k, 1])
+    return out
+
+
+@_jit
 def nn_matrix(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, scale: float,
               out: np.ndarray) -> None:
     """out[i, j] = out[j, i] = E k(x_i, x_j) for i < j (product rule); diagonal untouched.
