@@ -49,7 +49,8 @@ def test_weights_are_a_partition_of_unity_with_the_stated_overlap(overlap):
     # rounding either way), so a cell costs (1 + o)^2 local problems.
     interior = count[cells:3 * cells, cells:3 * cells]
     per_axis = np.sqrt(interior.mean())
-    assert abs(per_axis - (1 + overlap)) <= 1.0 / cells + 1e-9
+    assert lattice.blend == max(overlap, 0.2)  # at least two cells: 0.1 becomes 0.2
+    assert abs(per_axis - (1 + lattice.blend)) <= 1.0 / cells + 1e-9
     # The weights themselves, against the definition, at cells inside the lattice.
     anchor = Anchor(2, 1)
     block, weight = lattice.footprint(anchor)
@@ -57,8 +58,8 @@ def test_weights_are_a_partition_of_unity_with_the_stated_overlap(overlap):
         for c in range(block.cols):
             dr = abs((block.row0 + r + 0.5) / cells - 0.5 - anchor.row)
             dc = abs((block.col0 + c + 0.5) / cells - 0.5 - anchor.col)
-            assert weight[r, c] == pytest.approx(trapezoid(dr, overlap) * trapezoid(dc, overlap),
-                                                 abs=1e-12)
+            expected = trapezoid(dr, lattice.blend) * trapezoid(dc, lattice.blend)
+            assert weight[r, c] == pytest.approx(expected, abs=1e-12)
 
 
 def test_smaller_overlap_shrinks_the_footprint_and_keeps_the_centre():
@@ -77,3 +78,22 @@ def test_smaller_overlap_shrinks_the_footprint_and_keeps_the_centre():
 def test_blend_overlap_outside_its_range_is_a_config_error(overlap):
     with pytest.raises(GpoccError, match="model.blend_overlap"):
         config_from_dict({"model": {"blend_overlap": overlap}}, "job.yaml")
+
+
+@pytest.mark.parametrize("cells", [4, 5, 10, 15, 25])
+@pytest.mark.parametrize("overlap", [0.05, 0.1, 0.2, 0.3, 0.6, 0.7, 1.0])
+def test_blending_is_never_a_step_and_footprints_hold_no_rounding_dust(cells, overlap):
+    """However narrow the configured band, an anchor's weight changes by at most half
+    between adjacent cells (a band of at least two cells: no seam), and no footprint
+    carries weights that are zero but for rounding (they would cost whole problems)."""
+    spec = GridSpec.from_bounds(0.0, 0.0, 8 * cells * 0.1, 6 * cells * 0.1, 0.1)
+    lattice = AnchorLattice(spec, cells, overlap)
+    for anchor in (Anchor(3, 4), Anchor(0, 0), Anchor(5, 7)):
+        _, weight = lattice.footprint(anchor)
+        assert weight.min() >= 0.0
+        assert weight[weight > 0].min() > 1e-6
+        assert np.abs(np.diff(weight, axis=0)).max() <= 0.5 + 1e-9
+        assert np.abs(np.diff(weight, axis=1)).max() <= 0.5 + 1e-9
+        # Interior anchors' footprints are symmetric about their centre.
+        if anchor == Anchor(3, 4):
+            np.testing.assert_allclose(weight, weight[::-1, ::-1], rtol=0, atol=1e-12)

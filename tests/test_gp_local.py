@@ -151,3 +151,21 @@ def test_failed_cholesky_is_rejected_for_learning_and_jittered_for_prediction():
     np.testing.assert_allclose(try_cholesky(pd, jitter=False), np.linalg.cholesky(pd))
     # Far from positive definite: even jitter fails, and the caller decides.
     assert try_cholesky(-np.eye(3), jitter=True) is None
+    # LAPACK factors a NaN matrix "successfully" into NaN; it must be refused like an
+    # indefinite one, not reach a likelihood or a map.
+    broken = pd.copy()
+    broken[2, 1] = broken[1, 2] = np.nan
+    assert try_cholesky(broken, jitter=False) is None
+    assert try_cholesky(broken, jitter=True) is None
+
+
+def test_cholesky_solve_matches_a_dense_solve():
+    from gpocc.gp.local import cholesky_solve, try_cholesky
+
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(30, 30))
+    matrix = a @ a.T + 0.5 * np.eye(30)
+    chol = try_cholesky(matrix, jitter=False)
+    for rhs in (rng.normal(size=30), rng.normal(size=(30, 4))):
+        np.testing.assert_allclose(cholesky_solve(chol, rhs), np.linalg.solve(matrix, rhs),
+                                   rtol=1e-10, atol=1e-12)

@@ -95,7 +95,7 @@ def test_workers_holding_the_patches_give_the_serial_likelihood():
     kernel = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
     x = np.append(kernel.theta, math.log(0.2))
     value, grad = negative_log_likelihood(x, kernel, patches, 2)
-    with resident_patch_pool(patches, 2) as pool:
+    with resident_patch_pool(patches, 2, level=2) as pool:
         assert sorted(pool.order) == list(range(len(patches)))
         assert pool.order != tuple(range(len(patches)))  # the costs do reorder them here
         held, held_grad = negative_log_likelihood(x, kernel, patches, 2, executor=pool)

@@ -80,10 +80,15 @@ def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -
 
 def _lower_cholesky(matrix: np.ndarray) -> np.ndarray | None:
     """LAPACK's lower factor of ``matrix`` (upper triangle zero), or None if it is not
-    numerically positive definite. Straight ``dpotrf``: ``np.linalg.cholesky``'s checks
-    and error handling cost twice the factorisation of a 128 x 128 map problem."""
+    numerically positive definite or not finite. Straight ``dpotrf``:
+    ``np.linalg.cholesky``'s checks and error handling cost twice the factorisation of a
+    128 x 128 map problem. LAPACK passes NaN through with success; a NaN factor is
+    refused here, so it takes the same road as an indefinite matrix (rejected in
+    training, an error in prediction) instead of reaching a likelihood or a map."""
     factor, info = dpotrf(matrix, lower=1, clean=1)
-    return factor if info == 0 else None
+    if info != 0 or not np.isfinite(np.diagonal(factor)).all():
+        return None
+    return factor
 
 
 def cholesky_solve(chol: np.ndarray, rhs: np.ndarray) -> np.ndarray:

@@ -166,23 +166,26 @@ class ResidentPatches:
     pool: Pool
     patches: tuple[LocalProblem, ...]
     #: Patch indices, most expensive first: handing out the longest tasks first keeps
-    #: both workers busy to the end (one all-one-scan patch can cost three others).
+    #: both workers busy to the end (an all-one-scan patch cost three others before the
+    #: same-scan rule was compiled better, and still costs twice as much).
     order: tuple[int, ...]
 
 
-def _patch_cost(patch: LocalProblem) -> float:
-    """Relative cost of a patch's likelihood: its pairs, same-scan pairs ten times over
-    (a 4-D rule and a 4 x 4 root each: about 2.3 us against 0.2 us on the Intel log)."""
+def _patch_cost(patch: LocalProblem, level: int) -> float:
+    """Relative cost of a patch's likelihood: its pairs, plus its same-scan pairs (a 4-D
+    rule each) at 1.7 pairs apiece (Intel patches, values and gradients: 1.6-1.8). A
+    level-1 rule puts every point at its mean and has no same-scan work."""
     s = patch.samples
     n = len(s)
     same_scan, _ = same_scan_pairs(s.covariances, s.scan_ids, s.pose_factors)
-    return n * (n - 1) / 2 + 9.0 * same_scan.shape[0]
+    return n * (n - 1) / 2 + (1.7 * same_scan.shape[0] if level > 1 else 0.0)
 
 
 @contextlib.contextmanager
-def resident_patch_pool(patches: list[LocalProblem], workers: int):
-    """A :class:`ResidentPatches` pool of ``workers`` processes holding ``patches``."""
-    costs = [_patch_cost(p) for p in patches]
+def resident_patch_pool(patches: list[LocalProblem], workers: int, level: int):
+    """A :class:`ResidentPatches` pool of ``workers`` processes holding ``patches``
+    (``level``: the quadrature level they will be evaluated at, for the costs)."""
+    costs = [_patch_cost(p, level) for p in patches]
     order = tuple(sorted(range(len(patches)), key=lambda i: -costs[i]))
     with worker_pool(workers, _install_patches, (list(patches),)) as pool:
         yield ResidentPatches(pool, tuple(patches), order)
@@ -236,7 +239,7 @@ def negative_log_likelihood(
 
 def negative_log_likelihood_with_scale(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
-    with_gradient: bool = True, executor: Executor | Pool | None = None,
+    with_gradient: bool = True, executor: Executor | Pool | ResidentPatches | None = None,
 ) -> tuple[float, np.ndarray]:
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
@@ -291,7 +294,7 @@ def learn_hyperparameters(
     # Processes, not threads: much of a patch's work is numpy glue that holds the GIL
     # (threads gave 1.4x on 2 cores). The workers receive the patches once.
     workers = min(len(patches), workers or default_workers())
-    with resident_patch_pool(patches, workers) if workers > 1 \
+    with resident_patch_pool(patches, workers, level) if workers > 1 \
             else contextlib.nullcontext() as pool:
 
         def negative_log_likelihood_counted(

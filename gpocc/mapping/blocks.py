@@ -10,8 +10,9 @@ Along each axis an anchor's weight is a trapezoid in the distance d (in blocks) 
 1 for d <= (1 - o) / 2, falling linearly to 0 at d = (1 + o) / 2, with ``o`` the blend
 overlap (``model.blend_overlap``). With o = 1 this is the bilinear tent, positive on the
 cells less than one block away; with o < 1 a block's centre is predicted by its own
-anchor alone and each cell by (1 + o)^2 anchors on average. Along the map's edges the
-weights are clamped, so edge cells keep full weight.
+anchor alone and each cell by (1 + o)^2 anchors on average. The band is never narrower
+than two cells (:attr:`AnchorLattice.blend`). Along the map's edges the weights are
+clamped, so edge cells keep full weight.
 """
 
 from __future__ import annotations
@@ -95,6 +96,9 @@ def _axis(cells: int, index: int, n_cells: int, n_anchors: int,
     u = np.clip(u, 0.0, n_anchors - 1)
     # The trapezoid; with overlap 1 exactly the tent max(0, 1 - d).
     w = np.clip((1.0 + overlap) / (2.0 * overlap) - np.abs(u - index) / overlap, 0.0, 1.0)
+    # A cell centre exactly at the band's outer edge rounds to ~1e-15 instead of 0: it
+    # would widen the footprint by a row, and could keep an anchor alive for nothing.
+    w[w < 1e-9] = 0.0
     nonzero = np.flatnonzero(w > 0)
     weights = w[nonzero[0]:nonzero[-1] + 1]
     weights.setflags(write=False)  # shared by every caller
@@ -109,6 +113,13 @@ class AnchorLattice:
     spec: GridSpec
     cells: int
     overlap: float = 1.0
+
+    @property
+    def blend(self) -> float:
+        """The overlap the weights use: ``overlap``, but at least two cells of a block
+        (a band narrower than a cell holds no cell centre, and the blend would become a
+        step, a seam), and at most 1."""
+        return min(1.0, max(self.overlap, 2.0 / self.cells))
 
     @classmethod
     def of_model(cls, spec: GridSpec, model: ModelConfig) -> AnchorLattice:
@@ -130,8 +141,8 @@ class AnchorLattice:
     def footprint(self, anchor: Anchor) -> tuple[Block, np.ndarray]:
         """The cells where ``anchor``'s weight is positive, and the (rows, cols) weights."""
         n_rows, n_cols = self.shape
-        r0, wr = _axis(self.cells, anchor.row, self.spec.height, n_rows, self.overlap)
-        c0, wc = _axis(self.cells, anchor.col, self.spec.width, n_cols, self.overlap)
+        r0, wr = _axis(self.cells, anchor.row, self.spec.height, n_rows, self.blend)
+        c0, wc = _axis(self.cells, anchor.col, self.spec.width, n_cols, self.blend)
         return Block(r0, c0, len(wr), len(wc)), np.outer(wr, wc)
 
     def anchors_over(self, block: Block) -> list[Anchor]:

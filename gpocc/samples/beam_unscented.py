@@ -38,10 +38,10 @@ def _transform(dist, bearing, range_sd, bearing_sd, scan, poses, pose_root, pose
     # cosines of its centre only (4 calls instead of up to 16; equal to round-off).
     step_cos = np.empty((sigma, 2))  # columns: yaw, beam angle
     step_sin = np.empty((sigma, 2))
-    last_scan = -1
+    last_scan = 0
     for i in range(dist.shape[0]):
         s = scan[i]
-        if s != last_scan:
+        if i == 0 or s != last_scan:
             last_scan = s
             for k in range(sigma):
                 yaw_step, bearing_step = 0.0, 0.0
