@@ -119,7 +119,9 @@ def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path,
     for name in ("probability.tif", "variance.tif", "class.tif", "map.yaml", "map.pgm",
                  "preview.png", "metadata.json"):
         assert (out / name).is_file(), name
-    timings = json.loads((out / "metadata.json").read_text())["timings_s"]
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["blend_overlap"] == overlap  # as used: 6-cell blocks allow down to 1/3
+    timings = meta["timings_s"]
     assert set(timings) == {"map", "predict", "write", "finish"}
     assert timings["predict"] + timings["write"] + timings["finish"] <= timings["map"] + 0.002
     model = load_model(model_path)
