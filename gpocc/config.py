@@ -164,7 +164,7 @@ class TrainingConfig:
     session 6: Freiburg held-out AUC 0.937-0.942 in 2 of 6 runs). The classifier is fitted
     on the same patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
-    (20: on ten logs and worlds, 60 reached the same optimum with 30-65 more evaluations,
+    (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations,
     docs/benchmarks.md, seventh session; its job is to leave a start whose covariance is
     not positive definite, where L-BFGS-B alone stays); then L-BFGS-B for at most
     ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
