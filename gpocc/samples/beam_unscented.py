@@ -31,11 +31,14 @@ def _transform(dist, bearing, range_sd, bearing_sd, scan, poses, pose_root, pose
     sigma = 2 * _N_INPUTS + 1
     points = np.empty((sigma, _N_INPUTS))
     ys = np.empty((sigma, 2))
-    # Each sigma point's yaw and beam angle differ from the centre's by a step that is the
-    # same for every sample of a scan (bearing: +-gamma sd; yaw: +-gamma L[2, j] of the
-    # scan's pose root): cos and sin of the steps are computed once per scan and turned
-    # into the points' by the angle-addition formulas, so a sample needs the sines and
-    # cosines of its centre only (4 calls instead of up to 16; equal to round-off).
+    # Each sigma point's step from the centre: +-gamma times a column of the
+    # block-diagonal root (range, bearing, then the pose root's columns). The bearing and
+    # pose steps are the same for every sample of a scan, so they are set once per scan,
+    # and so are the cosines and sines of the yaw and beam-angle steps: the points' angles
+    # follow from the centre's by the angle-addition formulas, and a sample needs the
+    # sines and cosines of its centre only (4 calls instead of up to 16; equal to
+    # round-off).
+    steps = np.zeros((sigma, _N_INPUTS))
     step_cos = np.empty((sigma, 2))  # columns: yaw, beam angle
     step_sin = np.empty((sigma, 2))
     last_scan = 0
@@ -43,31 +46,23 @@ def _transform(dist, bearing, range_sd, bearing_sd, scan, poses, pose_root, pose
         s = scan[i]
         if i == 0 or s != last_scan:
             last_scan = s
+            steps[2, 1] = gamma * bearing_sd
+            steps[2 + _N_INPUTS, 1] = -gamma * bearing_sd
+            for j in range(3):
+                for d in range(3):
+                    step = gamma * pose_root[s, d, j]
+                    steps[3 + j, 2 + d] = step
+                    steps[3 + j + _N_INPUTS, 2 + d] = -step
             for k in range(sigma):
-                yaw_step, bearing_step = 0.0, 0.0
-                if k == 2 or k == 2 + _N_INPUTS:
-                    bearing_step = gamma * bearing_sd if k == 2 else -gamma * bearing_sd
-                elif 3 <= k < 3 + 3:
-                    yaw_step = gamma * pose_root[s, 2, k - 3]
-                elif 3 + _N_INPUTS <= k < 3 + 3 + _N_INPUTS:
-                    yaw_step = -gamma * pose_root[s, 2, k - 3 - _N_INPUTS]
-                step_cos[k, 0], step_sin[k, 0] = math.cos(yaw_step), math.sin(yaw_step)
-                angle = yaw_step + bearing_step
+                yaw, angle = steps[k, 4], steps[k, 4] + steps[k, 1]
+                step_cos[k, 0], step_sin[k, 0] = math.cos(yaw), math.sin(yaw)
                 step_cos[k, 1], step_sin[k, 1] = math.cos(angle), math.sin(angle)
+        steps[1, 0] = gamma * range_sd[i]
+        steps[1 + _N_INPUTS, 0] = -gamma * range_sd[i]
         centre = (dist[i], bearing[i], poses[s, 0], poses[s, 1], poses[s, 2])
         for k in range(sigma):
             for d in range(_N_INPUTS):
-                points[k, d] = centre[d]
-        # Columns of the block-diagonal root: range, bearing, then the pose root's columns.
-        points[1, 0] += gamma * range_sd[i]
-        points[1 + _N_INPUTS, 0] -= gamma * range_sd[i]
-        points[2, 1] += gamma * bearing_sd
-        points[2 + _N_INPUTS, 1] -= gamma * bearing_sd
-        for j in range(3):
-            for d in range(3):
-                step = gamma * pose_root[s, d, j]
-                points[3 + j, 2 + d] += step
-                points[3 + j + _N_INPUTS, 2 + d] -= step
+                points[k, d] = centre[d] + steps[k, d]
         mean_x = 0.0
         mean_y = 0.0
         th0 = centre[4]
@@ -87,7 +82,7 @@ def _transform(dist, bearing, range_sd, bearing_sd, scan, poses, pose_root, pose
         cxx = 0.0
         cxy = 0.0
         cyy = 0.0
-        for k in range(2 * _N_INPUTS + 1):
+        for k in range(sigma):
             dx = ys[k, 0] - mean_x
             dy = ys[k, 1] - mean_y
             cxx += wc[k] * dx * dx
