@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from blendweights import trapezoid
 
 from gpocc.config import config_from_dict
 from gpocc.errors import GpoccError
@@ -25,17 +26,6 @@ def summed_weights(lattice: AnchorLattice) -> tuple[np.ndarray, np.ndarray]:
             total[window] += weight
             count[window] += weight > 0
     return total, count
-
-
-def trapezoid(distance_blocks: float, overlap: float) -> float:
-    """The weight of an anchor ``distance_blocks`` away along one axis, from its
-    definition: 1 up to (1 - o) / 2, 0 from (1 + o) / 2, linear between."""
-    inner, outer = (1 - overlap) / 2, (1 + overlap) / 2
-    if distance_blocks <= inner:
-        return 1.0
-    if distance_blocks >= outer:
-        return 0.0
-    return (outer - distance_blocks) / overlap
 
 
 @pytest.mark.parametrize("overlap", [1.0, 0.5, 0.25, 0.1])

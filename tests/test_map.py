@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import rasterio
+from blendweights import trapezoid
 from modelfiles import read_model_file, write_model_file
 from typer.testing import CliRunner
 
@@ -100,14 +101,6 @@ def run_map(model_path, out, *extra):
     return out
 
 
-def blend_weight(distance_blocks: float, overlap: float) -> float:
-    """An anchor's weight along one axis from the definition in gpocc.mapping.blocks:
-    1 within (1 - o) / 2 blocks of it, 0 from (1 + o) / 2, linear between (o = 1: the
-    bilinear tent)."""
-    inner, outer = (1 - overlap) / 2, (1 + overlap) / 2
-    return float(np.clip((outer - distance_blocks) / (outer - inner), 0.0, 1.0))
-
-
 @pytest.mark.parametrize("overlap", [1.0, 0.4])
 def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path, overlap):
     if overlap != 1.0:  # the same model, mapped with another blend overlap
@@ -145,7 +138,7 @@ def test_map_values_match_the_model_and_files_are_complete(model_path, tmp_path,
         mix_w, mix_mu, mix_var = [], [], []
         for i in {int(np.floor(u)), int(np.ceil(u))}:
             for j in {int(np.floor(v)), int(np.ceil(v))}:
-                w = blend_weight(abs(u - i), overlap) * blend_weight(abs(v - j), overlap)
+                w = trapezoid(abs(u - i), overlap) * trapezoid(abs(v - j), overlap)
                 cx, cy = transform @ (j * cells + cells / 2, i * cells + cells / 2)
                 pred = predict_local(
                     model.kernel, model.noise_variance,
