@@ -34,6 +34,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("info", "gpocc.commands.info:info"),
     ("train", "gpocc.commands.train:train"),
     ("map", "gpocc.commands.map:map_command"),
+    ("build", "gpocc.commands.build:build"),
     ("grid", "gpocc.commands.grid:grid_command"),
     ("evaluate", "gpocc.commands.evaluate:evaluate"),
     ("split", "gpocc.commands.split:split"),

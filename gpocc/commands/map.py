@@ -4,19 +4,25 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from gpocc.commands.options import Bounds, Force, OutFolder, check_at_least, check_resolution
-from gpocc.gp.model import kernel_parameters, load_model
+from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.folder import write_metadata
-from gpocc.mapping.mapper import default_spec, make_map, map_metadata
+from gpocc.mapping.mapper import MapSummary, default_spec, make_map, map_metadata
 from gpocc.parallel import default_workers
 from gpocc.progress import debug, log, progress_bar
+
+Workers = Annotated[int | None, typer.Option(
+    "--workers", help="Local processes (default: all cores).")]
+Scheduler = Annotated[str | None, typer.Option(
+    "--scheduler", help="Dask scheduler address tcp://HOST:PORT.")]
 
 
 def map_command(
@@ -24,21 +30,33 @@ def map_command(
     resolution: float = typer.Option(..., "--resolution", help="Cell size, metres."),
     out: OutFolder = ...,
     bounds: Bounds = None,
-    workers: int | None = typer.Option(
-        None, "--workers", help="Local processes (default: all cores)."
-    ),
-    scheduler: str | None = typer.Option(
-        None, "--scheduler", help="Dask scheduler address tcp://HOST:PORT."
-    ),
+    workers: Workers = None,
+    scheduler: Scheduler = None,
     force: Force = False,
 ) -> None:
     """Sample a trained model at any resolution and write the map folder."""
     prepare_output(out, force)
+    check_map_options(resolution, workers)
+    model = load_model(model_path)
+    spec = map_spec(model, resolution, bounds, f"the map of {model_path}")
+    started = time.perf_counter()
+    with atomic_directory(out, force=force) as tmp:
+        summary = write_map(model, str(model_path), spec, tmp, workers, scheduler)
+    echo_map(summary, out, resolution, time.perf_counter() - started)
+
+
+def check_map_options(resolution: float, workers: int | None) -> None:
+    """Refuse a bad --resolution or --workers before any work."""
     check_resolution(resolution)
     if workers is not None:
         check_at_least("--workers", workers, 1)
-    model = load_model(model_path)
-    debug(f"model {model_path}: {len(model.samples)} samples from sensors "
+
+
+def map_spec(model: GPModel, resolution: float, bounds: tuple[float, ...] | None,
+             what: str) -> GridSpec:
+    """The raster of a map of ``model``: ``bounds`` or the data's extent plus the margin;
+    ``what`` names the map in the error for too many cells."""
+    debug(f"model: {len(model.samples)} samples from sensors "
           f"{', '.join(model.samples.sensor_names) or '(unnamed)'}; kernel "
           f"{kernel_parameters(model.kernel)}, noise variance {model.noise_variance:.6g}")
     if bounds is not None:
@@ -47,19 +65,30 @@ def map_command(
         spec = default_spec(model, resolution, model.config.map.margin_m)
     # The model's embedded config is not the user's to edit here: name the variable.
     check_cells(spec.width, spec.height, resolution,
-                max_cells(model.config.map.max_cells), f"the map of {model_path}",
+                max_cells(model.config.map.max_cells), what,
                 fix="use a coarser --resolution or smaller --bounds", configurable=False)
+    return spec
+
+
+def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
+              workers: int | None, scheduler: str | None) -> MapSummary:
+    """Map ``model`` over ``spec`` into ``folder`` (private to this run) with its
+    metadata, which names the model ``model_name``."""
     n_workers = workers or default_workers()
-    cells = block_cells(model.config.model.block_size_m, resolution)
+    cells = block_cells(model.config.model.block_size_m, spec.resolution)
     total = len(plan_blocks(spec, cells))
-    log(f"mapping {spec.width} x {spec.height} cells at {resolution} m in {total} blocks "
-        f"({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
-    started = time.perf_counter()
-    with atomic_directory(out, force=force) as tmp, progress_bar(total, "blocks") as advance:
-        summary = make_map(model, spec, tmp, n_workers, scheduler, advance)
-        write_metadata(tmp, map_metadata(str(model_path), model, summary,
-                                         workers=n_workers, scheduler=scheduler))
-    seconds = time.perf_counter() - started
+    log(f"mapping {spec.width} x {spec.height} cells at {spec.resolution} m in {total} "
+        f"blocks ({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
+    with progress_bar(total, "blocks") as advance:
+        summary = make_map(model, spec, folder, n_workers, scheduler, advance)
+    write_metadata(folder, map_metadata(model_name, model, summary,
+                                        workers=n_workers, scheduler=scheduler))
+    return summary
+
+
+def echo_map(summary: MapSummary, out: Path, resolution: float, seconds: float) -> None:
+    """The summary of a written map on stdout."""
+    spec = summary.spec
     typer.echo(f"map: {out}")
     typer.echo(f"cells: {spec.width} x {spec.height} at {resolution} m, bounds {spec.bounds}")
     counts = summary.class_counts

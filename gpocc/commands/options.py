@@ -8,6 +8,7 @@ names a flag.
 from __future__ import annotations
 
 import math
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -24,6 +25,14 @@ Bounds = Annotated[tuple[float, float, float, float] | None, typer.Option(
     "--bounds", metavar="XMIN YMIN XMAX YMAX",
     help="Map area in the map frame, metres; default: the data's extent plus "
          "map.margin_m.")]
+class Switch(StrEnum):
+    on = "on"
+    off = "off"
+
+
+InputNoise = Annotated[Switch | None, typer.Option(
+    "--input-noise", help="on: use sample covariances (default); off: the baseline.")]
+Seed = Annotated[int | None, typer.Option("--seed", help="Overrides the config's seed.")]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
 

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from enum import StrEnum
 from pathlib import Path
 
 import typer
 
-from gpocc.commands.options import ConfigFile, Force, Inputs
-from gpocc.config import load_config
-from gpocc.gp.model import build_model, kernel_parameters, save_model
+from gpocc.commands.options import ConfigFile, Force, InputNoise, Inputs, Seed, Switch
+from gpocc.config import Config, load_config
+from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.limits import check_seed
@@ -21,23 +20,25 @@ from gpocc.samples.coverage import beam_coverage
 from gpocc.samples.heldout import calibration_points
 
 
-class Switch(StrEnum):
-    on = "on"
-    off = "off"
-
-
 def train(
     inputs: Inputs,
     out: Path = typer.Option(..., "--out", help="Model file to write (.npz)."),
     config: ConfigFile = None,
-    input_noise: Switch | None = typer.Option(
-        None, "--input-noise", help="on: use sample covariances (default); off: the baseline."
-    ),
-    seed: int | None = typer.Option(None, "--seed", help="Overrides the config's seed."),
+    input_noise: InputNoise = None,
+    seed: Seed = None,
     force: Force = False,
 ) -> None:
     """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
     prepare_output(out, force, folder=False)
+    cfg = job_config(config, input_noise, seed)
+    started = time.perf_counter()
+    model = learn_model(inputs, cfg)
+    save_model(model, out, force=force)
+    echo_model(model, out, time.perf_counter() - started)
+
+
+def job_config(config: Path | None, input_noise: Switch | None, seed: int | None) -> Config:
+    """The config file ``config`` (or the defaults) with the command-line overrides."""
     cfg = load_config(config)
     if input_noise is not None:
         cfg = dataclasses.replace(
@@ -46,6 +47,12 @@ def train(
     check_seed(seed)
     if seed is not None:
         cfg = dataclasses.replace(cfg, seed=seed)
+    return cfg
+
+
+def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
+    """Read ``inputs``, build their samples and learn a model; its ``training`` records
+    the stages' wall seconds under ``timings_s``."""
     started = time.perf_counter()
     batches = read_inputs(inputs, cfg)
     read_s = time.perf_counter() - started
@@ -67,9 +74,11 @@ def train(
     learn_s = time.perf_counter() - started - read_s - samples_s
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
-    model = dataclasses.replace(model, training={**model.training, "timings_s": timings})
-    save_model(model, out, force=force)
-    seconds = time.perf_counter() - started
+    return dataclasses.replace(model, training={**model.training, "timings_s": timings})
+
+
+def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
+    """The summary of a learned model on stdout; ``seconds``: the command's time line."""
     occupied = int((model.samples.labels > 0).sum())
     params = kernel_parameters(model.kernel)
     typer.echo(f"model: {out}")
@@ -85,9 +94,11 @@ def train(
     typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
                f"{model.classifier.offset:.4g}, extra variance "
                f"{model.classifier.extra_variance:.3g}; {_fitted_on(model.training)})")
-    typer.echo(f"stages: read {read_s:.1f} s, samples {samples_s:.1f} s, "
-               f"hyperparameters+classifier {learn_s:.1f} s")
-    typer.echo(f"time: {seconds:.1f} s")
+    timings = model.training["timings_s"]
+    typer.echo(f"stages: read {timings['read']:.1f} s, samples {timings['samples']:.1f} s, "
+               f"hyperparameters+classifier {timings['learn']:.1f} s")
+    if seconds is not None:
+        typer.echo(f"time: {seconds:.1f} s")
 
 
 def _fitted_on(training: dict) -> str:

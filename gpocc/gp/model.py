@@ -163,6 +163,13 @@ def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:
     An existing ``path`` is replaced only with ``force``, and only if it is a model file
     (see :func:`gpocc.io.atomic.atomic_output_file`).
     """
+    with atomic_output_file(path, force=force) as tmp:
+        write_model(model, tmp)
+
+
+def write_model(model: GPModel, path: str | Path) -> None:
+    """Write ``model`` to ``path`` (.npz) as it is: for a path private to this run (inside
+    a temporary output folder); top-level model files go through :func:`save_model`."""
     meta = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -185,10 +192,9 @@ def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:
         meta["coverage"] = {"x0": cov.x0, "y0": cov.y0, "cell_m": cov.cell_m,
                             "step_m": cov.step_m, "shape": list(cov.covered.shape)}
         arrays["coverage"] = np.packbits(cov.covered, axis=None)
-    with atomic_output_file(path, force=force) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, metadata=np.frombuffer(json.dumps(meta).encode(), np.uint8),
-                                **arrays)
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, metadata=np.frombuffer(json.dumps(meta).encode(), np.uint8),
+                            **arrays)
 
 
 def load_model(path: str | Path) -> GPModel:
