@@ -410,3 +410,39 @@ def test_free_clearance_keeps_grazing_beams_off_the_wall():
     assert len(cleared) == len(plain) - 1
     assert not ((cleared.labels < 0)
                 & (np.linalg.norm(cleared.means - [2.0, 0.0], axis=1) < 0.05)).any()
+
+
+def test_label_votes_count_every_chunk_against_brute_force():
+    """Shares from counts added chunk by chunk (merged on the way) equal a direct count,
+    for cells on both sides of zero and cells seen with one label only."""
+    rng = np.random.default_rng(8)
+    n, cell = 3000, 0.5
+    means = rng.uniform(-4.0, 4.0, (n, 2))
+    labels = np.where(rng.random(n) < 0.3 + 0.1 * (means[:, 0] > 0), 1.0, -1.0)
+    samples = SampleSet(means=means, covariances=np.zeros((n, 2, 2)), labels=labels,
+                        scan_ids=np.arange(n), pose_factors=np.zeros((n, 2, 3)),
+                        sensor_ids=np.zeros(n, dtype=np.int16))
+    votes = beams.LabelVotes(cell)
+    for lo in range(0, n, 170):
+        votes.add(samples.subset(np.arange(lo, min(n, lo + 170))))
+        if lo == 1020:
+            votes._merge()  # a merged table plus pending chunks
+    counts: dict[tuple[int, int], list[int]] = {}
+    for mean, label in zip(means, labels, strict=True):
+        counts.setdefault(tuple(np.floor(mean / cell).astype(int)), [0, 0])[int(label > 0)] += 1
+    probe = np.vstack([means[:50], [[40.2, -40.7]]])  # the last cell was never counted
+    probe_labels = np.concatenate([labels[:50], [1.0]])
+    expected = [counts[tuple(np.floor(m / cell).astype(int))][int(lab > 0)]
+                / sum(counts[tuple(np.floor(m / cell).astype(int))])
+                for m, lab in zip(probe[:50], probe_labels[:50], strict=True)]
+    got = votes.share(SampleSet(means=probe, covariances=np.zeros((51, 2, 2)),
+                                labels=probe_labels, scan_ids=np.arange(51),
+                                pose_factors=np.zeros((51, 2, 3)),
+                                sensor_ids=np.zeros(51, dtype=np.int16)))
+    np.testing.assert_array_equal(got[:50], expected)
+    assert np.isnan(got[50])  # no count at all: 0 / 0, dropped by any share threshold
+    far = samples.subset(np.arange(3))
+    far = SampleSet(far.means + 1e9, far.covariances, far.labels, far.scan_ids,
+                    far.pose_factors, far.sensor_ids)
+    with pytest.raises(GpoccError, match="thin_cell_m"):
+        votes.add(far)
