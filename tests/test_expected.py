@@ -549,3 +549,42 @@ def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):
         assert reference[0].shape[0] > 100
         for got, want in zip(compiled, reference, strict=True):
             np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("level", [1, 2, 3])
+@pytest.mark.parametrize("case", ["correlated", "independent", "all zero"])
+def test_local_system_in_one_call_matches_the_separate_calls(level, case, monkeypatch):
+    """The one-call local system (training matrix plus diagonal term, cross-covariances,
+    query priors) against the numpy reference of the three separate calls."""
+    means, covs, scan_ids, factors, _ = _scan_problem(41, n=36)
+    if case == "all zero":
+        covs[:] = 0.0
+        factors[:] = 0.0
+    pairs = {"scan_ids": scan_ids, "pose_factors": factors} if case != "independent" else {}
+    kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))
+    queries = np.random.default_rng(42).uniform(-1.3, 1.3, (30, 2))
+    k, cross, prior = ex.expected_local_system(kernel, means, covs, queries, level, 0.125,
+                                               **pairs)
+    monkeypatch.setattr(ex, "USE_FUSED", False)
+    want = expected_kernel_matrix(kernel, means, covs, level, **pairs)
+    want[np.diag_indices_from(want)] += 0.125
+    if case == "correlated" and level > 1:
+        assert ex.same_scan_pairs(covs, scan_ids, factors)[0].shape[0] > 100
+        independent = expected_kernel_matrix(kernel, means, covs, level)
+        assert np.abs(want - 0.125 * np.eye(36) - independent).max() > 1e-3
+    np.testing.assert_allclose(k, want, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cross, expected_kernel_cross(kernel, queries, means, covs, level),
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(prior, kernel.diag(queries), rtol=0, atol=1e-12)
+
+
+def test_local_system_declines_what_it_does_not_compile():
+    """Mixed zero and non-zero covariances and kernels without compiled loops: None, so
+    that the caller takes the separate calls."""
+    means, covs, scan_ids, factors, _ = _scan_problem(43, n=10)
+    queries = np.zeros((3, 2))
+    assert ex.expected_local_system(NN, means, covs, queries, 2, 0.1) is not None
+    covs[::4] = 0.0
+    assert ex.expected_local_system(NN, means, covs, queries, 2, 0.1) is None
+    assert ex.expected_local_system(SE, means, covs * 0 + np.eye(2) * 0.01, queries, 2,
+                                    0.1) is None

@@ -655,6 +655,64 @@ def expected_kernel_cross(
     return out if dout is None else (out, dout)
 
 
+def expected_local_system(
+    kernel: Kernel,
+    means: np.ndarray,
+    covariances: np.ndarray,
+    queries: np.ndarray,
+    level: int,
+    diagonal: float,
+    *,
+    scan_ids: np.ndarray | None = None,
+    pose_factors: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The three covariances of one local prediction in one compiled call, or None where
+    that call does not apply (a kernel without compiled loops, or some covariances zero
+    and others not): then use :func:`expected_kernel_matrix`, :func:`expected_kernel_cross`
+    and ``kernel.diag``, which give the same values to round-off.
+
+    Args:
+        means: (N, 2) metres; covariances: (N, 2, 2) m^2; queries: (Q, 2) metres.
+        level: Gauss-Hermite nodes per dimension.
+        diagonal: added to K's diagonal (label noise and jitter).
+        scan_ids, pose_factors: as for :func:`expected_kernel_matrix`.
+
+    Returns:
+        K + diagonal I (N, N), Kx (Q, N), k(q, q) (Q,).
+    """
+    fused = _fused(kernel)
+    if fused is None:
+        return None
+    means, covariances = _check_inputs(means, covariances)
+    n = means.shape[0]
+    zero = np.abs(covariances).reshape(n, 4).max(axis=1) <= ZERO_VARIANCE_M2
+    if zero.any() and not zero.all():
+        return None
+    unit, weights = gauss_hermite(1 if zero.all() else level, 2)
+    unit4, weights4 = gauss_hermite(level, 4)
+    correlated = scan_ids is not None and pose_factors is not None
+    if correlated:
+        scan_ids = np.ascontiguousarray(scan_ids, dtype=np.int64)
+        pose_factors = np.ascontiguousarray(pose_factors, dtype=np.float64)
+        if scan_ids.shape != (n,) or pose_factors.shape != (n, 2, 3):
+            raise ValueError(
+                f"scan_ids must have shape ({n},) and pose_factors ({n}, 2, 3), got "
+                f"{scan_ids.shape} and {pose_factors.shape}")
+    else:
+        scan_ids, pose_factors = np.zeros(n, dtype=np.int64), np.zeros((n, 2, 3))
+    queries = np.ascontiguousarray(queries, dtype=np.float64)
+    k = np.empty((n, n))
+    cross = np.empty((queries.shape[0], n))
+    prior = np.empty(queries.shape[0])
+    fused.nn_local_system(
+        np.ascontiguousarray(means), np.ascontiguousarray(covariances), scan_ids,
+        pose_factors, queries, np.ascontiguousarray(unit), np.ascontiguousarray(weights),
+        np.ascontiguousarray(unit4), np.ascontiguousarray(weights4), kernel.root_two_s,
+        kernel.arcsin_scale, float(diagonal), correlated, POSE_SHARE_MIN, ZERO_VARIANCE_M2,
+        k, cross, prior)
+    return k, cross, prior
+
+
 # --------------------------------------------------------------------------- closed form (SE)
 
 

@@ -491,3 +491,63 @@ def correlated_pairs(covariances: np.ndarray, scan_ids: np.ndarray, pose_factors
                     second[k] = b
                     k += 1
     return first, second
+
+
+@_jit
+def nn_local_system(means: np.ndarray, covariances: np.ndarray, scan_ids: np.ndarray,
+                    pose_factors: np.ndarray, queries: np.ndarray, unit: np.ndarray,
+                    weights: np.ndarray, unit4: np.ndarray, weights4: np.ndarray,
+                    root: np.ndarray, scale: float, diagonal: float, correlated: bool,
+                    pose_share_min: float, zero_variance: float, k_out: np.ndarray,
+                    cross_out: np.ndarray, prior_out: np.ndarray) -> None:
+    """Every covariance one local GP problem needs, in one call: what
+    ``gpocc.gp.expected.expected_kernel_matrix``, ``expected_kernel_cross`` and the
+    kernel's ``diag`` give, for N points that all share one 2-D rule (``unit`` (L, 2),
+    ``weights`` (L,); one node at the mean for zero covariances or level 1).
+
+    k_out (N, N): the expected training matrix (product rule, same-scan pairs by the 4-D
+    rule ``unit4``/``weights4`` when ``correlated`` and L > 1, one-point diagonal) plus
+    ``diagonal`` on the diagonal; cross_out (Q, N): expected cross-covariances of the exact
+    (Q, 2) ``queries``; prior_out (Q,): k(q, q). A map anchor made a dozen calls for
+    these, whose glue (checks, node cache, scaling, the diagonal, symmetrising) cost
+    about a sixth of the anchor.
+    """
+    n = means.shape[0]
+    size = unit.shape[0]
+    total = n * size
+    nodes = gaussian_nodes_2d(means, covariances, unit)
+    u = np.empty((3, total))
+    for m in range(total):
+        u[0, m], u[1, m], u[2, m], _ = _scaled_row(nodes[0, m], nodes[1, m], root)
+    node_weights = np.empty(total)
+    starts = np.empty(n + 1, dtype=np.intp)
+    for i in range(n):
+        starts[i] = i * size
+        for k in range(size):
+            node_weights[i * size + k] = weights[k]
+    starts[n] = total
+    nn_matrix(u, node_weights, starts, scale, k_out)
+    for i in range(n):
+        acc = 0.0
+        for k in range(size):
+            m = i * size + k
+            acc += weights[k] * _asin(_clip(u[0, m] * u[0, m] + u[1, m] * u[1, m]
+                                            + u[2, m] * u[2, m]))
+        k_out[i, i] = scale * acc + diagonal
+    if correlated and size > 1:
+        first, second = correlated_pairs(covariances, scan_ids, pose_factors, pose_share_min,
+                                         zero_variance)
+        if first.shape[0]:
+            values = np.empty((1, first.shape[0]))
+            nn_same_scan_pairs(means, covariances, pose_factors, first, second, unit4,
+                               weights4, root, scale, 1.0, values, False, False)
+            for p in range(first.shape[0]):
+                k_out[first[p], second[p]] = values[0, p]
+                k_out[second[p], first[p]] = values[0, p]
+    rows = queries.shape[0]
+    q = np.empty((3, rows))
+    for r in range(rows):
+        q0, q1, q2, _ = _scaled_row(queries[r, 0], queries[r, 1], root)
+        q[0, r], q[1, r], q[2, r] = q0, q1, q2
+        prior_out[r] = scale * _asin(_clip(q0 * q0 + q1 * q1 + q2 * q2))
+    nn_cross(q, u, node_weights, starts, scale, cross_out)

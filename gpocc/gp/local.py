@@ -16,7 +16,11 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 from scipy.spatial import cKDTree
 
 from gpocc.errors import GpoccError
-from gpocc.gp.expected import expected_kernel_cross, expected_kernel_matrix
+from gpocc.gp.expected import (
+    expected_kernel_cross,
+    expected_kernel_matrix,
+    expected_local_system,
+)
 from gpocc.gp.kernels import Kernel
 from gpocc.samples.sampleset import SampleSet
 
@@ -180,16 +184,25 @@ def predict_local(
     if len(samples) == 0:
         prior = kernel.diag(local_queries)
         return Prediction(mean=np.zeros(len(local_queries)), variance=prior, prior_variance=prior)
-    chol = factor_training_covariance(kernel, noise_variance, samples, level)
-    k_cross = expected_kernel_cross(
-        kernel, local_queries, samples.means, samples.covariances, level
-    )
+    system = expected_local_system(
+        kernel, samples.means, samples.covariances, local_queries, level,
+        noise_variance + _JITTER, scan_ids=samples.scan_ids, pose_factors=samples.pose_factors)
+    chol = None
+    if system is not None:
+        k, k_cross, prior = system
+        chol = try_cholesky(k)
+    if chol is None:  # no compiled path, or the fallbacks of factor_training_covariance
+        chol = factor_training_covariance(kernel, noise_variance, samples, level)
+    if system is None:
+        k_cross = expected_kernel_cross(
+            kernel, local_queries, samples.means, samples.covariances, level
+        )
+        prior = kernel.diag(local_queries)
     alpha = cholesky_solve(chol, samples.labels)
     mean = k_cross @ alpha
     # v = k_cross L^-T (Q, M) from the right, in k_cross's own row-major layout: half
     # the time of solving L v' = k_cross' (no transposed copies).
     v = dtrsm(1.0, chol, k_cross, side=1, lower=1, trans_a=1)
-    prior = kernel.diag(local_queries)
     variance = prior - np.einsum("ij,ij->i", v, v)
     return Prediction(mean=mean, variance=np.maximum(variance, 0.0), prior_variance=prior)
 
