@@ -1,6 +1,7 @@
 """Benchmark harness: wall time, CPU time and peak memory of each stage on the Intel log,
 against OctoMap on the same scans, and a campus-sized case.
 
+``gpocc build`` (train and map in one process) is measured beside the two commands.
 Run ``make bench`` (or ``.venv/bin/python bench/run_bench.py [--quick] [--no-campus]``).
 Each command runs as its own process, as a user would run it; peak memory is the sampled
 maximum of the summed resident set of the process and its children (map workers
@@ -102,6 +103,11 @@ def stage_times(stdout: str) -> str:
     return match.group(1) if match else ""
 
 
+def build_stage_times(stdout: str) -> str:
+    """The train and map stage lines of ``gpocc build``, as one."""
+    return "; ".join(re.findall(r"^stages: (.*)$", stdout, re.MULTILINE))
+
+
 def run_method(work: Path, method: str, config: Path, resolution: float) -> list[tuple]:
     """Rows (stage, Measurement, detail) for one method: grid, gp-no-noise or gp."""
     out = work / f"{method}-{config.stem}-{resolution}"
@@ -109,6 +115,11 @@ def run_method(work: Path, method: str, config: Path, resolution: float) -> list
         m = measure([*GPOCC, "grid", str(INTEL), "--config", str(config), "--resolution",
                      str(resolution), "--out", str(out), "--force"])
         return [("grid", m, "")]
+    if method == "gp (build)":
+        m = measure([*GPOCC, "build", str(INTEL), "--config", str(config), "--resolution",
+                     str(resolution), "--out", str(work / f"build-{config.stem}-{resolution}"),
+                     "--force"])
+        return [("build (train + map, one process)", m, build_stage_times(m.stdout))]
     noise = "off" if method == "gp-no-noise" else "on"
     model = work / f"{method}-{config.stem}.npz"
     train = measure([*GPOCC, "train", str(INTEL), "--config", str(config), "--out", str(model),
@@ -155,6 +166,8 @@ def campus(work: Path) -> None:
         on_dask = measure([*GPOCC, "map", str(model), "--resolution", "0.1", "--out",
                            str(dask_out), "--force", "--scheduler", cluster.scheduler_address])
     identical = same_rasters(local_out, dask_out)
+    built = measure([*GPOCC, "build", *map(str, logs), "--config", str(config), "--resolution",
+                     "0.1", "--out", str(work / "campus-build"), "--force", "--workers", "2"])
     total = train.wall_s + mapped.wall_s
     rows = [
         ["gp", "train", f"{train.wall_s:.1f}", f"{train.cpu_s:.1f}", f"{train.peak_mib:.0f}",
@@ -168,6 +181,9 @@ def campus(work: Path) -> None:
          stage_times(octo.stdout)],
         ["gp", "**train + map**", f"{total:.1f}", "", "",
          f"{total / octo.wall_s:.1f} x OctoMap"],
+        ["gp", "**build (train + map, one process)**", f"{built.wall_s:.1f}",
+         f"{built.cpu_s:.1f}", f"{built.peak_mib:.0f}",
+         f"{built.wall_s / octo.wall_s:.1f} x OctoMap; " + build_stage_times(built.stdout)],
     ]
     print(f"\n## Campus: {len(logs)} buildings, {scans} scans, 0.1 m\n")
     print("Dask CPU time and memory are the client's only (the cluster runs in the bench's "
@@ -198,7 +214,7 @@ def main() -> None:
             return
         base = write_config(work, "intel")
         rows, totals = [], {}
-        for method in ("grid", "gp-no-noise", "gp"):
+        for method in ("grid", "gp-no-noise", "gp", "gp (build)"):
             for stage, m, detail in run_method(work, method, base, 0.1):
                 rows.append([method, stage, f"{m.wall_s:.1f}", f"{m.cpu_s:.1f}",
                              f"{m.peak_mib:.0f}", detail])
@@ -207,7 +223,7 @@ def main() -> None:
         rows.append(["octomap", "build", f"{octo.wall_s:.1f}", f"{octo.cpu_s:.1f}",
                      f"{octo.peak_mib:.0f}", stage_times(octo.stdout)])
         totals["octomap"] = octo.wall_s
-        for method in ("grid", "gp-no-noise", "gp", "octomap"):
+        for method in ("grid", "gp-no-noise", "gp", "gp (build)", "octomap"):
             rows.append([method, "**total**", f"{totals[method]:.1f}", "", "",
                          f"{totals[method] / totals['grid']:.1f} x grid, "
                          f"{totals[method] / totals['octomap']:.1f} x OctoMap"])
