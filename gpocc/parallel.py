@@ -7,6 +7,7 @@ killed outright (``PR_SET_PDEATHSIG`` on Linux, and a thread polling the parent 
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
 import multiprocessing
@@ -15,7 +16,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from gpocc.blas import single_threaded_blas
@@ -84,30 +85,33 @@ def worker_pool(workers: int, initializer: Callable[..., None],
 
 
 @contextlib.contextmanager
-def prefetched(items: Iterator[Any]) -> Iterator[Iterator[Any]]:
-    """``items`` with the next one produced on a helper thread while the caller works on
-    the current one: two pipeline stages on two cores when the producer releases the
-    GIL (compiled ``nogil`` loops, numpy's large operations). Same items, same order;
-    an exception of the producer is raised where its item would have been. The thread
-    has ended when the block exits, so that no fork (worker pools) happens beside it.
+def thread_map(fn: Callable[[Any], Any], items: Iterable[Any],
+               workers: int) -> Iterator[Iterator[Any]]:
+    """``fn(item)`` of every item, in order, computed on ``workers`` helper threads while
+    the caller works on earlier results: parallel when ``fn`` mostly runs without the GIL
+    (compiled ``nogil`` loops, numpy's sorts and large operations). Items are drawn on
+    the caller's thread, at most ``workers`` ahead of the result it holds, which bounds
+    memory. An exception of ``fn`` is raised where its result would have been. The
+    threads have ended when the block exits, so that no fork (worker pools) happens
+    beside them.
     """
-    from concurrent.futures import ThreadPoolExecutor
+    from concurrent.futures import Future, ThreadPoolExecutor
 
-    done = object()
-
-    def produce() -> Any:
-        return next(items, done)
-
-    with ThreadPoolExecutor(1, thread_name_prefix="gpocc-prefetch") as pool:
+    workers = max(1, workers)
+    with ThreadPoolExecutor(workers, thread_name_prefix="gpocc-thread") as pool:
+        pending: collections.deque[Future] = collections.deque()
 
         def generate() -> Iterator[Any]:
-            future = pool.submit(produce)
-            while True:
-                item = future.result()
-                if item is done:
-                    return
-                future = pool.submit(produce)
-                yield item
+            try:
+                for item in items:
+                    pending.append(pool.submit(fn, item))
+                    if len(pending) > workers:
+                        yield pending.popleft().result()
+                while pending:
+                    yield pending.popleft().result()
+            finally:
+                for future in pending:
+                    future.cancel()
 
         stream = generate()
         try:

@@ -1,4 +1,4 @@
-"""gpocc.parallel.prefetched: a producer one item ahead on a helper thread."""
+"""gpocc.parallel.thread_map: fn over items on helper threads, results in order."""
 
 from __future__ import annotations
 
@@ -6,53 +6,76 @@ import threading
 
 import pytest
 
-from gpocc.parallel import prefetched
+from gpocc.parallel import thread_map
 
 
 def _threads() -> set[str]:
     return {t.name for t in threading.enumerate()}
 
 
-def test_same_items_in_order_and_produced_ahead() -> None:
-    produced: list[int] = []
-    reached = [threading.Event() for _ in range(7)]
+def _no_helper_left() -> bool:
+    return not any(name.startswith("gpocc-thread") for name in _threads())
+
+
+def test_results_in_order_from_concurrent_calls_at_most_workers_ahead() -> None:
+    drawn: list[int] = []
+    # Two calls must be under way at once, or neither passes the barrier.
+    barrier = threading.Barrier(2, timeout=10.0)
 
     def items():
-        for k in range(6):
-            produced.append(k)
-            reached[k].set()
+        for k in range(9):
+            drawn.append(k)
             yield k
 
+    def square(k: int) -> int:
+        if k < 2:
+            barrier.wait()
+        return k * k
+
     seen = []
-    with prefetched(items()) as stream:
-        for item in stream:
-            seen.append(item)
-            if item < 5:
-                # while the caller holds item k, the helper produces k + 1 by itself...
-                assert reached[item + 1].wait(timeout=10.0)
-            # ...and goes no further
-            assert len(produced) - 1 - item <= 1
-    assert seen == list(range(6))
-    assert not any(name.startswith("gpocc-prefetch") for name in _threads())
+    with thread_map(square, items(), workers=2) as results:
+        for result in results:
+            seen.append(result)
+            # the items drawn never run more than `workers` ahead of the result held
+            assert len(drawn) - len(seen) <= 2
+    assert seen == [k * k for k in range(9)]
+    assert _no_helper_left()
 
 
-def test_producer_error_is_raised_in_place_and_the_thread_ends() -> None:
-    def items():
-        yield 1
-        raise ValueError("scan 7 is bad")
+def test_an_error_is_raised_in_place_and_the_threads_end() -> None:
+    def fn(k: int) -> int:
+        if k == 3:
+            raise ValueError("scan 7 is bad")
+        return k
 
     seen = []
     with pytest.raises(ValueError, match="scan 7 is bad"):
-        with prefetched(items()) as stream:
-            for item in stream:
-                seen.append(item)
-    assert seen == [1]
-    assert not any(name.startswith("gpocc-prefetch") for name in _threads())
+        with thread_map(fn, range(10), workers=2) as results:
+            for result in results:
+                seen.append(result)
+    assert seen == [0, 1, 2]
+    assert _no_helper_left()
 
 
-def test_consumer_stopping_early_ends_the_thread() -> None:
-    with prefetched(iter(range(100))) as stream:
-        for item in stream:
-            if item == 3:
+def test_consumer_stopping_early_ends_the_threads_and_draws_no_more() -> None:
+    drawn: list[int] = []
+
+    def items():
+        for k in range(100):
+            drawn.append(k)
+            yield k
+
+    with thread_map(lambda k: k, items(), workers=2) as results:
+        for result in results:
+            if result == 3:
                 break
-    assert not any(name.startswith("gpocc-prefetch") for name in _threads())
+    assert _no_helper_left()
+    assert len(drawn) <= 6
+
+
+def test_one_worker_and_no_items() -> None:
+    with thread_map(lambda k: -k, range(4), workers=1) as results:
+        assert list(results) == [0, -1, -2, -3]
+    with thread_map(lambda k: k, [], workers=2) as results:
+        assert list(results) == []
+    assert _no_helper_left()

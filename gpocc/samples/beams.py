@@ -11,7 +11,9 @@ of one scan keep their shared pose error (see :class:`~gpocc.samples.sampleset.S
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
+import functools
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -20,7 +22,7 @@ from gpocc.config import Config, SamplesConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 from gpocc.limits import MAX_SAMPLES_PER_SCAN
-from gpocc.parallel import prefetched
+from gpocc.parallel import default_workers, thread_map
 from gpocc.samples import beam
 from gpocc.samples.beam_unscented import beam_unscented
 from gpocc.samples.sampleset import SampleSet, has_both_labels
@@ -78,7 +80,9 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
 
     Thinning (``samples.thin_cell_m > 0``): see :func:`thin_samples`; applied as the
     chunks arrive, which gives the same result as thinning the whole set at the end
-    (``tests/test_beams.py`` checks it). Then ``samples.min_label_share`` (see
+    (``tests/test_beams.py`` checks it). Chunks (their unscented transform, thinning and
+    label counts) are computed on one thread per core and consumed in order, so the
+    result does not depend on the number of cores. Then ``samples.min_label_share`` (see
     ``SamplesConfig``) and ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)
     drop samples of the whole set.
 
@@ -108,21 +112,29 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     # thinned chunks have grown to twice what it held, which keeps the work linear.
     thinned_size, pending = 0, 0
     votes = LabelVotes(thin_cell) if thin_cell > 0 and min_share > 0 else None
+
+    def chunk(job: Callable[[], SampleSet]) -> tuple[SampleSet, int, np.ndarray | None,
+                                                     np.ndarray | None]:
+        # On a helper thread: the unscented transform (compiled, GIL-free), then the
+        # chunk's thinning and label counts from one sort.
+        part = job()
+        if thin_cell <= 0:
+            return part, len(part), None, None
+        kept, keys, counts = _thinned(part, thin_cell)
+        return part.subset(kept), len(part), keys, counts
+
     offset = 0
     for batch in batches:
         sensor = beam.sensor_config(batch, config)
         sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
         n_batch = 0
-        # The next chunk's unscented transform (compiled, GIL-free) runs while this chunk
-        # is thinned and counted.
-        with prefetched(_batch_samples(batch, sensor, config.samples, offset,
-                                       sensor_id)) as chunks:
-            for part in chunks:
-                n_batch += len(part)
+        jobs = _batch_chunks(batch, sensor, config.samples, offset, sensor_id)
+        with thread_map(chunk, jobs, default_workers()) as chunks:
+            for part, raw, keys, counts in chunks:
+                n_batch += raw
                 if votes is not None:
-                    votes.add(part)
+                    votes.add_counts(keys, counts)
                 if thin_cell > 0:
-                    part = thin_samples(part, thin_cell)
                     pending += len(part)
                     parts.append(part)
                     if pending > max(thinned_size, CHUNK_SAMPLES):
@@ -216,12 +228,15 @@ class LabelVotes:
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
         self._pending_size = 0
 
+    def _too_far(self) -> GpoccError:
+        return GpoccError(
+            f"training samples lie more than {2**30 * self.cell_m:.3g} m from the map "
+            f"origin; check the poses' units or raise samples.thin_cell_m")
+
     def _keys(self, samples: SampleSet) -> np.ndarray:
         keys = _cell_label_keys(_cells(samples, self.cell_m), samples.labels)
         if keys is None:
-            raise GpoccError(
-                f"training samples lie more than {2**30 * self.cell_m:.3g} m from the map "
-                f"origin; check the poses' units or raise samples.thin_cell_m")
+            raise self._too_far()
         return keys
 
     @staticmethod
@@ -235,7 +250,13 @@ class LabelVotes:
         """Count a chunk of samples."""
         if len(samples) == 0:
             return
-        keys, counts = self._reduce(self._keys(samples), np.ones(len(samples), np.int64))
+        self.add_counts(*self._reduce(self._keys(samples), np.ones(len(samples), np.int64)))
+
+    def add_counts(self, keys: np.ndarray | None, counts: np.ndarray | None) -> None:
+        """Add ``counts`` samples of each (cell, label) key (:func:`_thinned`'s groups;
+        None: cells too far out to have keys)."""
+        if keys is None or counts is None:
+            raise self._too_far()
         self._pending.append((keys, counts))
         self._pending_size += len(keys)
         if self._pending_size > max(len(self.keys), 1 << 16):
@@ -277,6 +298,16 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     """
     if cell_m <= 0 or len(samples) == 0:
         return samples
+    return samples.subset(_thinned(samples, cell_m)[0])
+
+
+def _thinned(samples: SampleSet, cell_m: float
+             ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """:func:`thin_samples`' kept indices (ascending), with the (cell, label) keys of the
+    groups (:func:`_cell_label_keys`, ascending) and their sample counts; the keys and
+    counts are None for cells past 2**30 or non-finite traces."""
+    if len(samples) == 0:
+        return np.zeros(0, dtype=np.intp), np.zeros(0, np.int64), np.zeros(0, np.int64)
     cells = _cells(samples, cell_m)
     # Traces are compared in single precision (7 significant digits): samples of one scan
     # at the same distance along different beams have mathematically equal traces, and
@@ -285,7 +316,7 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     trace = (samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]).astype(np.float32)
     keys = _cell_label_keys(cells, samples.labels)
     if keys is None or not np.isfinite(trace).all():
-        return samples.subset(_thin_by_lexsort(cells, trace, samples.labels))
+        return _thin_by_lexsort(cells, trace, samples.labels), None, None
     # One sort by (cell, label) key, then each group's smallest trace and, among the
     # samples that have it, the smallest index: the sort need not be stable, so numpy's
     # SIMD sort serves (a tenth of the time of the three-key lexsort it replaces).
@@ -295,7 +326,7 @@ def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
     sizes = np.diff(np.append(starts, len(order)))
     at_min = sorted_trace == np.repeat(np.minimum.reduceat(sorted_trace, starts), sizes)
     earliest = np.minimum.reduceat(np.where(at_min, order, len(order)), starts)
-    return samples.subset(np.sort(earliest))
+    return np.sort(earliest), sorted_keys[starts], sizes
 
 
 def _thin_by_lexsort(cells: np.ndarray, trace: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -327,14 +358,15 @@ def _check_scan_sizes(batch: ScanBatch, per_scan: np.ndarray, hits: np.ndarray,
     )
 
 
-def _batch_samples(
+def _batch_chunks(
     batch: ScanBatch,
     sensor: SensorConfig,
     cfg: SamplesConfig,
     scan_offset: int,
     sensor_id: int,
-) -> Iterator[SampleSet]:
-    """The samples of one batch, in chunks of whole scans (about CHUNK_SAMPLES each)."""
+) -> Iterator[Callable[[], SampleSet]]:
+    """The samples of one batch, in chunks of whole scans (about CHUNK_SAMPLES each):
+    each item computes its chunk when called (the unscented transform, on any thread)."""
     scans = np.arange(0, batch.n_scans, cfg.scan_stride)
     beams = np.arange(0, batch.n_beams, cfg.beam_stride)
     ranges = np.asarray(batch.ranges, dtype=float)[np.ix_(scans, beams)]
@@ -363,47 +395,76 @@ def _batch_samples(
     chunk_of_scan = (np.cumsum(per_scan) - per_scan) // CHUNK_SAMPLES
     bounds = np.concatenate(([0], np.flatnonzero(np.diff(chunk_of_scan)) + 1, [len(scans)]))
 
-    mount = beam.mount_vector(sensor)
-    var_r_hit = float(sensor.range_variance_m2)
-    sd_b = float(np.sqrt(sensor.bearing_variance_rad2))
-    ut = cfg.unscented
-
+    plan = _BatchPlan(
+        scan_index=scans, ranges=ranges, angles=angles, poses=poses, pose_root=pose_root,
+        pose_map=pose_map, is_hit=is_hit, n_free=n_free, mount=beam.mount_vector(sensor),
+        var_r_hit=float(sensor.range_variance_m2), var_b=float(sensor.bearing_variance_rad2),
+        cfg=cfg, scan_offset=scan_offset, sensor_id=sensor_id)
     for s0, s1 in zip(bounds[:-1], bounds[1:], strict=True):
-        hit_scan, hit_beam = np.nonzero(is_hit[s0:s1])
-        counts = n_free[s0:s1].ravel()
-        flat = np.repeat(np.arange(counts.size), counts)
-        first = np.cumsum(counts) - counts
-        k = np.arange(flat.size) - np.repeat(first, counts) + 1
-        free_scan, free_beam = np.divmod(flat, len(beams))
-        n_hit, n_free_chunk = hit_scan.size, flat.size
-        n = n_hit + n_free_chunk
-        if n == 0:
-            continue
-        scan_local = np.concatenate((hit_scan, free_scan)) + s0
-        beam_local = np.concatenate((hit_beam, free_beam))
-        dist = np.concatenate((ranges[hit_scan + s0, hit_beam], k * cfg.free_spacing_m))
+        yield functools.partial(_chunk_samples, plan, int(s0), int(s1))
 
-        var_r = np.zeros(n)
-        var_r[:n_hit] = var_r_hit
-        if cfg.free_range_variance:
-            # Free samples of beams that hit carry the beam's range variance too.
-            beam_hit = is_hit[free_scan + s0, free_beam]
-            var_r[n_hit:] = np.where(beam_hit, var_r_hit, 0.0)
-        # The compiled transform uses the block-diagonal root (range, bearing, then the
-        # pose's L) directly, which keeps the pose sigma points along the columns of L
-        # (the A_i identity in build_samples' docstring).
-        y_mean, y_cov, factors = beam_unscented(
-            dist, angles[beam_local], var_r, sd_b**2, scan_local, poses, pose_root,
-            pose_map, mount, ut.alpha, ut.beta, ut.kappa,
-        )
 
-        labels = np.full(n, -1.0)
-        labels[:n_hit] = 1.0
-        yield SampleSet(
-            means=y_mean,
-            covariances=y_cov,
-            labels=labels,
-            scan_ids=(scans[scan_local] + scan_offset).astype(np.int64),
-            pose_factors=factors,
-            sensor_ids=np.full(n, sensor_id, dtype=np.int16),
-        )
+@dataclass(frozen=True)
+class _BatchPlan:
+    """What every chunk of one batch reads (:func:`_batch_chunks`); shared, never written.
+
+    scan_index (S,): the batch's scans used; ranges (S, B) metres and angles (B,) rad of
+    the beams used; poses (S, 3); pose_root and pose_map (S, 3, 3); is_hit (S, B);
+    n_free (S, B) free samples per beam; mount (3,); var_r_hit m^2, var_b rad^2.
+    """
+
+    scan_index: np.ndarray
+    ranges: np.ndarray
+    angles: np.ndarray
+    poses: np.ndarray
+    pose_root: np.ndarray
+    pose_map: np.ndarray
+    is_hit: np.ndarray
+    n_free: np.ndarray
+    mount: np.ndarray
+    var_r_hit: float
+    var_b: float
+    cfg: SamplesConfig
+    scan_offset: int
+    sensor_id: int
+
+
+def _chunk_samples(plan: _BatchPlan, s0: int, s1: int) -> SampleSet:
+    """The samples of scans ``s0:s1`` of ``plan`` (hits first, then free samples, each in
+    (scan, beam, distance) order); on any thread."""
+    cfg = plan.cfg
+    hit_scan, hit_beam = np.nonzero(plan.is_hit[s0:s1])
+    counts = plan.n_free[s0:s1].ravel()
+    flat = np.repeat(np.arange(counts.size), counts)
+    first = np.cumsum(counts) - counts
+    k = np.arange(flat.size) - np.repeat(first, counts) + 1
+    free_scan, free_beam = np.divmod(flat, plan.angles.size)
+    n_hit = hit_scan.size
+    n = n_hit + flat.size
+    scan_local = np.concatenate((hit_scan, free_scan)) + s0
+    beam_local = np.concatenate((hit_beam, free_beam))
+    dist = np.concatenate((plan.ranges[hit_scan + s0, hit_beam], k * cfg.free_spacing_m))
+    var_r = np.zeros(n)
+    var_r[:n_hit] = plan.var_r_hit
+    if cfg.free_range_variance:
+        # Free samples of beams that hit carry the beam's range variance too.
+        beam_hit = plan.is_hit[free_scan + s0, free_beam]
+        var_r[n_hit:] = np.where(beam_hit, plan.var_r_hit, 0.0)
+    labels = np.full(n, -1.0)
+    labels[:n_hit] = 1.0
+    ut = cfg.unscented
+    # The compiled transform uses the block-diagonal root (range, bearing, then the
+    # pose's L) directly, which keeps the pose sigma points along the columns of L
+    # (the A_i identity in build_samples' docstring).
+    y_mean, y_cov, factors = beam_unscented(
+        dist, plan.angles[beam_local], var_r, plan.var_b, scan_local, plan.poses,
+        plan.pose_root, plan.pose_map, plan.mount, ut.alpha, ut.beta, ut.kappa,
+    )
+    return SampleSet(
+        means=y_mean,
+        covariances=y_cov,
+        labels=labels,
+        scan_ids=(plan.scan_index[scan_local] + plan.scan_offset).astype(np.int64),
+        pose_factors=factors,
+        sensor_ids=np.full(n, plan.sensor_id, dtype=np.int16),
+    )
