@@ -20,6 +20,7 @@ def summed_weights(lattice: AnchorLattice) -> tuple[np.ndarray, np.ndarray]:
     for r in range(rows):
         for c in range(cols):
             block, weight = lattice.footprint(Anchor(r, c))
+            assert lattice.footprint_block(Anchor(r, c)) == block
             window = (slice(block.row0, block.row0 + block.rows),
                       slice(block.col0, block.col0 + block.cols))
             assert np.all((weight >= 0) & (weight <= 1))

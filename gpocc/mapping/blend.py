@@ -48,7 +48,7 @@ def supported_anchors(lattice: AnchorLattice, anchors: list[Anchor], mask: np.nd
     and holds every footprint."""
     kept, skipped = [], []
     for anchor in anchors:
-        fp, _ = lattice.footprint(anchor)
+        fp = lattice.footprint_block(anchor)
         inside = mask[fp.row0 - row0:fp.row0 + fp.rows - row0,
                       fp.col0 - col0:fp.col0 + fp.cols - col0]
         if inside.any():

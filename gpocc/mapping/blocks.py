@@ -140,10 +140,18 @@ class AnchorLattice:
 
     def footprint(self, anchor: Anchor) -> tuple[Block, np.ndarray]:
         """The cells where ``anchor``'s weight is positive, and the (rows, cols) weights."""
-        n_rows, n_cols = self.shape
-        r0, wr = _axis(self.cells, anchor.row, self.spec.height, n_rows, self.blend)
-        c0, wc = _axis(self.cells, anchor.col, self.spec.width, n_cols, self.blend)
+        (r0, wr), (c0, wc) = self._axes(anchor)
         return Block(r0, c0, len(wr), len(wc)), np.outer(wr, wc)
+
+    def footprint_block(self, anchor: Anchor) -> Block:
+        """The block of :meth:`footprint` alone (no weights: a third of its time)."""
+        (r0, wr), (c0, wc) = self._axes(anchor)
+        return Block(r0, c0, len(wr), len(wc))
+
+    def _axes(self, anchor: Anchor) -> tuple[tuple[int, np.ndarray], tuple[int, np.ndarray]]:
+        n_rows, n_cols = self.shape
+        return (_axis(self.cells, anchor.row, self.spec.height, n_rows, self.blend),
+                _axis(self.cells, anchor.col, self.spec.width, n_cols, self.blend))
 
     def anchors_over(self, block: Block) -> list[Anchor]:
         """Anchors whose footprint meets ``block`` (row-major order)."""
@@ -155,7 +163,7 @@ class AnchorLattice:
         out = []
         for r in rows:
             for c in cols:
-                fp, _ = self.footprint(Anchor(r, c))
+                fp = self.footprint_block(Anchor(r, c))
                 if (fp.row0 < block.row0 + block.rows and block.row0 < fp.row0 + fp.rows
                         and fp.col0 < block.col0 + block.cols and block.col0 < fp.col0 + fp.cols):
                     out.append(Anchor(r, c))
