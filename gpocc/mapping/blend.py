@@ -19,7 +19,7 @@ import numpy as np
 
 from gpocc.gridspec import GridSpec
 from gpocc.mapping.blocks import Anchor, AnchorLattice, Block
-from gpocc.mapping.executors import run_anchors
+from gpocc.mapping.executors import AnchorExecutor, run_anchors
 from gpocc.mapping.support import Support
 
 
@@ -68,9 +68,12 @@ def predict_tile(
     workers: int = 1,
     scheduler: str | None = None,
     progress: Callable[[int], None] | None = None,
+    executor: AnchorExecutor | None = None,
 ) -> TileLayers:
     """Blend the anchors over the tile ``window`` whose top-left cell is (row0, col0) of
-    ``lattice.spec``; ``progress(n)`` counts the tile's own anchors (one per block)."""
+    ``lattice.spec``; ``progress(n)`` counts the tile's own anchors (one per block).
+    ``executor`` runs the anchors (one for every tile of a map); without it, ``workers``
+    and ``scheduler`` choose a new one for this tile."""
     tile = Block(row0, col0, window.height, window.width)
     anchors = lattice.anchors_over(tile)
     cells = lattice.cells
@@ -99,7 +102,9 @@ def predict_tile(
     sum_mean = np.zeros(window.shape)
     sum_variance = np.zeros(window.shape)
     sum_prior = np.zeros(window.shape)
-    for result in run_anchors(model, lattice, anchors, workers, scheduler):
+    results = (executor.run(lattice, anchors) if executor is not None
+               else run_anchors(model, lattice, anchors, workers, scheduler))
+    for result in results:
         b = result.block
         r_lo, r_hi = max(b.row0, row0), min(b.row0 + b.rows, row0 + tile.rows)
         c_lo, c_hi = max(b.col0, col0), min(b.col0 + b.cols, col0 + tile.cols)

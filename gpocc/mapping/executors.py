@@ -2,25 +2,31 @@
 
 Anchors are independent and each is computed by the same deterministic code, so every
 executor gives bit-identical results. Workers receive the model once (process
-initialiser, or a Dask scatter) and build their own neighbour index.
+initialiser, or a Dask scatter) and build their own neighbour index; a map opens one
+executor for all its tiles (:func:`anchor_executor`), whose local workers load the
+compiled kernels as they start.
 
 Local workers never outlive a run (:func:`gpocc.parallel.worker_pool`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 
 from gpocc.blas import single_threaded_blas
 from gpocc.errors import GpoccError
-from gpocc.gp.local import NeighbourIndex
+from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
 from gpocc.mapping.blocks import Anchor, AnchorLattice, AnchorResult, predict_anchor
 from gpocc.parallel import worker_pool
 
 _worker_state: dict[str, object] = {}
+
+#: Anchors per task sent to a worker.
+ANCHORS_PER_CHUNK = 8
 
 
 def _chunks(anchors: list[Anchor], size: int) -> list[list[Anchor]]:
@@ -49,10 +55,87 @@ def compute_chunk(model: GPModel, lattice: AnchorLattice,
 def _init_worker(model: GPModel) -> None:
     # gpocc.parallel's initialiser has made BLAS single-threaded for this process.
     _worker_state.update(process_model=model, single_threaded=True)
+    # Load the compiled kernels now, while the parent lays out the tile (numba's first
+    # call in a process loads its registries: about 0.45 s) and build the index. A
+    # failure here would make the pool restart the worker forever; the anchors that
+    # meet the same problem report it.
+    with contextlib.suppress(Exception):
+        warm_up(model)
+
+
+def warm_up(model: GPModel) -> None:
+    """Predict one query from the neighbourhood of the first sample: loads every compiled
+    kernel and LAPACK routine a map anchor uses, and the neighbour index."""
+    if len(model.samples) == 0:
+        return
+    index = _index_for(model)
+    centre = model.samples.means[0]
+    problem = index.problem(centre, model.config.model.neighbours)
+    predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level)
 
 
 def _compute_in_worker(lattice: AnchorLattice, chunk: list[Anchor]) -> list[AnchorResult]:
     return compute_chunk(_worker_state["process_model"], lattice, chunk)
+
+
+class AnchorExecutor:
+    """Runs anchors of one model: serially, on a pool of local processes, or on Dask
+    (:func:`anchor_executor`). The workers (and the model's copy on a cluster) last for
+    every call of :meth:`run`, so a map of many tiles starts them once."""
+
+    def __init__(self, model: GPModel, pool=None, client=None, model_future=None) -> None:
+        self.model = model
+        self._pool = pool
+        self._client = client
+        self._model_future = model_future
+
+    def run(self, lattice: AnchorLattice, anchors: list[Anchor],
+            chunk_size: int = ANCHORS_PER_CHUNK,
+            on_done: Callable[[int], None] | None = None) -> Iterator[AnchorResult]:
+        """Yield the result of every anchor (in ``anchors`` order); ``on_done(n)`` after
+        each chunk with the number of anchors it held."""
+        chunks = _chunks(anchors, chunk_size)
+        if self._client is not None:
+            futures = [self._client.submit(compute_chunk, self._model_future, lattice, chunk,
+                                           pure=False) for chunk in chunks]
+            results: Iterator[list[AnchorResult]] = (f.result() for f in futures)
+        elif self._pool is not None:
+            results = self._pool.imap(functools.partial(_compute_in_worker, lattice), chunks)
+        else:
+            results = (compute_chunk(self.model, lattice, chunk) for chunk in chunks)
+        for chunk, done in zip(chunks, results, strict=True):
+            yield from done
+            if on_done:
+                on_done(len(chunk))
+
+
+@contextlib.contextmanager
+def anchor_executor(model: GPModel, workers: int = 1,
+                    scheduler: str | None = None) -> Iterator[AnchorExecutor]:
+    """An :class:`AnchorExecutor` for ``model``: ``scheduler`` (``tcp://HOST:PORT``) sends
+    chunks to a Dask distributed cluster; otherwise ``workers`` > 1 starts that many local
+    processes (at once: they load the compiled kernels while the caller prepares its
+    anchors) and 1 runs in this process."""
+    if scheduler:
+        from distributed import Client
+
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError) as exc:
+            raise GpoccError(
+                f"cannot reach the Dask scheduler at {scheduler} ({exc}); check the address"
+            ) from None
+        try:
+            yield AnchorExecutor(model, client=client,
+                                 model_future=client.scatter(model, broadcast=True))
+        finally:
+            client.close()
+        return
+    if workers <= 1:
+        yield AnchorExecutor(model)
+        return
+    with worker_pool(workers, _init_worker, (model,)) as pool:
+        yield AnchorExecutor(model, pool=pool)
 
 
 def run_anchors(
@@ -61,52 +144,11 @@ def run_anchors(
     anchors: list[Anchor],
     workers: int = 1,
     scheduler: str | None = None,
-    chunk_size: int = 8,
+    chunk_size: int = ANCHORS_PER_CHUNK,
     on_done: Callable[[int], None] | None = None,
 ) -> Iterator[AnchorResult]:
-    """Yield the result of every anchor (in ``anchors`` order).
-
-    ``scheduler`` (``tcp://HOST:PORT``) sends chunks to a Dask distributed cluster;
-    otherwise ``workers`` > 1 uses local processes and 1 runs in this process.
-    ``on_done(n)`` is called after each chunk with the number of anchors it held.
-    """
-    chunks = _chunks(anchors, chunk_size)
-    if scheduler:
-        yield from _run_dask(model, lattice, chunks, scheduler, on_done)
-        return
-    workers = min(workers, len(chunks))  # --workers 10000 must not start 10000 processes
-    if workers <= 1:
-        for chunk in chunks:
-            yield from compute_chunk(model, lattice, chunk)
-            if on_done:
-                on_done(len(chunk))
-        return
-    with worker_pool(workers, _init_worker, (model,)) as pool:
-        results_per_chunk = pool.imap(functools.partial(_compute_in_worker, lattice), chunks)
-        for chunk, results in zip(chunks, results_per_chunk, strict=True):
-            yield from results
-            if on_done:
-                on_done(len(chunk))
-
-
-def _run_dask(model: GPModel, lattice: AnchorLattice, chunks: list[list[Anchor]],
-              scheduler: str,
-              on_done: Callable[[int], None] | None) -> Iterator[AnchorResult]:
-    from distributed import Client
-
-    try:
-        client = Client(scheduler, timeout="10s")
-    except (OSError, TimeoutError) as exc:
-        raise GpoccError(
-            f"cannot reach the Dask scheduler at {scheduler} ({exc}); check the address"
-        ) from None
-    try:
-        model_future = client.scatter(model, broadcast=True)
-        futures = [client.submit(compute_chunk, model_future, lattice, chunk, pure=False)
-                   for chunk in chunks]
-        for chunk, future in zip(chunks, futures, strict=True):
-            yield from future.result()
-            if on_done:
-                on_done(len(chunk))
-    finally:
-        client.close()
+    """Yield the result of every anchor (in ``anchors`` order) on a new
+    :func:`anchor_executor` (at most one local process per chunk)."""
+    workers = min(workers, len(_chunks(anchors, chunk_size)))
+    with anchor_executor(model, workers, scheduler) as executor:
+        yield from executor.run(lattice, anchors, chunk_size, on_done)

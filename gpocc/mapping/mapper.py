@@ -23,6 +23,7 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.mapping.blend import predict_tile
 from gpocc.mapping.blocks import AnchorLattice
+from gpocc.mapping.executors import ANCHORS_PER_CHUNK, anchor_executor
 from gpocc.mapping.folder import MapFolder, folder_metadata
 from gpocc.mapping.support import model_support
 
@@ -78,20 +79,27 @@ def make_map(
     n_blocks = 0
     stages = {"predict": 0.0, "write": 0.0, "finish": 0.0}
 
-    for row0, col0, window in windows:
-        tick = time.perf_counter()
-        layers = predict_tile(model, lattice, row0, col0, window, support, workers,
-                              scheduler, progress)
+    # One set of workers for every tile, started before the first tile is laid out: they
+    # load the compiled kernels meanwhile. No more local processes than chunks of anchors.
+    rows, cols = lattice.shape
+    workers = min(workers, -(-rows * cols // ANCHORS_PER_CHUNK))
+    tick = time.perf_counter()
+    with anchor_executor(model, workers, scheduler) as executor:
         stages["predict"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        n_blocks += layers.anchors
-        probability, unsure = layers.probability, layers.unsure
-        variance = layers.variance.astype(np.float32)
-        classes = classify(probability, occupied, free, unsure)
-        # The preview draws cells too uncertain to classify as no data.
-        folder.add(row0, col0, window, probability, variance, classes,
-                   decided=np.where(unsure, np.nan, probability))
-        stages["write"] += time.perf_counter() - tick
+        for row0, col0, window in windows:
+            tick = time.perf_counter()
+            layers = predict_tile(model, lattice, row0, col0, window, support,
+                                  progress=progress, executor=executor)
+            stages["predict"] += time.perf_counter() - tick
+            tick = time.perf_counter()
+            n_blocks += layers.anchors
+            probability, unsure = layers.probability, layers.unsure
+            variance = layers.variance.astype(np.float32)
+            classes = classify(probability, occupied, free, unsure)
+            # The preview draws cells too uncertain to classify as no data.
+            folder.add(row0, col0, window, probability, variance, classes,
+                       decided=np.where(unsure, np.nan, probability))
+            stages["write"] += time.perf_counter() - tick
 
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     # The preview shows what a user may rely on: cells too uncertain to classify (and so
