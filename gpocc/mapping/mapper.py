@@ -21,6 +21,7 @@ from gpocc.gp.classify import classify
 from gpocc.gp.model import GPModel, kernel_parameters
 from gpocc.gridspec import GridSpec
 from gpocc.io.mapserver import check_map_server_size
+from gpocc.io.rasters import prepare_writer
 from gpocc.mapping.blend import predict_tile
 from gpocc.mapping.blocks import AnchorLattice
 from gpocc.mapping.executors import ANCHORS_PER_CHUNK, anchor_executor
@@ -85,6 +86,8 @@ def make_map(
     workers = min(workers, -(-rows * cols // ANCHORS_PER_CHUNK))
     tick = time.perf_counter()
     with anchor_executor(model, workers, scheduler) as executor:
+        if executor.starting:
+            prepare_writer()  # while the workers load their compiled kernels
         stages["predict"] += time.perf_counter() - tick
         for row0, col0, window in windows:
             tick = time.perf_counter()
