@@ -13,7 +13,7 @@ import time
 
 import typer
 
-from gpocc.commands.map import Scheduler, Workers, check_map_options, echo_map, map_spec, write_map
+from gpocc.commands.map import check_map_options, echo_map, map_spec, write_map
 from gpocc.commands.options import (
     Bounds,
     ConfigFile,
@@ -21,7 +21,10 @@ from gpocc.commands.options import (
     InputNoise,
     Inputs,
     OutFolder,
+    Resolution,
+    Scheduler,
     Seed,
+    Workers,
 )
 from gpocc.commands.train import echo_model, job_config, learn_model
 from gpocc.gp.model import write_model
@@ -33,8 +36,8 @@ MODEL_FILE = "model.npz"
 
 def build(
     inputs: Inputs,
-    resolution: float = typer.Option(..., "--resolution", help="Cell size, metres."),
-    out: OutFolder = ...,
+    resolution: Resolution,
+    out: OutFolder,
     config: ConfigFile = None,
     input_noise: InputNoise = None,
     seed: Seed = None,

@@ -8,7 +8,16 @@ from typing import Annotated
 
 import typer
 
-from gpocc.commands.options import Bounds, Force, OutFolder, check_at_least, check_resolution
+from gpocc.commands.options import (
+    Bounds,
+    Force,
+    OutFolder,
+    Resolution,
+    Scheduler,
+    Workers,
+    check_at_least,
+    check_resolution,
+)
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
@@ -19,16 +28,12 @@ from gpocc.mapping.mapper import MapSummary, default_spec, make_map, map_metadat
 from gpocc.parallel import default_workers
 from gpocc.progress import debug, log, progress_bar
 
-Workers = Annotated[int | None, typer.Option(
-    "--workers", help="Local processes (default: all cores).")]
-Scheduler = Annotated[str | None, typer.Option(
-    "--scheduler", help="Dask scheduler address tcp://HOST:PORT.")]
-
 
 def map_command(
-    model_path: Path = typer.Argument(..., metavar="MODEL", help="Model file from `gpocc train`."),
-    resolution: float = typer.Option(..., "--resolution", help="Cell size, metres."),
-    out: OutFolder = ...,
+    model_path: Annotated[Path, typer.Argument(
+        metavar="MODEL", help="Model file from `gpocc train`.")],
+    resolution: Resolution,
+    out: OutFolder,
     bounds: Bounds = None,
     workers: Workers = None,
     scheduler: Scheduler = None,

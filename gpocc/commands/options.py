@@ -33,6 +33,11 @@ class Switch(StrEnum):
 InputNoise = Annotated[Switch | None, typer.Option(
     "--input-noise", help="on: use sample covariances (default); off: the baseline.")]
 Seed = Annotated[int | None, typer.Option("--seed", help="Overrides the config's seed.")]
+Resolution = Annotated[float, typer.Option("--resolution", help="Cell size, metres.")]
+Workers = Annotated[int | None, typer.Option(
+    "--workers", help="Local processes (default: all cores).")]
+Scheduler = Annotated[str | None, typer.Option(
+    "--scheduler", help="Dask scheduler address tcp://HOST:PORT.")]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
 
