@@ -446,3 +446,18 @@ def test_label_votes_count_every_chunk_against_brute_force():
                     far.pose_factors, far.sensor_ids)
     with pytest.raises(GpoccError, match="thin_cell_m"):
         votes.add(far)
+
+
+def test_label_votes_take_empty_chunks():
+    votes = beams.LabelVotes(0.5)
+    votes.add_counts(np.zeros(0, np.int64), np.zeros(0, np.int64))
+    empty = SampleSet(means=np.zeros((0, 2)), covariances=np.zeros((0, 2, 2)),
+                      labels=np.zeros(0), scan_ids=np.zeros(0, np.int64),
+                      pose_factors=np.zeros((0, 2, 3)), sensor_ids=np.zeros(0, np.int16))
+    votes.add(empty)
+    one = SampleSet(means=np.array([[0.1, 0.2]]), covariances=np.zeros((1, 2, 2)),
+                    labels=np.array([1.0]), scan_ids=np.zeros(1, np.int64),
+                    pose_factors=np.zeros((1, 2, 3)), sensor_ids=np.zeros(1, np.int16))
+    votes.add(one)
+    np.testing.assert_array_equal(votes.share(one), [1.0])
+    assert votes.share(empty).shape == (0,)

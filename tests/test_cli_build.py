@@ -115,3 +115,32 @@ def test_build_of_a_missing_input_leaves_nothing(tmp_path: Path) -> None:
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and "nothing.bag" in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_mapping_a_build_folder_into_itself_keeps_its_model(built, tmp_path: Path) -> None:
+    """`gpocc map OUT/model.npz --out OUT --force` replaces the map, not the model."""
+    out, _ = built
+    folder = tmp_path / "copy"
+    invoke("build", SAMPLE, "--config", SAMPLE_CONFIG, "--resolution", "0.4",
+           "--out", folder, "--workers", "1")
+    model_bytes = (folder / "model.npz").read_bytes()
+    invoke("map", folder / "model.npz", "--resolution", "0.2", "--out", folder, "--force",
+           "--workers", "1")
+    assert (folder / "model.npz").read_bytes() == model_bytes
+    meta = json.loads((folder / "metadata.json").read_text())
+    assert meta["resolution_m"] == 0.2
+    assert meta["model"] == str(folder / "model.npz")
+    # the map is the one of the re-mapping: equal to the first build's 0.2 m map
+    assert np.array_equal(read(folder / "probability.tif"), read(out / "probability.tif"),
+                          equal_nan=True)
+
+
+def test_build_checks_the_size_of_bounds_before_training(tmp_path: Path) -> None:
+    out = tmp_path / "map"
+    result = runner.invoke(app, ["build", str(SAMPLE), "--config", str(SAMPLE_CONFIG),
+                                 "--resolution", "0.1", "--out", str(out), "--bounds", "0",
+                                 "0", "100000", "100000"])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "map.max_cells in the config" in lines[0], result.output
+    assert "built" not in result.output and list(tmp_path.iterdir()) == []

@@ -169,3 +169,50 @@ def test_cholesky_solve_matches_a_dense_solve():
     for rhs in (rng.normal(size=30), rng.normal(size=(30, 4))):
         np.testing.assert_allclose(cholesky_solve(chol, rhs), np.linalg.solve(matrix, rhs),
                                    rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["factor fails once", "mixed zero covariances"])
+def test_prediction_paths_agree_with_the_separate_calls(case, monkeypatch):
+    """predict_local's one-call covariances, and its fallbacks (a failed factor of the
+    one-call matrix; mixed zero and non-zero covariances, which the one call declines),
+    against the separate calls of the numpy reference."""
+    import gpocc.gp.expected as expected
+    import gpocc.gp.local as local
+
+    rng = np.random.default_rng(5)
+    samples = room_samples(rng, 150)
+    scan_ids = np.arange(150) // 10
+    factors = rng.normal(0.0, 0.03, (150, 2, 3))
+    covs = samples.covariances + factors @ np.swapaxes(factors, 1, 2)
+    if case == "mixed zero covariances":
+        covs[::6] = 0.0
+        factors[::6] = 0.0
+    samples = SampleSet(samples.means, covs, samples.labels, scan_ids, factors,
+                        samples.sensor_ids)
+    kernel = NeuralNetworkKernel(2.0, 5.0, (3.0, 4.0))
+    queries = rng.uniform(-3, 3, size=(40, 2))
+    problem = NeighbourIndex(samples).problem(np.array([0.3, -0.2]), 120)
+    calls = {"system": 0, "factors": 0}
+    system, factor = local.expected_local_system, local.try_cholesky
+
+    def counted_system(*args, **kwargs):
+        result = system(*args, **kwargs)
+        calls["system"] += result is not None
+        return result
+
+    def failing_once(matrix, jitter=True):
+        calls["factors"] += 1
+        return None if calls["factors"] == 1 else factor(matrix, jitter)
+
+    monkeypatch.setattr(local, "expected_local_system", counted_system)
+    if case == "factor fails once":
+        monkeypatch.setattr(local, "try_cholesky", failing_once)
+    got = predict_local(kernel, 0.05, problem, queries, 2)
+    assert calls["system"] == (1 if case == "factor fails once" else 0)
+    monkeypatch.setattr(local, "expected_local_system", lambda *a, **k: None)
+    monkeypatch.setattr(local, "try_cholesky", factor)
+    monkeypatch.setattr(expected, "USE_FUSED", False)
+    want = predict_local(kernel, 0.05, problem, queries, 2)
+    np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.variance, want.variance, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.prior_variance, want.prior_variance, rtol=0, atol=1e-12)

@@ -210,6 +210,30 @@ def test_parallel_tiled_and_dask_outputs_identical_to_serial(model_path, tmp_pat
         np.testing.assert_array_equal(ds.read(1), reference)
 
 
+def test_workers_warm_up_on_the_model_and_a_failed_warm_up_is_harmless(
+        model_path, tmp_path, monkeypatch):
+    """The warm-up predicts from a real neighbourhood (it builds the worker's index); if it
+    fails, the pool must not restart its workers forever: the map is still made, equal to
+    the serial one."""
+    from gpocc.mapping import executors
+
+    model = load_model(model_path)
+    executors._worker_state.clear()
+    executors.warm_up(model)
+    assert executors._worker_state["model"] is model
+    assert isinstance(executors._worker_state["index"], NeighbourIndex)
+
+    def broken(model):
+        raise RuntimeError("warm-up failed")
+
+    monkeypatch.setattr(executors, "warm_up", broken)  # forked workers inherit it
+    parallel = run_map(model_path, tmp_path / "p", "--resolution", "0.2", "--workers", "2")
+    serial = run_map(model_path, tmp_path / "s", "--resolution", "0.2", "--workers", "1")
+    with rasterio.open(parallel / "probability.tif") as a, \
+            rasterio.open(serial / "probability.tif") as b:
+        np.testing.assert_array_equal(a.read(1), b.read(1))
+
+
 def test_bounds_and_grid_geometry(model_path, tmp_path):
     out = run_map(model_path, tmp_path / "b", "--resolution", "0.25",
                   "--bounds", "-1", "-1", "1.5", "0.5")

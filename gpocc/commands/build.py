@@ -13,7 +13,13 @@ import time
 
 import typer
 
-from gpocc.commands.map import check_map_options, echo_map, map_spec, write_map
+from gpocc.commands.map import (
+    check_map_options,
+    check_map_size,
+    echo_map,
+    map_spec,
+    write_map,
+)
 from gpocc.commands.options import (
     Bounds,
     ConfigFile,
@@ -28,6 +34,7 @@ from gpocc.commands.options import (
 )
 from gpocc.commands.train import echo_model, job_config, learn_model
 from gpocc.gp.model import write_model
+from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
 
 #: The model's file name inside the map folder.
@@ -50,10 +57,13 @@ def build(
     prepare_output(out, force)
     check_map_options(resolution, workers)
     cfg = job_config(config, input_noise, seed)
+    what = f"the map of {', '.join(map(str, inputs))}"
+    if bounds is not None:  # the map's size is known before training: check it first
+        check_map_size(GridSpec.from_bounds(*bounds, resolution), cfg, what, True)
     started = time.perf_counter()
     model = learn_model(inputs, cfg)
     model_path = out / MODEL_FILE
-    spec = map_spec(model, resolution, bounds, f"the map of {', '.join(map(str, inputs))}")
+    spec = map_spec(model, resolution, bounds, what, configurable=True)
     mapping_started = time.perf_counter()
     with atomic_directory(out, force=force) as tmp:
         write_model(model, tmp / MODEL_FILE)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import time
 from pathlib import Path
 from typing import Annotated
@@ -18,9 +19,11 @@ from gpocc.commands.options import (
     check_at_least,
     check_resolution,
 )
+from gpocc.config import Config
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
+from gpocc.io.mapserver import check_map_server_size
 from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.folder import write_metadata
@@ -44,10 +47,24 @@ def map_command(
     check_map_options(resolution, workers)
     model = load_model(model_path)
     spec = map_spec(model, resolution, bounds, f"the map of {model_path}")
+    # A folder from `gpocc build` holds its model: mapping into it again (--force) must
+    # keep that file, which the new folder replaces the old one with.
+    kept = _path_inside(model_path, out)
     started = time.perf_counter()
     with atomic_directory(out, force=force) as tmp:
+        if kept is not None:
+            (tmp / kept).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(model_path, tmp / kept)
         summary = write_map(model, str(model_path), spec, tmp, workers, scheduler)
     echo_map(summary, out, resolution, time.perf_counter() - started)
+
+
+def _path_inside(path: Path, folder: Path) -> Path | None:
+    """``path`` relative to ``folder`` if it lies inside it, else None."""
+    try:
+        return path.resolve().relative_to(folder.resolve())
+    except ValueError:
+        return None
 
 
 def check_map_options(resolution: float, workers: int | None) -> None:
@@ -58,9 +75,9 @@ def check_map_options(resolution: float, workers: int | None) -> None:
 
 
 def map_spec(model: GPModel, resolution: float, bounds: tuple[float, ...] | None,
-             what: str) -> GridSpec:
-    """The raster of a map of ``model``: ``bounds`` or the data's extent plus the margin;
-    ``what`` names the map in the error for too many cells."""
+             what: str, configurable: bool = False) -> GridSpec:
+    """The raster of a map of ``model``: ``bounds`` or the data's extent plus the margin,
+    checked by :func:`check_map_size`."""
     debug(f"model: {len(model.samples)} samples from sensors "
           f"{', '.join(model.samples.sensor_names) or '(unnamed)'}; kernel "
           f"{kernel_parameters(model.kernel)}, noise variance {model.noise_variance:.6g}")
@@ -68,11 +85,18 @@ def map_spec(model: GPModel, resolution: float, bounds: tuple[float, ...] | None
         spec = GridSpec.from_bounds(*bounds, resolution)
     else:
         spec = default_spec(model, resolution, model.config.map.margin_m)
-    # The model's embedded config is not the user's to edit here: name the variable.
-    check_cells(spec.width, spec.height, resolution,
-                max_cells(model.config.map.max_cells), what,
-                fix="use a coarser --resolution or smaller --bounds", configurable=False)
+    check_map_size(spec, model.config, what, configurable)
     return spec
+
+
+def check_map_size(spec: GridSpec, config: Config, what: str, configurable: bool) -> None:
+    """Refuse a raster above ``map.max_cells`` or ``map.max_pgm_pixels`` of ``config``;
+    ``what`` names the map, ``configurable``: the config is the user's to edit (not one
+    embedded in a model file)."""
+    check_cells(spec.width, spec.height, spec.resolution, max_cells(config.map.max_cells),
+                what, fix="use a coarser --resolution or smaller --bounds",
+                configurable=configurable)
+    check_map_server_size(spec, config.map.max_pgm_pixels)
 
 
 def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,

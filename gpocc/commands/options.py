@@ -35,7 +35,7 @@ InputNoise = Annotated[Switch | None, typer.Option(
 Seed = Annotated[int | None, typer.Option("--seed", help="Overrides the config's seed.")]
 Resolution = Annotated[float, typer.Option("--resolution", help="Cell size, metres.")]
 Workers = Annotated[int | None, typer.Option(
-    "--workers", help="Local processes (default: all cores).")]
+    "--workers", help="Local processes for the map's local problems (default: all cores).")]
 Scheduler = Annotated[str | None, typer.Option(
     "--scheduler", help="Dask scheduler address tcp://HOST:PORT.")]
 Inputs = Annotated[list[Path], typer.Argument(

@@ -85,8 +85,9 @@ class AnchorExecutor:
 
     def __init__(self, model: GPModel, pool=None, client=None, model_future=None) -> None:
         self.model = model
-        #: Whether local workers are starting up (the caller has time to spare).
-        self.starting = pool is not None
+        #: Whether anchors run on local worker processes (which load their compiled
+        #: kernels as they start, so the caller has time to spare at first).
+        self.local_workers = pool is not None
         self._pool = pool
         self._client = client
         self._model_future = model_future

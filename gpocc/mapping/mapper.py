@@ -86,7 +86,7 @@ def make_map(
     workers = min(workers, -(-rows * cols // ANCHORS_PER_CHUNK))
     tick = time.perf_counter()
     with anchor_executor(model, workers, scheduler) as executor:
-        if executor.starting:
+        if executor.local_workers:
             prepare_writer()  # while the workers load their compiled kernels
         stages["predict"] += time.perf_counter() - tick
         for row0, col0, window in windows:

@@ -32,6 +32,10 @@ from gpocc.samples.unscented import matrix_sqrt
 #: one unscented-transform call; bounds peak memory to a few hundred MB.
 CHUNK_SAMPLES = 100_000
 
+#: Threads computing chunks at once (each holds one chunk, ~15 MB a 100,000 samples):
+#: the caller merging their results in order gains little from more.
+MAX_CHUNK_THREADS = 4
+
 # Free-sample counts are floor(limit / spacing); this slack keeps a sample that lies
 # exactly on the limit when the division rounds down (e.g. 2.0 / 0.4 = 4.999...).
 _COUNT_SLACK = 1e-9
@@ -129,7 +133,7 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
         sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
         n_batch = 0
         jobs = _batch_chunks(batch, sensor, config.samples, offset, sensor_id)
-        with thread_map(chunk, jobs, default_workers()) as chunks:
+        with thread_map(chunk, jobs, min(default_workers(), MAX_CHUNK_THREADS)) as chunks:
             for part, raw, keys, counts in chunks:
                 n_batch += raw
                 if votes is not None:
@@ -241,6 +245,8 @@ class LabelVotes:
 
     @staticmethod
     def _reduce(keys: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if keys.size == 0:
+            return keys, counts
         order = np.argsort(keys)  # sums need no stable order; numpy's SIMD sort
         keys = keys[order]
         first = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
@@ -254,7 +260,7 @@ class LabelVotes:
 
     def add_counts(self, keys: np.ndarray | None, counts: np.ndarray | None) -> None:
         """Add ``counts`` samples of each (cell, label) key (:func:`_thinned`'s groups;
-        None: cells too far out to have keys)."""
+        None: cells past 2**30, which have no keys)."""
         if keys is None or counts is None:
             raise self._too_far()
         self._pending.append((keys, counts))
@@ -305,7 +311,7 @@ def _thinned(samples: SampleSet, cell_m: float
              ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """:func:`thin_samples`' kept indices (ascending), with the (cell, label) keys of the
     groups (:func:`_cell_label_keys`, ascending) and their sample counts; the keys and
-    counts are None for cells past 2**30 or non-finite traces."""
+    counts are None for cells past 2**30."""
     if len(samples) == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, np.int64), np.zeros(0, np.int64)
     cells = _cells(samples, cell_m)
@@ -315,8 +321,11 @@ def _thinned(samples: SampleSet, cell_m: float
     # of them is kept.
     trace = (samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]).astype(np.float32)
     keys = _cell_label_keys(cells, samples.labels)
-    if keys is None or not np.isfinite(trace).all():
+    if keys is None:
         return _thin_by_lexsort(cells, trace, samples.labels), None, None
+    if not np.isfinite(trace).all():  # NaN never equals a group's minimum
+        groups, counts = np.unique(keys, return_counts=True)
+        return _thin_by_lexsort(cells, trace, samples.labels), groups, counts
     # One sort by (cell, label) key, then each group's smallest trace and, among the
     # samples that have it, the smallest index: the sort need not be stable, so numpy's
     # SIMD sort serves (a tenth of the time of the three-key lexsort it replaces).
