@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import typer
@@ -57,8 +58,13 @@ def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
     batches = read_inputs(inputs, cfg)
     read_s = time.perf_counter() - started
     log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
-    samples = build_samples(batches, cfg)
-    coverage = beam_coverage(batches, cfg)
+    # The coverage raster is built beside the samples (both mostly numpy and compiled
+    # loops that release the GIL; campus: 1 s less). The thread has ended before the
+    # learner forks its workers.
+    with ThreadPoolExecutor(1, thread_name_prefix="gpocc-coverage") as helper:
+        coverage_of_beams = helper.submit(beam_coverage, batches, cfg)
+        samples = build_samples(batches, cfg)
+        coverage = coverage_of_beams.result()
     training_cfg = cfg.model.training
     calibration = (calibration_points(
         batches, cfg, training_cfg.calibration_every,
