@@ -247,10 +247,8 @@ class LabelVotes:
     def _reduce(keys: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if keys.size == 0:
             return keys, counts
-        order = np.argsort(keys)  # sums need no stable order; numpy's SIMD sort
-        keys = keys[order]
-        first = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
-        return keys[first], np.add.reduceat(counts[order], first)
+        order, sorted_keys, starts = _sorted_runs(keys)
+        return sorted_keys[starts], np.add.reduceat(counts[order], starts)
 
     def add(self, samples: SampleSet) -> None:
         """Count a chunk of samples."""
@@ -327,15 +325,23 @@ def _thinned(samples: SampleSet, cell_m: float
         groups, counts = np.unique(keys, return_counts=True)
         return _thin_by_lexsort(cells, trace, samples.labels), groups, counts
     # One sort by (cell, label) key, then each group's smallest trace and, among the
-    # samples that have it, the smallest index: the sort need not be stable, so numpy's
-    # SIMD sort serves (a tenth of the time of the three-key lexsort it replaces).
-    order = np.argsort(keys)
-    sorted_keys, sorted_trace = keys[order], trace[order]
-    starts = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
+    # samples that have it, the smallest index: the sort need not be stable (a tenth of
+    # the time of the three-key lexsort it replaces).
+    order, sorted_keys, starts = _sorted_runs(keys)
+    sorted_trace = trace[order]
     sizes = np.diff(np.append(starts, len(order)))
     at_min = sorted_trace == np.repeat(np.minimum.reduceat(sorted_trace, starts), sizes)
     earliest = np.minimum.reduceat(np.where(at_min, order, len(order)), starts)
     return np.sort(earliest), sorted_keys[starts], sizes
+
+
+def _sorted_runs(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An order sorting the non-empty ``keys`` (N,) (numpy's SIMD sort, not stable), the
+    sorted keys, and the start of each run of equal keys in them."""
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    starts = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
+    return order, sorted_keys, starts
 
 
 def _thin_by_lexsort(cells: np.ndarray, trace: np.ndarray, labels: np.ndarray) -> np.ndarray:
