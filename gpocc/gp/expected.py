@@ -365,13 +365,10 @@ def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarra
     return means, covariances
 
 
-def same_scan_pairs(
-    covariances: np.ndarray, scan_ids: np.ndarray | None, pose_factors: np.ndarray | None
-) -> tuple[np.ndarray, np.ndarray]:
-    """(i, j) with i < j, same scan and both with nonzero pose factors and covariances."""
-    n = covariances.shape[0]
-    if scan_ids is None or pose_factors is None:
-        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+def _check_scan_inputs(n: int, scan_ids: np.ndarray, pose_factors: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """``scan_ids`` (n,) as an array and ``pose_factors`` (n, 2, 3) as float64, or a
+    ValueError naming their shapes."""
     scan_ids = np.asarray(scan_ids)
     pose_factors = np.asarray(pose_factors, dtype=np.float64)
     if scan_ids.shape != (n,) or pose_factors.shape != (n, 2, 3):
@@ -379,6 +376,17 @@ def same_scan_pairs(
             f"scan_ids must have shape ({n},) and pose_factors ({n}, 2, 3), got "
             f"{scan_ids.shape} and {pose_factors.shape}"
         )
+    return scan_ids, pose_factors
+
+
+def same_scan_pairs(
+    covariances: np.ndarray, scan_ids: np.ndarray | None, pose_factors: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) with i < j, same scan and both with nonzero pose factors and covariances."""
+    n = covariances.shape[0]
+    if scan_ids is None or pose_factors is None:
+        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    scan_ids, pose_factors = _check_scan_inputs(n, scan_ids, pose_factors)
     # A pair is treated as correlated only when the shared pose error is a noticeable
     # part (POSE_SHARE_MIN) of both points' covariances: below that the cross-covariance
     # is negligible and the product rule is both cheaper and exactly positive definite.
@@ -699,12 +707,9 @@ def expected_local_system(
     unit4, weights4 = gauss_hermite(level, 4)
     correlated = scan_ids is not None and pose_factors is not None
     if correlated:
+        scan_ids, pose_factors = _check_scan_inputs(n, scan_ids, pose_factors)
         scan_ids = np.ascontiguousarray(scan_ids, dtype=np.int64)
-        pose_factors = np.ascontiguousarray(pose_factors, dtype=np.float64)
-        if scan_ids.shape != (n,) or pose_factors.shape != (n, 2, 3):
-            raise ValueError(
-                f"scan_ids must have shape ({n},) and pose_factors ({n}, 2, 3), got "
-                f"{scan_ids.shape} and {pose_factors.shape}")
+        pose_factors = np.ascontiguousarray(pose_factors)
     else:
         scan_ids, pose_factors = np.zeros(n, dtype=np.int64), np.zeros((n, 2, 3))
     queries = np.ascontiguousarray(queries, dtype=np.float64)
