@@ -234,6 +234,16 @@ def test_workers_warm_up_on_the_model_and_a_failed_warm_up_is_harmless(
         np.testing.assert_array_equal(a.read(1), b.read(1))
 
 
+def test_executor_starts_no_more_processes_than_chunks_of_anchors(model_path):
+    from gpocc.mapping import executors
+
+    model = load_model(model_path)
+    with executors.anchor_executor(model, workers=50, anchors=10) as executor:
+        assert executor.local_workers and executor._pool._processes == 2  # 8 + 2 anchors
+    with executors.anchor_executor(model, workers=50, anchors=8) as executor:
+        assert not executor.local_workers  # one chunk: in this process
+
+
 def test_bounds_and_grid_geometry(model_path, tmp_path):
     out = run_map(model_path, tmp_path / "b", "--resolution", "0.25",
                   "--bounds", "-1", "-1", "1.5", "0.5")

@@ -93,11 +93,10 @@ class AnchorExecutor:
         self._model_future = model_future
 
     def run(self, lattice: AnchorLattice, anchors: list[Anchor],
-            chunk_size: int = ANCHORS_PER_CHUNK,
             on_done: Callable[[int], None] | None = None) -> Iterator[AnchorResult]:
         """Yield the result of every anchor (in ``anchors`` order); ``on_done(n)`` after
-        each chunk with the number of anchors it held."""
-        chunks = _chunks(anchors, chunk_size)
+        each chunk (:data:`ANCHORS_PER_CHUNK`) with the number of anchors it held."""
+        chunks = _chunks(anchors, ANCHORS_PER_CHUNK)
         if self._client is not None:
             futures = [self._client.submit(compute_chunk, self._model_future, lattice, chunk,
                                            pure=False) for chunk in chunks]
@@ -113,12 +112,16 @@ class AnchorExecutor:
 
 
 @contextlib.contextmanager
-def anchor_executor(model: GPModel, workers: int = 1,
-                    scheduler: str | None = None) -> Iterator[AnchorExecutor]:
+def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = None,
+                    anchors: int | None = None) -> Iterator[AnchorExecutor]:
     """An :class:`AnchorExecutor` for ``model``: ``scheduler`` (``tcp://HOST:PORT``) sends
     chunks to a Dask distributed cluster; otherwise ``workers`` > 1 starts that many local
     processes (at once: they load the compiled kernels while the caller prepares its
-    anchors) and 1 runs in this process."""
+    anchors) and 1 runs in this process. With ``anchors`` (at most that many to run), no
+    more processes than their chunks of :data:`ANCHORS_PER_CHUNK`: ``--workers 10000``
+    must not start 10000 processes."""
+    if anchors is not None:
+        workers = min(workers, -(-anchors // ANCHORS_PER_CHUNK))
     if scheduler:
         from distributed import Client
 
@@ -147,11 +150,9 @@ def run_anchors(
     anchors: list[Anchor],
     workers: int = 1,
     scheduler: str | None = None,
-    chunk_size: int = ANCHORS_PER_CHUNK,
     on_done: Callable[[int], None] | None = None,
 ) -> Iterator[AnchorResult]:
     """Yield the result of every anchor (in ``anchors`` order) on a new
     :func:`anchor_executor` (at most one local process per chunk)."""
-    workers = min(workers, len(_chunks(anchors, chunk_size)))
-    with anchor_executor(model, workers, scheduler) as executor:
-        yield from executor.run(lattice, anchors, chunk_size, on_done)
+    with anchor_executor(model, workers, scheduler, len(anchors)) as executor:
+        yield from executor.run(lattice, anchors, on_done)

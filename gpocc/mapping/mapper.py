@@ -24,7 +24,7 @@ from gpocc.io.mapserver import check_map_server_size
 from gpocc.io.rasters import prepare_writer
 from gpocc.mapping.blend import predict_tile
 from gpocc.mapping.blocks import AnchorLattice
-from gpocc.mapping.executors import ANCHORS_PER_CHUNK, anchor_executor
+from gpocc.mapping.executors import anchor_executor
 from gpocc.mapping.folder import MapFolder, folder_metadata
 from gpocc.mapping.support import model_support
 
@@ -81,11 +81,10 @@ def make_map(
     stages = {"predict": 0.0, "write": 0.0, "finish": 0.0}
 
     # One set of workers for every tile, started before the first tile is laid out: they
-    # load the compiled kernels meanwhile. No more local processes than chunks of anchors.
+    # load the compiled kernels meanwhile.
     rows, cols = lattice.shape
-    workers = min(workers, -(-rows * cols // ANCHORS_PER_CHUNK))
     tick = time.perf_counter()
-    with anchor_executor(model, workers, scheduler) as executor:
+    with anchor_executor(model, workers, scheduler, rows * cols) as executor:
         if executor.local_workers:
             prepare_writer()  # while the workers load their compiled kernels
         stages["predict"] += time.perf_counter() - tick
