@@ -99,12 +99,8 @@ def write_config(folder: Path, name: str, **overrides) -> Path:
 
 
 def stage_times(stdout: str) -> str:
-    match = re.search(r"^stages: (.*)$", stdout, re.MULTILINE)
-    return match.group(1) if match else ""
-
-
-def build_stage_times(stdout: str) -> str:
-    """The train and map stage lines of ``gpocc build``, as one."""
+    """The ``stages:`` line(s) of a command's stdout, as one (``gpocc build`` prints the
+    training's and the map's)."""
     return "; ".join(re.findall(r"^stages: (.*)$", stdout, re.MULTILINE))
 
 
@@ -119,7 +115,7 @@ def run_method(work: Path, method: str, config: Path, resolution: float) -> list
         m = measure([*GPOCC, "build", str(INTEL), "--config", str(config), "--resolution",
                      str(resolution), "--out", str(work / f"build-{config.stem}-{resolution}"),
                      "--force"])
-        return [("build (train + map, one process)", m, build_stage_times(m.stdout))]
+        return [("build (train + map, one process)", m, stage_times(m.stdout))]
     noise = "off" if method == "gp-no-noise" else "on"
     model = work / f"{method}-{config.stem}.npz"
     train = measure([*GPOCC, "train", str(INTEL), "--config", str(config), "--out", str(model),
@@ -183,7 +179,7 @@ def campus(work: Path) -> None:
          f"{total / octo.wall_s:.1f} x OctoMap"],
         ["gp", "**build (train + map, one process)**", f"{built.wall_s:.1f}",
          f"{built.cpu_s:.1f}", f"{built.peak_mib:.0f}",
-         f"{built.wall_s / octo.wall_s:.1f} x OctoMap; " + build_stage_times(built.stdout)],
+         f"{built.wall_s / octo.wall_s:.1f} x OctoMap; " + stage_times(built.stdout)],
     ]
     print(f"\n## Campus: {len(logs)} buildings, {scans} scans, 0.1 m\n")
     print("Dask CPU time and memory are the client's only (the cluster runs in the bench's "
