@@ -50,13 +50,14 @@ METHODS = ("grid", "gp-no-input-noise", "gp-input-noise")
 
 #: Config overrides (dotted keys) of the GP rows per variant. Every variant names the
 #: classifier hold-out, the label-noise floor, whether g is learned, the patch centres and
-#: the free-sample clearance, so that it keeps its meaning when defaults change (today's
-#: default is ``hit-patches-clearance-0.05``).
+#: the free-sample clearance and the blend overlap, so that it keeps its meaning when
+#: defaults change (today's default is ``hit-patches-clearance-0.05``).
 _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "model.training.min_noise_variance": 0.01,
               "model.training.learn_input_noise_scale": False,
               "model.training.patch_centres": "samples",
-              "samples.free_clearance_m": 0.0}
+              "samples.free_clearance_m": 0.0,
+              "model.blend_overlap": 1.0}
 #: The learned input-noise scale with the label-noise floor 0.1 (the default before
 #: session 6); the later variants change one or two things on top of it.
 _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
@@ -80,6 +81,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     "hit-patches": {**_LEARNED, "model.training.patch_centres": "hits"},
     "hit-patches-clearance-0.05": {**_LEARNED, "model.training.patch_centres": "hits",
                                    "samples.free_clearance_m": 0.05},
+    # Session 9: neighbouring blocks blended across half a block instead of a whole one.
+    "blend-0.5": {**_LEARNED, "model.training.patch_centres": "hits",
+                  "samples.free_clearance_m": 0.05, "model.blend_overlap": 0.5},
 }
 
 
