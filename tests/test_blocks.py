@@ -88,3 +88,15 @@ def test_blending_is_never_a_step_and_footprints_hold_no_rounding_dust(cells, ov
         # Interior anchors' footprints are symmetric about their centre.
         if anchor == Anchor(3, 4):
             np.testing.assert_allclose(weight, weight[::-1, ::-1], rtol=0, atol=1e-12)
+
+
+def test_cell_centres_at_picks_the_same_values_as_the_whole_grid():
+    # A window off the grid's origin at an awkward resolution: the per-cell values must
+    # equal cell_centres()'s bit for bit (map anchors use them; tiles use the grid).
+    spec = GridSpec(x0=-20.891522300137005, y0=-26.51194809182128, resolution=0.1,
+                    width=422, height=403).window(137, 251, 20, 20)
+    rng = np.random.default_rng(3)
+    wanted = rng.random((spec.height, spec.width)) < 0.6
+    xs, ys = spec.cell_centres()
+    x_at, y_at = spec.cell_centres_at(*np.nonzero(wanted))
+    assert np.array_equal(x_at, xs[wanted]) and np.array_equal(y_at, ys[wanted])

@@ -70,14 +70,13 @@ class NeighbourIndex:
 
 def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -> LocalProblem:
     """The local problem of ``samples[index]`` with ``centre`` (2,) moved to the origin."""
-    local = samples.subset(index)
     local = SampleSet(
-        means=local.means - centre,
-        covariances=local.covariances,
-        labels=local.labels,
-        scan_ids=local.scan_ids,
-        pose_factors=local.pose_factors,
-        sensor_ids=local.sensor_ids,
+        means=samples.means[index] - centre,
+        covariances=samples.covariances[index],
+        labels=samples.labels[index],
+        scan_ids=samples.scan_ids[index],
+        pose_factors=samples.pose_factors[index],
+        sensor_ids=samples.sensor_ids[index],
     )
     return LocalProblem(centre=centre, samples=local, index=index)
 

@@ -179,12 +179,11 @@ def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice
     """
     block, weight = lattice.footprint(anchor)
     window = lattice.spec.window(block.row0, block.col0, block.rows, block.cols)
-    xs, ys = window.cell_centres()
     shape = (block.rows, block.cols)
     wanted = np.ones(shape, dtype=bool) if anchor.inside is None else anchor.inside
     if wanted.shape != shape:
         raise ValueError(f"anchor mask {wanted.shape} does not match its footprint {shape}")
-    queries = np.column_stack([xs[wanted], ys[wanted]])
+    queries = np.column_stack(window.cell_centres_at(*np.nonzero(wanted)))
     centre = lattice.centre(anchor)
     problem = index.problem(centre, model.config.model.neighbours)
     pred = predict_local(model.kernel, model.noise_variance, problem, queries, model.level)
