@@ -9,7 +9,7 @@ from blendweights import trapezoid
 from gpocc.config import config_from_dict
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
-from gpocc.mapping.blocks import Anchor, AnchorLattice
+from gpocc.mapping.blocks import Anchor, AnchorLattice, Block
 
 
 def summed_weights(lattice: AnchorLattice) -> tuple[np.ndarray, np.ndarray]:
@@ -100,3 +100,27 @@ def test_cell_centres_at_picks_the_same_values_as_the_whole_grid():
     xs, ys = spec.cell_centres()
     x_at, y_at = spec.cell_centres_at(*np.nonzero(wanted))
     assert np.array_equal(x_at, xs[wanted]) and np.array_equal(y_at, ys[wanted])
+
+
+@pytest.mark.parametrize("overlap", [1.0, 0.5, 0.2])
+def test_anchors_over_a_block_are_those_whose_footprint_meets_it(overlap):
+    # Oracle: every anchor of the lattice, its footprint tested cell range by cell range.
+    spec = GridSpec.from_bounds(0.0, 0.0, 5.3, 4.7, 0.1)  # partial blocks at the edges
+    lattice = AnchorLattice(spec, 10, overlap)
+    rows, cols = lattice.shape
+    rng = np.random.default_rng(7)
+    blocks = [Block(0, 0, spec.height, spec.width), Block(40, 50, 7, 3)]
+    for _ in range(30):
+        r0, c0 = int(rng.integers(spec.height)), int(rng.integers(spec.width))
+        blocks.append(Block(r0, c0, int(rng.integers(1, spec.height - r0 + 1)),
+                            int(rng.integers(1, spec.width - c0 + 1))))
+    for block in blocks:
+        expected = []
+        for r in range(rows):
+            for c in range(cols):
+                fp = lattice.footprint_block(Anchor(r, c))
+                if (fp.row0 < block.row0 + block.rows and block.row0 < fp.row0 + fp.rows
+                        and fp.col0 < block.col0 + block.cols
+                        and block.col0 < fp.col0 + fp.cols):
+                    expected.append(Anchor(r, c))
+        assert lattice.anchors_over(block) == expected

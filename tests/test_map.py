@@ -244,6 +244,31 @@ def test_executor_starts_no_more_processes_than_chunks_of_anchors(model_path):
         assert not executor.local_workers  # one chunk: in this process
 
 
+def test_workers_have_the_anchors_before_the_caller_does_its_own_work(model_path):
+    # predict_tile's while_running (where the map loads its GeoTIFF writer) must run once
+    # the pool holds the tile's anchors, not before, and must not change the tile.
+    from gpocc.mapping import executors
+    from gpocc.mapping.blend import predict_tile
+    from gpocc.mapping.blocks import AnchorLattice
+
+    model = load_model(model_path)
+    spec = GridSpec.from_bounds(-1.0, -1.0, 1.5, 0.5, 0.1)
+    lattice = AnchorLattice.of_model(spec, model.config.model)
+    seen = []
+    with executors.anchor_executor(model, workers=2, anchors=100) as executor:
+        assert executor.local_workers
+
+        def while_running():
+            seen.append(len(executor._pool._cache))  # jobs handed to the pool
+
+        layers = predict_tile(model, lattice, 0, 0, spec, None, executor=executor,
+                              while_running=while_running)
+    plain = predict_tile(model, lattice, 0, 0, spec, None)
+    assert seen == [1]
+    np.testing.assert_array_equal(layers.mean, plain.mean)
+    np.testing.assert_array_equal(layers.variance, plain.variance)
+
+
 def test_bounds_and_grid_geometry(model_path, tmp_path):
     out = run_map(model_path, tmp_path / "b", "--resolution", "0.25",
                   "--bounds", "-1", "-1", "1.5", "0.5")

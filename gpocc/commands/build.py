@@ -66,8 +66,9 @@ def build(
     spec = map_spec(model, resolution, bounds, what, configurable=True)
     mapping_started = time.perf_counter()
     with atomic_directory(out, force=force) as tmp:
-        write_model(model, tmp / MODEL_FILE)
-        summary = write_map(model, str(model_path), spec, tmp, workers, scheduler)
+        # The model file is written while the map's workers compute (0.2 s on Intel).
+        summary = write_map(model, str(model_path), spec, tmp, workers, scheduler,
+                            while_running=lambda: write_model(model, tmp / MODEL_FILE))
     echo_model(model, model_path, None)
     echo_map(summary, out, resolution, time.perf_counter() - mapping_started)
     typer.echo(f"total time: {time.perf_counter() - started:.1f} s")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -100,16 +101,19 @@ def check_map_size(spec: GridSpec, config: Config, what: str, configurable: bool
 
 
 def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
-              workers: int | None, scheduler: str | None) -> MapSummary:
+              workers: int | None, scheduler: str | None,
+              while_running: Callable[[], None] | None = None) -> MapSummary:
     """Map ``model`` over ``spec`` into ``folder`` (private to this run) with its
-    metadata, which names the model ``model_name``."""
+    metadata, which names the model ``model_name``; ``while_running()``: other work of
+    the caller, done while the workers compute (:func:`gpocc.mapping.mapper.make_map`)."""
     n_workers = workers or default_workers()
     cells = block_cells(model.config.model.block_size_m, spec.resolution)
     total = len(plan_blocks(spec, cells))
     log(f"mapping {spec.width} x {spec.height} cells at {spec.resolution} m in {total} "
         f"blocks ({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
     with progress_bar(total, "blocks") as advance:
-        summary = make_map(model, spec, folder, n_workers, scheduler, advance)
+        summary = make_map(model, spec, folder, n_workers, scheduler, advance,
+                           while_running=while_running)
     write_metadata(folder, map_metadata(model_name, model, summary,
                                         workers=n_workers, scheduler=scheduler))
     return summary

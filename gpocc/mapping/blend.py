@@ -69,11 +69,13 @@ def predict_tile(
     scheduler: str | None = None,
     progress: Callable[[int], None] | None = None,
     executor: AnchorExecutor | None = None,
+    while_running: Callable[[], None] | None = None,
 ) -> TileLayers:
     """Blend the anchors over the tile ``window`` whose top-left cell is (row0, col0) of
     ``lattice.spec``; ``progress(n)`` counts the tile's own anchors (one per block).
     ``executor`` runs the anchors (one for every tile of a map); without it, ``workers``
-    and ``scheduler`` choose a new one for this tile."""
+    and ``scheduler`` choose a new one for this tile. ``while_running()`` is called once
+    the anchors are handed out, before their results are collected."""
     tile = Block(row0, col0, window.height, window.width)
     anchors = lattice.anchors_over(tile)
     cells = lattice.cells
@@ -104,6 +106,8 @@ def predict_tile(
     sum_prior = np.zeros(window.shape)
     results = (executor.run(lattice, anchors) if executor is not None
                else run_anchors(model, lattice, anchors, workers, scheduler))
+    if while_running is not None:
+        while_running()
     for result in results:
         b = result.block
         r_lo, r_hi = max(b.row0, row0), min(b.row0 + b.rows, row0 + tile.rows)

@@ -105,6 +105,13 @@ def _axis(cells: int, index: int, n_cells: int, n_anchors: int,
     return lo + int(nonzero[0]), weights
 
 
+def _meets(axis: tuple[int, np.ndarray], start: int, length: int) -> bool:
+    """Whether an anchor's range along one axis (:func:`_axis`) meets cells
+    [start, start + length)."""
+    first, weights = axis
+    return first < start + length and start < first + len(weights)
+
+
 @dataclass(frozen=True)
 class AnchorLattice:
     """The anchors of a whole map ``spec`` with blocks of ``cells`` a side, blended with
@@ -156,18 +163,19 @@ class AnchorLattice:
     def anchors_over(self, block: Block) -> list[Anchor]:
         """Anchors whose footprint meets ``block`` (row-major order)."""
         n_rows, n_cols = self.shape
-        rows = range(max(0, block.row0 // self.cells - 1),
-                     min(n_rows, (block.row0 + block.rows - 1) // self.cells + 2))
-        cols = range(max(0, block.col0 // self.cells - 1),
-                     min(n_cols, (block.col0 + block.cols - 1) // self.cells + 2))
-        out = []
-        for r in rows:
-            for c in cols:
-                fp = self.footprint_block(Anchor(r, c))
-                if (fp.row0 < block.row0 + block.rows and block.row0 < fp.row0 + fp.rows
-                        and fp.col0 < block.col0 + block.cols and block.col0 < fp.col0 + fp.cols):
-                    out.append(Anchor(r, c))
-        return out
+        near_rows = range(max(0, block.row0 // self.cells - 1),
+                          min(n_rows, (block.row0 + block.rows - 1) // self.cells + 2))
+        near_cols = range(max(0, block.col0 // self.cells - 1),
+                          min(n_cols, (block.col0 + block.cols - 1) // self.cells + 2))
+        # A footprint is the product of its row and column ranges: test each range once
+        # (testing every anchor's footprint took 0.07-0.13 s of the Intel map).
+        rows = [r for r in near_rows
+                if _meets(_axis(self.cells, r, self.spec.height, n_rows, self.blend),
+                          block.row0, block.rows)]
+        cols = [c for c in near_cols
+                if _meets(_axis(self.cells, c, self.spec.width, n_cols, self.blend),
+                          block.col0, block.cols)]
+        return [Anchor(r, c) for r in rows for c in cols]
 
 
 def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice,

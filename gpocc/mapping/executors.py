@@ -94,8 +94,12 @@ class AnchorExecutor:
 
     def run(self, lattice: AnchorLattice, anchors: list[Anchor],
             on_done: Callable[[int], None] | None = None) -> Iterator[AnchorResult]:
-        """Yield the result of every anchor (in ``anchors`` order); ``on_done(n)`` after
-        each chunk (:data:`ANCHORS_PER_CHUNK`) with the number of anchors it held."""
+        """The result of every anchor (in ``anchors`` order); ``on_done(n)`` after each
+        chunk (:data:`ANCHORS_PER_CHUNK`) with the number of anchors it held.
+
+        Workers and clusters receive every chunk before this returns, so the caller may
+        do other work before it consumes the results; in this process, each chunk is
+        computed as it is consumed."""
         chunks = _chunks(anchors, ANCHORS_PER_CHUNK)
         if self._client is not None:
             futures = [self._client.submit(compute_chunk, self._model_future, lattice, chunk,
@@ -105,10 +109,15 @@ class AnchorExecutor:
             results = self._pool.imap(functools.partial(_compute_in_worker, lattice), chunks)
         else:
             results = (compute_chunk(self.model, lattice, chunk) for chunk in chunks)
-        for chunk, done in zip(chunks, results, strict=True):
-            yield from done
-            if on_done:
-                on_done(len(chunk))
+        return _flatten(chunks, results, on_done)
+
+
+def _flatten(chunks: list[list[Anchor]], results: Iterator[list[AnchorResult]],
+             on_done: Callable[[int], None] | None) -> Iterator[AnchorResult]:
+    for chunk, done in zip(chunks, results, strict=True):
+        yield from done
+        if on_done:
+            on_done(len(chunk))
 
 
 @contextlib.contextmanager
