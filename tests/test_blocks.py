@@ -100,6 +100,17 @@ def test_cell_centres_at_picks_the_same_values_as_the_whole_grid():
     xs, ys = spec.cell_centres()
     x_at, y_at = spec.cell_centres_at(*np.nonzero(wanted))
     assert np.array_equal(x_at, xs[wanted]) and np.array_equal(y_at, ys[wanted])
+    # Both against the grid's geometry, written out: row 0 is the north edge.
+    rows, cols = np.nonzero(wanted)
+    np.testing.assert_allclose(x_at, spec.x0 + (cols + 0.5) * spec.resolution,
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(y_at, spec.y1 - (rows + 0.5) * spec.resolution,
+                               rtol=0, atol=1e-12)
+    # And bit for bit against the meshgrid the maps used before (tiles still do).
+    old_x, old_y = np.meshgrid(spec.x0 + (np.arange(spec.width) + 0.5) * spec.resolution,
+                               spec.y0 + (spec.height - np.arange(spec.height) - 0.5)
+                               * spec.resolution)
+    assert np.array_equal(x_at, old_x[wanted]) and np.array_equal(y_at, old_y[wanted])
 
 
 @pytest.mark.parametrize("overlap", [1.0, 0.5, 0.2])

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from gpocc.cli import app
 from gpocc.config import Config, ModelConfig, TrainingConfig
+from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import FORMAT_VERSION, build_model, load_model, save_model
 from gpocc.gridspec import GridSpec
@@ -244,9 +245,10 @@ def test_executor_starts_no_more_processes_than_chunks_of_anchors(model_path):
         assert not executor.local_workers  # one chunk: in this process
 
 
-def test_workers_have_the_anchors_before_the_caller_does_its_own_work(model_path):
+def test_anchors_are_queued_for_the_pool_before_the_caller_does_its_own_work(model_path):
     # predict_tile's while_running (where the map loads its GeoTIFF writer) must run once
-    # the pool holds the tile's anchors, not before, and must not change the tile.
+    # the tile's anchors are queued for the pool, not before, and must not change the
+    # tile.
     from gpocc.mapping import executors
     from gpocc.mapping.blend import predict_tile
     from gpocc.mapping.blocks import AnchorLattice
@@ -267,6 +269,45 @@ def test_workers_have_the_anchors_before_the_caller_does_its_own_work(model_path
     assert seen == [1]
     np.testing.assert_array_equal(layers.mean, plain.mean)
     np.testing.assert_array_equal(layers.variance, plain.variance)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_side_work_runs_once_even_when_the_first_tile_has_no_anchors(model_path, tmp_path,
+                                                                     workers):
+    from gpocc.mapping.mapper import make_map
+
+    model = load_model(model_path)
+    model = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, tile_pixels=12)))
+    # The north-west tile lies beyond every beam's reach: no anchors there.
+    spec = GridSpec.from_bounds(-2.5, -2.0, 6.0, 6.0, 0.1)
+    calls = []
+    summary = make_map(model, spec, tmp_path, workers=workers,
+                       while_running=lambda: calls.append(1))
+    assert summary.tiles > 1 and calls == [1]
+    with rasterio.open(tmp_path / "probability.vrt") as ds:
+        first = ds.read(1, window=((0, 12), (0, 12)))
+    assert np.isnan(first).all()  # the first tile really had nothing to compute
+
+
+def test_a_failure_beside_the_workers_leaves_no_output_and_no_process(model_path, tmp_path):
+    import multiprocessing
+
+    from gpocc.io.atomic import atomic_directory
+    from gpocc.mapping.mapper import make_map
+
+    model = load_model(model_path)
+    spec = GridSpec.from_bounds(-1.0, -1.0, 1.5, 0.5, 0.1)
+
+    def disk_full():
+        raise OSError(28, "No space left on device")
+
+    # atomic_directory turns the OS error into gpocc's one-line error.
+    with pytest.raises(GpoccError, match="No space left on device"), \
+            atomic_directory(tmp_path / "map") as folder:
+        make_map(model, spec, folder, workers=2, while_running=disk_full)
+    assert list(tmp_path.iterdir()) == []  # neither the map nor its temporary folder
+    assert multiprocessing.active_children() == []
 
 
 def test_bounds_and_grid_geometry(model_path, tmp_path):

@@ -16,6 +16,7 @@ from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import build_model, load_model, save_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
+from gpocc.mapping import support as support_module
 from gpocc.mapping.blend import predict_tile
 from gpocc.mapping.blocks import Anchor, AnchorLattice
 from gpocc.mapping.support import Support
@@ -103,7 +104,9 @@ def test_coverage_distance_is_within_its_bound_of_the_exact_beam_distance():
     assert error.max() > 0.3 * coverage.error_m
 
 
-def test_support_mask_equals_per_cell_distances():
+@pytest.mark.parametrize("batch", [1 << 20, 7])  # 7: many look-up batches, one cut mid-row
+def test_support_mask_equals_per_cell_distances(monkeypatch, batch):
+    monkeypatch.setattr(support_module, "_LOOKUP_BATCH", batch)
     rng = np.random.default_rng(4)
     start = rng.uniform(-2, 2, (15, 2))
     end = start + rng.normal(0, 1.5, (15, 2))

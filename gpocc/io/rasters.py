@@ -108,7 +108,7 @@ TRUTH_BAND = Band("ground-truth occupancy: 0 free, 1 occupied, 255 unknown", "cl
 
 def prepare_writer() -> None:
     """Import rasterio and register GDAL's drivers now (0.3-0.4 s), for a caller with time
-    to spare before its first :func:`write_geotiff` (a map, while its workers start)."""
+    to spare before its first :func:`write_geotiff` (a map, while its workers compute)."""
     import rasterio
     import rasterio.io  # noqa: F401
     import rasterio.shutil  # noqa: F401

@@ -75,7 +75,9 @@ def predict_tile(
     ``lattice.spec``; ``progress(n)`` counts the tile's own anchors (one per block).
     ``executor`` runs the anchors (one for every tile of a map); without it, ``workers``
     and ``scheduler`` choose a new one for this tile. ``while_running()`` is called once
-    the anchors are handed out, before their results are collected."""
+    if the tile has anchors, after they are queued for ``executor``'s workers and
+    before their results are collected (an executor that computes in this process, or
+    none, computes them as they are collected: nothing overlaps)."""
     tile = Block(row0, col0, window.height, window.width)
     anchors = lattice.anchors_over(tile)
     cells = lattice.cells
@@ -106,7 +108,7 @@ def predict_tile(
     sum_prior = np.zeros(window.shape)
     results = (executor.run(lattice, anchors) if executor is not None
                else run_anchors(model, lattice, anchors, workers, scheduler))
-    if while_running is not None:
+    if while_running is not None and anchors:
         while_running()
     for result in results:
         b = result.block

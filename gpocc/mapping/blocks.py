@@ -156,9 +156,15 @@ class AnchorLattice:
         return Block(r0, c0, len(wr), len(wc))
 
     def _axes(self, anchor: Anchor) -> tuple[tuple[int, np.ndarray], tuple[int, np.ndarray]]:
-        n_rows, n_cols = self.shape
-        return (_axis(self.cells, anchor.row, self.spec.height, n_rows, self.blend),
-                _axis(self.cells, anchor.col, self.spec.width, n_cols, self.blend))
+        return self._row_axis(anchor.row), self._col_axis(anchor.col)
+
+    def _row_axis(self, row: int) -> tuple[int, np.ndarray]:
+        """First cell row and weights of the anchors in lattice row ``row``."""
+        return _axis(self.cells, row, self.spec.height, self.shape[0], self.blend)
+
+    def _col_axis(self, col: int) -> tuple[int, np.ndarray]:
+        """First cell column and weights of the anchors in lattice column ``col``."""
+        return _axis(self.cells, col, self.spec.width, self.shape[1], self.blend)
 
     def anchors_over(self, block: Block) -> list[Anchor]:
         """Anchors whose footprint meets ``block`` (row-major order)."""
@@ -169,12 +175,8 @@ class AnchorLattice:
                           min(n_cols, (block.col0 + block.cols - 1) // self.cells + 2))
         # A footprint is the product of its row and column ranges: test each range once
         # (testing every anchor's footprint took 0.07-0.13 s of the Intel map).
-        rows = [r for r in near_rows
-                if _meets(_axis(self.cells, r, self.spec.height, n_rows, self.blend),
-                          block.row0, block.rows)]
-        cols = [c for c in near_cols
-                if _meets(_axis(self.cells, c, self.spec.width, n_cols, self.blend),
-                          block.col0, block.cols)]
+        rows = [r for r in near_rows if _meets(self._row_axis(r), block.row0, block.rows)]
+        cols = [c for c in near_cols if _meets(self._col_axis(c), block.col0, block.cols)]
         return [Anchor(r, c) for r in rows for c in cols]
 
 

@@ -97,9 +97,9 @@ class AnchorExecutor:
         """The result of every anchor (in ``anchors`` order); ``on_done(n)`` after each
         chunk (:data:`ANCHORS_PER_CHUNK`) with the number of anchors it held.
 
-        Workers and clusters receive every chunk before this returns, so the caller may
-        do other work before it consumes the results; in this process, each chunk is
-        computed as it is consumed."""
+        Every chunk is queued for the workers or the cluster before this returns, so
+        the caller may do other work before it collects the results; in this process,
+        each chunk is computed as it is collected."""
         chunks = _chunks(anchors, ANCHORS_PER_CHUNK)
         if self._client is not None:
             futures = [self._client.submit(compute_chunk, self._model_future, lattice, chunk,
@@ -109,11 +109,13 @@ class AnchorExecutor:
             results = self._pool.imap(functools.partial(_compute_in_worker, lattice), chunks)
         else:
             results = (compute_chunk(self.model, lattice, chunk) for chunk in chunks)
-        return _flatten(chunks, results, on_done)
+        return _in_order(chunks, results, on_done)
 
 
-def _flatten(chunks: list[list[Anchor]], results: Iterator[list[AnchorResult]],
-             on_done: Callable[[int], None] | None) -> Iterator[AnchorResult]:
+def _in_order(chunks: list[list[Anchor]], results: Iterator[list[AnchorResult]],
+              on_done: Callable[[int], None] | None) -> Iterator[AnchorResult]:
+    """Each anchor's result, chunk by chunk in ``chunks`` order (``results`` gives one
+    list per chunk); ``on_done(n)`` after each chunk of n anchors."""
     for chunk, done in zip(chunks, results, strict=True):
         yield from done
         if on_done:

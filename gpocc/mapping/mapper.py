@@ -35,7 +35,9 @@ class MapSummary:
     """What ``make_map`` wrote: grid, tiles, timings (seconds) and class counts.
 
     ``stage_seconds``: wall seconds of ``predict`` (local problems and blending, all
-    tiles), ``write`` (tile rasters) and ``finish`` (mosaics, map_server files, preview).
+    tiles), ``write`` (tile rasters; loading the writers and the caller's
+    ``while_running``, which run while the workers compute) and ``finish`` (mosaics,
+    map_server files, preview).
     """
 
     spec: GridSpec
@@ -57,16 +59,21 @@ def _tile_windows(spec: GridSpec, tile: int) -> list[tuple[int, int, GridSpec]]:
             for r in range(0, spec.height, tile) for c in range(0, spec.width, tile)]
 
 
-def _calls(work: list[Callable[[], None]]) -> Callable[[], None] | None:
-    """One callable that makes every call of ``work`` in order (None for none)."""
-    if not work:
-        return None
+class _SideWork:
+    """The map process's own work beside the workers' (loading the writers, the caller's
+    ``while_running``): done once, on the first tile whose anchors are out, or after the
+    last tile if none had any; ``seconds`` is its wall time."""
 
-    def call_all() -> None:
+    def __init__(self, work: list[Callable[[], None]]) -> None:
+        self._work = work
+        self.seconds = 0.0
+
+    def __call__(self) -> None:
+        work, self._work = self._work, []
+        tick = time.perf_counter()
         for call in work:
             call()
-
-    return call_all
+        self.seconds += time.perf_counter() - tick
 
 
 def make_map(
@@ -81,9 +88,11 @@ def make_map(
     """Compute the map of ``model`` over ``spec`` and write its layers into ``out_dir``
     (:class:`gpocc.mapping.folder.MapFolder`; ``metadata.json`` is the caller's).
 
-    ``while_running()`` is called once, as soon as the first tile's anchors are handed
-    out: the caller's own work (``gpocc build`` writes its model file) then runs while
-    the workers compute instead of before."""
+    ``while_running()`` is called exactly once: as soon as the first tile with anchors
+    has queued them for the local workers, so that the caller's own work (``gpocc
+    build`` writes its model file) is done while they compute; after the last tile if
+    no tile had anchors. With one worker the anchors are computed in this process as
+    they are collected, and nothing overlaps."""
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
@@ -105,17 +114,14 @@ def make_map(
     with anchor_executor(model, workers, scheduler, rows * cols) as executor:
         # The GeoTIFF and PNG writers are loaded once the workers have the first tile's
         # anchors: before, the workers waited for them (0.3 s of every Intel map).
-        first_tile_work = [prepare_writer, prepare_preview] if executor.local_workers else []
-        if while_running is not None:
-            first_tile_work.append(while_running)
+        side = _SideWork(([prepare_writer, prepare_preview] if executor.local_workers else [])
+                         + ([while_running] if while_running is not None else []))
         stages["predict"] += time.perf_counter() - tick
         for row0, col0, window in windows:
-            tick = time.perf_counter()
+            tick, side_before = time.perf_counter(), side.seconds
             layers = predict_tile(model, lattice, row0, col0, window, support,
-                                  progress=progress, executor=executor,
-                                  while_running=_calls(first_tile_work))
-            first_tile_work = []
-            stages["predict"] += time.perf_counter() - tick
+                                  progress=progress, executor=executor, while_running=side)
+            stages["predict"] += time.perf_counter() - tick - (side.seconds - side_before)
             tick = time.perf_counter()
             n_blocks += layers.anchors
             probability, unsure = layers.probability, layers.unsure
@@ -126,6 +132,8 @@ def make_map(
                        decided=np.where(unsure, np.nan, probability))
             stages["write"] += time.perf_counter() - tick
 
+    side()  # no tile had anchors
+    stages["write"] += side.seconds
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     # The preview shows what a user may rely on: cells too uncertain to classify (and so
     # exported as unknown) are drawn as no data; probability.tif keeps the model's value.

@@ -16,6 +16,9 @@ from scipy.spatial import cKDTree
 from gpocc.gridspec import GridSpec
 from gpocc.samples.coverage import Coverage, sample_coverage
 
+#: Cells per KD-tree look-up of :meth:`Support.mask` (its temporaries: about 50 MB).
+_LOOKUP_BATCH = 1 << 20
+
 
 class Support:
     """Distance look-ups against a coverage raster, for one ``max_distance_m`` (metres)."""
@@ -57,26 +60,19 @@ class Support:
         maybe = self.within(centres, half)
         surely = self.within(centres, -half) if self.max_distance_m > half else \
             np.zeros(len(groups), dtype=bool)
-        boundary = []
+        boundary = np.zeros(spec.shape, dtype=bool)
         for (r, c), m, s in zip(groups, maybe, surely, strict=True):
-            if not m:
-                continue
-            window = (slice(r, r + cells), slice(c, c + cells))
-            if s:
-                inside[window] = True
-            else:
-                boundary.append(window)
-        if boundary:
-            # One look-up for every cell of the boundary groups: one per group took
-            # two thirds of the Intel map's mask.
-            pts = np.concatenate([np.column_stack([xs[w].ravel(), ys[w].ravel()])
-                                  for w in boundary])
-            found = self.within(pts)
-            start = 0
-            for w in boundary:
-                size = xs[w].size
-                inside[w] = found[start:start + size].reshape(xs[w].shape)
-                start += size
+            if m:
+                window = (slice(r, r + cells), slice(c, c + cells))
+                (inside if s else boundary)[window] = True
+        # The cells of the boundary groups in batches of look-ups (one per group took
+        # two thirds of the Intel map's mask), row-major like ``boundary``'s True cells.
+        rows, cols = np.nonzero(boundary)
+        found = np.empty(rows.size, dtype=bool)
+        for lo in range(0, rows.size, _LOOKUP_BATCH):
+            r, c = rows[lo:lo + _LOOKUP_BATCH], cols[lo:lo + _LOOKUP_BATCH]
+            found[lo:lo + r.size] = self.within(np.column_stack([xs[r, c], ys[r, c]]))
+        inside[rows, cols] = found
         return inside
 
 
