@@ -62,6 +62,9 @@ _PUBLISHED = {"model.training.classifier_holdout": "sample",
 #: session 6); the later variants change one or two things on top of it.
 _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}
+#: Today's default (session 6).
+_DEFAULT = {**_LEARNED, "model.training.patch_centres": "hits",
+            "samples.free_clearance_m": 0.05}
 VARIANTS: dict[str, dict[str, object]] = {
     "published": _PUBLISHED,
     "scan-cv": {**_PUBLISHED, "model.training.classifier_holdout": "scan"},
@@ -79,11 +82,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     "dense-samples": {**_LEARNED, "samples.thin_cell_m": 0.1, "model.neighbours": 256},
     "clearance-0.05": {**_LEARNED, "samples.free_clearance_m": 0.05},
     "hit-patches": {**_LEARNED, "model.training.patch_centres": "hits"},
-    "hit-patches-clearance-0.05": {**_LEARNED, "model.training.patch_centres": "hits",
-                                   "samples.free_clearance_m": 0.05},
+    "hit-patches-clearance-0.05": _DEFAULT,
     # Session 9: neighbouring blocks blended across half a block instead of a whole one.
-    "blend-0.5": {**_LEARNED, "model.training.patch_centres": "hits",
-                  "samples.free_clearance_m": 0.05, "model.blend_overlap": 0.5},
+    "blend-0.5": {**_DEFAULT, "model.blend_overlap": 0.5},
 }
 
 
