@@ -88,7 +88,7 @@ class GridSpec:
     def cell_centres_at(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cell-centre x of ``cols`` and y of ``rows`` (integer arrays), metres; for the
         (K,) cells (rows[k], cols[k]) these are the values of :meth:`cell_centres` there,
-        without its (H, W) arrays (a map anchor's footprint: 40 against 240 us)."""
+        without its (H, W) arrays (a map anchor's query points: 42 against 93 us)."""
         xs = self.x0 + (cols + 0.5) * self.resolution
         ys = self.y0 + (self.height - rows - 0.5) * self.resolution
         return xs, ys

@@ -35,9 +35,9 @@ class MapSummary:
     """What ``make_map`` wrote: grid, tiles, timings (seconds) and class counts.
 
     ``stage_seconds``: wall seconds of ``predict`` (local problems and blending, all
-    tiles), ``write`` (tile rasters; loading the writers and the caller's
-    ``while_running``, which run while the workers compute) and ``finish`` (mosaics,
-    map_server files, preview).
+    tiles, with what the map process does meanwhile: loading the writers, the caller's
+    ``while_running``), ``write`` (tile rasters) and ``finish`` (mosaics, map_server
+    files, preview).
     """
 
     spec: GridSpec
@@ -61,19 +61,16 @@ def _tile_windows(spec: GridSpec, tile: int) -> list[tuple[int, int, GridSpec]]:
 
 class _SideWork:
     """The map process's own work beside the workers' (loading the writers, the caller's
-    ``while_running``): done once, on the first tile whose anchors are out, or after the
-    last tile if none had any; ``seconds`` is its wall time."""
+    ``while_running``): done on the first call only, which is on the first tile whose
+    anchors are out, or after the last tile if none had any."""
 
     def __init__(self, work: list[Callable[[], None]]) -> None:
         self._work = work
-        self.seconds = 0.0
 
     def __call__(self) -> None:
         work, self._work = self._work, []
-        tick = time.perf_counter()
         for call in work:
             call()
-        self.seconds += time.perf_counter() - tick
 
 
 def make_map(
@@ -118,10 +115,10 @@ def make_map(
                          + ([while_running] if while_running is not None else []))
         stages["predict"] += time.perf_counter() - tick
         for row0, col0, window in windows:
-            tick, side_before = time.perf_counter(), side.seconds
+            tick = time.perf_counter()
             layers = predict_tile(model, lattice, row0, col0, window, support,
                                   progress=progress, executor=executor, while_running=side)
-            stages["predict"] += time.perf_counter() - tick - (side.seconds - side_before)
+            stages["predict"] += time.perf_counter() - tick
             tick = time.perf_counter()
             n_blocks += layers.anchors
             probability, unsure = layers.probability, layers.unsure
@@ -132,8 +129,9 @@ def make_map(
                        decided=np.where(unsure, np.nan, probability))
             stages["write"] += time.perf_counter() - tick
 
+    tick = time.perf_counter()
     side()  # no tile had anchors
-    stages["write"] += side.seconds
+    stages["write"] += time.perf_counter() - tick
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     # The preview shows what a user may rely on: cells too uncertain to classify (and so
     # exported as unknown) are drawn as no data; probability.tif keeps the model's value.
