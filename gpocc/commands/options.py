@@ -16,6 +16,14 @@ import typer
 
 from gpocc.errors import GpoccError
 
+
+class Switch(StrEnum):
+    """An on/off option's value (``--input-noise on``)."""
+
+    on = "on"
+    off = "off"
+
+
 Force = Annotated[bool, typer.Option(
     "--force", help="Replace an existing output (the --out file or folder).")]
 ConfigFile = Annotated[Path | None, typer.Option(
@@ -25,11 +33,6 @@ Bounds = Annotated[tuple[float, float, float, float] | None, typer.Option(
     "--bounds", metavar="XMIN YMIN XMAX YMAX",
     help="Map area in the map frame, metres; default: the data's extent plus "
          "map.margin_m.")]
-class Switch(StrEnum):
-    on = "on"
-    off = "off"
-
-
 InputNoise = Annotated[Switch | None, typer.Option(
     "--input-noise", help="on: use sample covariances (default); off: the baseline.")]
 Seed = Annotated[int | None, typer.Option("--seed", help="Overrides the config's seed.")]
