@@ -513,12 +513,15 @@ def test_compiled_root_of_joint_covariance_reproduces_it():
 
 
 @pytest.mark.parametrize("level", [1, 2, 3])
-def test_compiled_nn_path_matches_numpy_reference(level, monkeypatch):
-    """Fused numba loops against the numpy path: values, gradients, cross, correlated pairs,
-    points with zero covariance (one node) among others."""
+@pytest.mark.parametrize("mixed", [True, False], ids=["mixed", "uniform"])
+def test_compiled_nn_path_matches_numpy_reference(level, mixed, monkeypatch):
+    """Fused numba loops against the numpy path: values, gradients, cross, correlated pairs;
+    ``mixed``: points with zero covariance (one node) among others (the point-major loops),
+    else every point with the same rule (the node-major loops)."""
     means, covs, scan_ids, factors, _ = _scan_problem(22, n=40)
-    covs[::5] = 0.0
-    factors[::5] = 0.0
+    if mixed:
+        covs[::5] = 0.0
+        factors[::5] = 0.0
     kernel = NeuralNetworkKernel(3.7, 50.0, (40.0, 60.0))
     queries = np.random.default_rng(23).uniform(-1.2, 1.2, (25, 2))
 
@@ -535,6 +538,36 @@ def test_compiled_nn_path_matches_numpy_reference(level, monkeypatch):
     assert ex.same_scan_pairs(covs, scan_ids, factors)[0].shape[0] > 50
     for got, want in zip(fused, reference, strict=True):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("level", [1, 2, 3])
+def test_node_major_loops_give_the_point_major_sums(level):
+    """The uniform (node-major) matrix loop adds the same terms in the same order as the
+    point-major one, so the values are equal to the last bit; the cross loop agrees to
+    round-off (its level-2 path sums four nodes in registers)."""
+    from gpocc.gp import fused
+
+    rng = np.random.default_rng(47)
+    kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))
+    means, covs = rng.uniform(-1.5, 1.5, (37, 2)), _covariances(rng, 37, 0.05)
+    exp = ex._expand(means, covs, level)
+    size = exp.uniform
+    assert size == level**2
+    u = kernel.scaled_columns(exp.nodes)
+    by_node = ex._node_major(u, size)
+    last = size - 1  # node `last` of point 5
+    np.testing.assert_array_equal(by_node[:, last * 37 + 5], u[:, 5 * size + last])
+    point_major, node_major = np.zeros((37, 37)), np.zeros((37, 37))
+    fused.nn_matrix(u, exp.weights, exp.starts, kernel.arcsin_scale, point_major)
+    fused.nn_matrix_uniform(by_node, exp.weights[:size], kernel.arcsin_scale, node_major)
+    off = ~np.eye(37, dtype=bool)
+    np.testing.assert_array_equal(node_major[off], point_major[off])
+    np.testing.assert_array_equal(node_major, node_major.T)
+    q = kernel.scaled_columns(rng.uniform(-2, 2, (23, 2)))
+    cross_point, cross_node = np.empty((23, 37)), np.empty((23, 37))
+    fused.nn_cross(q, u, exp.weights, exp.starts, kernel.arcsin_scale, cross_point)
+    fused.nn_cross_uniform(q, by_node, exp.weights[:size], kernel.arcsin_scale, cross_node)
+    np.testing.assert_allclose(cross_node, cross_point, rtol=1e-14, atol=1e-15)
 
 
 def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):

@@ -510,6 +510,12 @@ def _diag_scale_gradient(kernel: Kernel, u: np.ndarray, offsets: np.ndarray,
     return _reduce_last(per_node, ex)
 
 
+def _node_major(u: np.ndarray, size: int) -> np.ndarray:
+    """(3, N L) point-major scaled rows (node k of point i in column i L + k) reordered
+    node-major (column k N + i), the layout of the compiled uniform loops."""
+    return np.ascontiguousarray(u.reshape(3, -1, size).transpose(0, 2, 1).reshape(3, -1))
+
+
 def expected_kernel_matrix(
     kernel: Kernel,
     means: np.ndarray,
@@ -566,7 +572,10 @@ def expected_kernel_matrix(
         # Off-diagonal entries straight from the scaled nodes, no node-pair temporaries.
         u = kernel.scaled_columns(ex.nodes)
         offsets = _scaled_offsets(kernel, u, ex, means) if with_scale_gradient else u[1:]
-        if dk is None:
+        if dk is None and ex.uniform:
+            fused.nn_matrix_uniform(_node_major(u, ex.uniform), ex.weights[: ex.uniform],
+                                    kernel.arcsin_scale, k)
+        elif dk is None:
             fused.nn_matrix(u, ex.weights, ex.starts, kernel.arcsin_scale, k)
         else:
             fused.nn_matrix_gradient(u, ex.weights, ex.starts, kernel.arcsin_scale, dk,
@@ -658,8 +667,12 @@ def expected_kernel_cross(
     fused = _fused(kernel)
     if fused is not None and dout is None:
         u = kernel.scaled_columns(ex.nodes)
-        fused.nn_cross(kernel.scaled_columns(queries), u, ex.weights, ex.starts,
-                       kernel.arcsin_scale, out)
+        if ex.uniform:
+            fused.nn_cross_uniform(kernel.scaled_columns(queries), _node_major(u, ex.uniform),
+                                   ex.weights[: ex.uniform], kernel.arcsin_scale, out)
+        else:
+            fused.nn_cross(kernel.scaled_columns(queries), u, ex.weights, ex.starts,
+                           kernel.arcsin_scale, out)
         return out
     step = max(1, _PAIR_CHUNK // max(1, ex.nodes.shape[0]))
     for lo in range(0, q, step):
