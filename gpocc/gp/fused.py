@@ -15,7 +15,9 @@ pairs need a batched 4 x 4 Cholesky factor of each joint covariance. Here:
 Inputs are *scaled* nodes ``u`` in coordinate-major layout (3, M), as built by
 ``NeuralNetworkKernel._scaled`` (``z = u_a . u_b`` is the kernel's arcsin argument),
 per-node quadrature ``weights`` (M,) and ``starts`` (N + 1,), the node offsets of each point.
-``scale`` is ``signal_variance * 2 / pi``. Results agree with the numpy path to rounding
+``scale`` is ``signal_variance * 2 / pi``. Where every point has the same rule of L nodes
+(``*_uniform``), the columns are node-major instead (node k of point i in column k N + i)
+and ``weights`` is the rule's (L,). Results agree with the numpy path to rounding
 (~1e-15; tests/test_expected.py compares them).
 
 Compiled functions are cached on disk (``cache=True``): the first run on a machine compiles
