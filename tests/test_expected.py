@@ -541,32 +541,39 @@ def test_compiled_nn_path_matches_numpy_reference(level, mixed, monkeypatch):
 
 
 @pytest.mark.parametrize("level", [1, 2, 3])
-def test_node_major_loops_give_the_point_major_sums(level):
+@pytest.mark.parametrize("n", [0, 1, 2, 37])
+def test_node_major_loops_give_the_point_major_sums(level, n):
     """The uniform (node-major) matrix loop adds the same terms in the same order as the
-    point-major one, so the values are equal to the last bit; the cross loop agrees to
-    round-off (its level-2 path sums four nodes in registers)."""
+    point-major one, so its values are equal to the last bit and its diagonal is left
+    alone; the cross loop agrees to round-off (its general path, L != 4, sums node by
+    node). The rule's weights are made unequal, so that a weight given to the wrong node
+    changes the sums."""
     from gpocc.gp import fused
 
     rng = np.random.default_rng(47)
     kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))
-    means, covs = rng.uniform(-1.5, 1.5, (37, 2)), _covariances(rng, 37, 0.05)
+    means, covs = rng.uniform(-1.5, 1.5, (n, 2)), _covariances(rng, n, 0.05)
     exp = ex._expand(means, covs, level)
     size = exp.uniform
-    assert size == level**2
+    assert size == (level**2 if n else 1)
+    rule = rng.dirichlet(np.ones(size))
+    weights = np.tile(rule, n)
     u = kernel.scaled_columns(exp.nodes)
     by_node = ex._node_major(u, size)
-    last = size - 1  # node `last` of point 5
-    np.testing.assert_array_equal(by_node[:, last * 37 + 5], u[:, 5 * size + last])
-    point_major, node_major = np.zeros((37, 37)), np.zeros((37, 37))
-    fused.nn_matrix(u, exp.weights, exp.starts, kernel.arcsin_scale, point_major)
-    fused.nn_matrix_uniform(by_node, exp.weights[:size], kernel.arcsin_scale, node_major)
-    off = ~np.eye(37, dtype=bool)
+    if n > 5:
+        last = size - 1  # node `last` of point 5
+        np.testing.assert_array_equal(by_node[:, last * n + 5], u[:, 5 * size + last])
+    point_major, node_major = np.zeros((n, n)), np.full((n, n), np.nan)
+    fused.nn_matrix(u, weights, exp.starts, kernel.arcsin_scale, point_major)
+    fused.nn_matrix_uniform(by_node, rule, kernel.arcsin_scale, node_major)
+    off = ~np.eye(n, dtype=bool)
     np.testing.assert_array_equal(node_major[off], point_major[off])
-    np.testing.assert_array_equal(node_major, node_major.T)
+    assert np.isnan(np.diag(node_major)).all()
+    np.testing.assert_array_equal(node_major[off], node_major.T[off])
     q = kernel.scaled_columns(rng.uniform(-2, 2, (23, 2)))
-    cross_point, cross_node = np.empty((23, 37)), np.empty((23, 37))
-    fused.nn_cross(q, u, exp.weights, exp.starts, kernel.arcsin_scale, cross_point)
-    fused.nn_cross_uniform(q, by_node, exp.weights[:size], kernel.arcsin_scale, cross_node)
+    cross_point, cross_node = np.empty((23, n)), np.empty((23, n))
+    fused.nn_cross(q, u, weights, exp.starts, kernel.arcsin_scale, cross_point)
+    fused.nn_cross_uniform(q, by_node, rule, kernel.arcsin_scale, cross_node)
     np.testing.assert_allclose(cross_node, cross_point, rtol=1e-14, atol=1e-15)
 
 

@@ -160,8 +160,9 @@ def nn_matrix(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, scale: flo
 def nn_matrix_uniform(u: np.ndarray, weights: np.ndarray, scale: float, out: np.ndarray
                       ) -> None:
     """:func:`nn_matrix` for N points that share one rule of L nodes: ``u`` (3, L N)
-    node-major (node k of point i in column k N + i), ``weights`` (L,). Same sums in the
-    same order, so the same values to the last bit.
+    node-major (node k of point i in column k N + i), ``weights`` (L,). Writes both
+    triangles and leaves the diagonal untouched. Same sums in the same order, so the same
+    values to the last bit.
 
     Each row of point i is reduced over the later points' node k in one contiguous pass,
     and the rows of the L node slots are combined point by point without a strided
