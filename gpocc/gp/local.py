@@ -8,7 +8,7 @@ samples' input distributions (correlated within a scan); queries are exact point
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg.blas import dtrsm
@@ -70,14 +70,8 @@ class NeighbourIndex:
 
 def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -> LocalProblem:
     """The local problem of ``samples[index]`` with ``centre`` (2,) moved to the origin."""
-    local = SampleSet(
-        means=samples.means[index] - centre,
-        covariances=samples.covariances[index],
-        labels=samples.labels[index],
-        scan_ids=samples.scan_ids[index],
-        pose_factors=samples.pose_factors[index],
-        sensor_ids=samples.sensor_ids[index],
-    )
+    local = samples.subset(index)
+    local = replace(local, means=local.means - centre, sensor_names=())
     return LocalProblem(centre=centre, samples=local, index=index)
 
 
