@@ -130,8 +130,8 @@ def make_map(
             stages["write"] += time.perf_counter() - tick
 
     tick = time.perf_counter()
-    side()  # no tile had anchors
-    stages["write"] += time.perf_counter() - tick
+    side()  # no tile had anchors; counted in predict, as on a tile that had some
+    stages["predict"] += time.perf_counter() - tick
     title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
     # The preview shows what a user may rely on: cells too uncertain to classify (and so
     # exported as unknown) are drawn as no data; probability.tif keeps the model's value.
