@@ -98,31 +98,43 @@ def render_preview(
 
     font = _font(18)
     small = _font(14)
+    title_font = _font(22)
     margin, top, bar = 30, 80 if title else 50, 16
-    canvas_w = 2 * pw + 3 * margin
+    labels = (("p(occupied)", 0.0, 1.0, _GREY),
+              ("predictive variance", lo, hi, _VIRIDIS))
+    extent = (f"x {spec.x0:.1f} .. {spec.x1:.1f} m, y {spec.y0:.1f} .. {spec.y1:.1f} m, "
+              f"{spec.resolution * factor:g} m cells (north up)")
+    # Each panel sits centred in a slot wide enough for its label and colour-bar ticks,
+    # and the canvas is wide enough for the title and text lines: a corridor a few
+    # cells wide would otherwise have its text cut and its labels drawn over each other.
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    slot = max(pw, _MIN_SLOT_PIXELS,
+               *(int(math.ceil(measure.textlength(label, font=font))) + 10
+                 for label, *_ in labels))
+    text_w = max(measure.textlength(extent, font=small),
+                 26 + measure.textlength(no_data_label, font=small),
+                 measure.textlength(title, font=title_font) if title else 0.0)
+    canvas_w = max(2 * slot + 3 * margin, int(math.ceil(text_w)) + 2 * margin)
     canvas_h = top + ph + bar + 110
     image = Image.new("RGB", (canvas_w, canvas_h), "white")
     draw = ImageDraw.Draw(image)
     if title:
-        draw.text((canvas_w // 2, 20), title, fill="black", font=_font(22), anchor="mt")
-    labels = (("p(occupied)", 0.0, 1.0, _GREY),
-              ("predictive variance", lo, hi, _VIRIDIS))
+        draw.text((canvas_w // 2, 20), title, fill="black", font=title_font, anchor="mt")
     for k, (panel, (label, vmin, vmax, colours)) in enumerate(zip(panels, labels,
                                                                    strict=True)):
-        x0 = margin + k * (pw + margin)
+        x_slot = margin + k * (slot + margin)
+        x0 = x_slot + (slot - pw) // 2
         image.paste(Image.fromarray(panel), (x0, top))
         draw.rectangle((x0 - 1, top - 1, x0 + pw, top + ph), outline="black")
-        draw.text((x0 + pw // 2, top - 8), label, fill="black", font=font, anchor="mb")
-        # Colour bar under the panel, with its range.
-        ramp = _colour(np.tile(np.linspace(0.0, 1.0, pw), (bar, 1)), colours)
+        draw.text((x_slot + slot // 2, top - 8), label, fill="black", font=font, anchor="mb")
+        # Colour bar under the panel's slot, with its range.
+        ramp = _colour(np.tile(np.linspace(0.0, 1.0, slot), (bar, 1)), colours)
         y_bar = top + ph + 12
-        image.paste(Image.fromarray(ramp), (x0, y_bar))
+        image.paste(Image.fromarray(ramp), (x_slot, y_bar))
         for frac, value in ((0.0, vmin), (0.5, 0.5 * (vmin + vmax)), (1.0, vmax)):
             anchor = "lt" if frac == 0.0 else "rt" if frac == 1.0 else "mt"
-            draw.text((x0 + frac * (pw - 1), y_bar + bar + 4), f"{value:.3g}", fill="black",
-                      font=small, anchor=anchor)
-    extent = (f"x {spec.x0:.1f} .. {spec.x1:.1f} m, y {spec.y0:.1f} .. {spec.y1:.1f} m, "
-              f"{spec.resolution * factor:g} m cells (north up)")
+            draw.text((x_slot + frac * (slot - 1), y_bar + bar + 4), f"{value:.3g}",
+                      fill="black", font=small, anchor=anchor)
     y_text = top + ph + bar + 44
     draw.text((margin, y_text), extent, fill="black", font=small)
     if np.isnan(p).any():
@@ -135,6 +147,8 @@ def render_preview(
 
 #: Longer side of a preview panel for small maps, pixels (enlarged by whole pixels).
 _PANEL_PIXELS = 800
+#: Narrowest slot of a panel, its label and its colour bar (three tick values), pixels.
+_MIN_SLOT_PIXELS = 240
 #: Colour ramps, 0..255 RGB at evenly spaced stops from 0 to 1. Viridis: 17 colours of
 #: matplotlib's table (CC0), interpolated linearly (within 6/255 of it: tests).
 _GREY = np.array([[255, 255, 255], [0, 0, 0]], dtype=float)
