@@ -161,3 +161,37 @@ def test_preview_of_a_narrow_map_keeps_its_text_inside_the_image(tmp_path, shape
     columns = np.flatnonzero(label_rows.any(axis=0))
     gaps = np.diff(columns)
     assert gaps.max() >= 20, "the panel labels run into each other"
+
+
+@pytest.mark.parametrize("yaw_deg", [None, 0.0, 30.0, -75.0, 135.0, 190.0])
+def test_preview_says_where_grid_north_is_as_gdal_places_the_raster(tmp_path, yaw_deg):
+    # The preview is drawn in the map frame (+y up). With a georeference whose yaw is
+    # not zero, "north up" would be false: the label must give north's direction as
+    # GDAL's geotransform of the same map's GeoTIFF has it.
+    import re
+
+    import rasterio
+
+    from gpocc.config import GeorefConfig
+    from gpocc.io.rasters import write_geotiff
+    from gpocc.mapping.render import orientation_label
+
+    spec = GridSpec(-3.0, -2.0, 0.5, 12, 8)
+    georef = None if yaw_deg is None else GeorefConfig(
+        epsg=32633, easting_m=400000.0, northing_m=5800000.0, yaw_deg=yaw_deg)
+    write_geotiff(tmp_path / "p.tif", np.zeros(spec.shape, np.float32), spec,
+                  nodata=float("nan"), georef=georef)
+    with rasterio.open(tmp_path / "p.tif") as ds:
+        inverse = ~ds.transform
+        e, n = ds.transform @ (6.0, 4.0)
+    (c0, r0), (c1, r1) = inverse @ (e, n), inverse @ (e, n + 10.0)  # 10 m grid north
+    clockwise_from_up = math.degrees(math.atan2(c1 - c0, -(r1 - r0)))
+    label = orientation_label(yaw_deg)
+    if abs(clockwise_from_up) < 0.05:
+        assert label == "north up"
+        return
+    said = re.fullmatch(r"map frame \+y up; grid north ([\d.]+) deg (clockwise|"
+                        r"counter-clockwise) from up", label)
+    assert said, label
+    angle = float(said[1]) * (1 if said[2] == "clockwise" else -1)
+    assert (angle - clockwise_from_up + 180) % 360 - 180 == pytest.approx(0, abs=0.06)

@@ -50,6 +50,22 @@ def preview_factor(shape: tuple[int, int], max_pixels: int = MAX_PREVIEW_PIXELS)
     return max(1, math.ceil(max(shape) / max_pixels))
 
 
+def orientation_label(yaw_deg: float | None) -> str:
+    """Where the CRS's north lies in a preview, whose up is the map frame's +y.
+
+    ``yaw_deg``: the map frame's +x axis, degrees counter-clockwise from the CRS's east
+    (``map.georef.yaw_deg``); None for the local frame, whose +y is its north. The
+    frame's +y is then ``yaw_deg`` counter-clockwise from north: north is that many
+    degrees clockwise from up.
+    """
+    yaw = 0.0 if yaw_deg is None else float(yaw_deg)
+    turn = -((-yaw + 180.0) % 360.0 - 180.0)  # in (-180, 180]
+    if abs(turn) < 0.05:
+        return "north up"
+    side = "clockwise" if turn > 0 else "counter-clockwise"
+    return f"map frame +y up; grid north {abs(turn):.1f} deg {side} from up"
+
+
 def prepare_preview() -> None:
     """Import Pillow and its PNG writer now (0.07 s), for a caller with time to spare
     before its :func:`render_preview` (a map, while its workers compute)."""
@@ -63,6 +79,7 @@ def render_preview(
     spec: GridSpec,
     title: str = "",
     no_data_label: str = "no data",
+    orientation: str = "north up",
 ) -> None:
     """Write a PNG: p(occupied) and predictive variance side by side, atomically.
 
@@ -73,6 +90,8 @@ def render_preview(
         spec: the grid; its extent in metres is written under the panels.
         title: figure title.
         no_data_label: what NaN cells of ``probability`` mean, for the figure's key.
+        orientation: where north is in the panels, for the extent line
+            (:func:`orientation_label`); up is the map frame's +y.
 
     Maps larger than :data:`MAX_PREVIEW_PIXELS` a side are block-averaged first; small
     maps are enlarged by whole pixels. Probability is grey (free white, occupied black);
@@ -103,7 +122,7 @@ def render_preview(
     labels = (("p(occupied)", 0.0, 1.0, _GREY),
               ("predictive variance", lo, hi, _VIRIDIS))
     extent = (f"x {spec.x0:.1f} .. {spec.x1:.1f} m, y {spec.y0:.1f} .. {spec.y1:.1f} m, "
-              f"{spec.resolution * factor:g} m cells (north up)")
+              f"{spec.resolution * factor:g} m cells ({orientation})")
     # Each panel sits centred in a slot wide enough for its label and colour-bar ticks,
     # and the canvas is wide enough for the title and text lines: a corridor a few
     # cells wide would otherwise have its text cut and its labels drawn over each other.
