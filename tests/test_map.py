@@ -419,3 +419,62 @@ def test_georeferenced_map_folder_is_cog_and_lands_where_the_robot_was(model_pat
     # map.yaml stays in the map frame (Nav2 works there).
     _, spec = read_map_server(out / "map.yaml")
     assert (spec.x0, spec.y0) == pytest.approx((-2.4, -1.7))
+
+
+def test_nav2_reads_the_map_folders_pgm_as_its_class_layer_cell_for_cell(model_path, tmp_path):
+    # The whole folder as Nav2 sees it: map.yaml + map.pgm loaded by the test's own
+    # transliteration of Nav2's map_io (not gpocc's reader), each class.tif cell looked
+    # up in Nav2's grid by its centre through GDAL's geotransform. Bounds off the cell
+    # lattice and past the data's reach, so every class (and no data) is present.
+    from tests.test_io_mapserver import nav2_load_map
+
+    out = run_map(model_path, tmp_path / "nav2", "--resolution", "0.1",
+                  "--bounds", "-2.45", "-1.75", "4.05", "1.85")
+    with rasterio.open(out / "class.tif") as ds:
+        classes = ds.read(1)
+        transform, bounds = ds.transform, ds.bounds
+    assert set(np.unique(classes)) == {0, 1, 2, 255}
+    data, resolution, origin = nav2_load_map(out / "map.yaml")
+    assert data.shape == classes.shape
+    assert resolution == pytest.approx(transform.a)
+    # origin: the pose of the lower-left corner of the lower-left pixel, no rotation.
+    assert origin == pytest.approx([bounds.left, bounds.bottom, 0.0], abs=1e-9)
+    rows, cols = np.mgrid[0:classes.shape[0], 0:classes.shape[1]]
+    xs, ys = transform @ (cols + 0.5, rows + 0.5)
+    nav_col = np.floor((xs - origin[0]) / resolution).astype(int)
+    nav_row = np.floor((ys - origin[1]) / resolution).astype(int)  # row 0 is south
+    loaded = data[nav_row, nav_col]
+    expected = np.where(classes == 1, 100, np.where(classes == 0, 0, -1))
+    np.testing.assert_array_equal(loaded, expected)
+
+
+def test_stdout_and_metadata_state_what_the_files_hold(model_path, tmp_path):
+    # The numbers a user reads (stdout, metadata.json) against the rasters as GDAL
+    # reads them: size, bounds, resolution and the class counts.
+    import ast
+    import re
+
+    out = tmp_path / "said"
+    result = runner.invoke(app, ["map", str(model_path), "--out", str(out), "--resolution",
+                                 "0.2", "--bounds", "-2.45", "-1.75", "4.05", "1.85"])
+    assert result.exit_code == 0, result.output
+    with rasterio.open(out / "class.tif") as ds:
+        classes = ds.read(1)
+        b, res = ds.bounds, ds.res
+    counts = {"free": int((classes == 0).sum()), "occupied": int((classes == 1).sum()),
+              "unsure": int((classes == 2).sum())}
+    assert (classes == 255).any() and min(counts.values()) > 0
+    cells = re.search(r"^cells: (\d+) x (\d+) at ([\d.]+) m, bounds (\(.*\))$", result.stdout,
+                      re.M)
+    assert cells, result.stdout
+    assert (int(cells[1]), int(cells[2])) == (ds.width, ds.height)
+    assert float(cells[3]) == res[0] == res[1]
+    assert ast.literal_eval(cells[4]) == pytest.approx((b.left, b.bottom, b.right, b.top))
+    said = re.search(r"^classes: (\d+) occupied, (\d+) free, (\d+) unsure$", result.stdout,
+                     re.M)
+    assert said and [int(v) for v in said.groups()] == [
+        counts["occupied"], counts["free"], counts["unsure"]]
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["class_counts"] == counts
+    assert meta["size_cells"] == [ds.width, ds.height] and meta["resolution_m"] == res[0]
+    assert meta["bounds_m"] == pytest.approx([b.left, b.bottom, b.right, b.top])

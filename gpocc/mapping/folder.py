@@ -34,7 +34,12 @@ from gpocc.io.rasters import (
     write_geotiff,
     write_vrt,
 )
-from gpocc.mapping.render import MAX_PREVIEW_PIXELS, preview_factor, render_preview
+from gpocc.mapping.render import (
+    MAX_PREVIEW_PIXELS,
+    orientation_label,
+    preview_factor,
+    render_preview,
+)
 from gpocc.versions import software_versions
 
 LAYERS = ("probability", "variance", "class")
@@ -128,7 +133,9 @@ class MapFolder:
                                self.free, self.max_pgm_pixels)
         render_preview(self.out_dir / "preview.png", self.preview_decided,
                        self.preview_variance, self.preview_spec, title=title,
-                       no_data_label=no_data_label)
+                       no_data_label=no_data_label,
+                       orientation=orientation_label(
+                           None if self.georef is None else self.georef.yaw_deg))
         return dict(self.counts)
 
 

@@ -50,6 +50,22 @@ def preview_factor(shape: tuple[int, int], max_pixels: int = MAX_PREVIEW_PIXELS)
     return max(1, math.ceil(max(shape) / max_pixels))
 
 
+def orientation_label(yaw_deg: float | None) -> str:
+    """Where the CRS's north lies in a preview, whose up is the map frame's +y.
+
+    ``yaw_deg``: the map frame's +x axis, degrees counter-clockwise from the CRS's east
+    (``map.georef.yaw_deg``); None for the local frame, whose +y is its north. The
+    frame's +y is then ``yaw_deg`` counter-clockwise from north: north is that many
+    degrees clockwise from up.
+    """
+    yaw = 0.0 if yaw_deg is None else float(yaw_deg)
+    turn = -((-yaw + 180.0) % 360.0 - 180.0)  # in (-180, 180]
+    if abs(turn) < 0.05:
+        return "north up"
+    side = "clockwise" if turn > 0 else "counter-clockwise"
+    return f"map frame +y up; grid north {abs(turn):.1f} deg {side} from up"
+
+
 def prepare_preview() -> None:
     """Import Pillow and its PNG writer now (0.07 s), for a caller with time to spare
     before its :func:`render_preview` (a map, while its workers compute)."""
@@ -63,6 +79,7 @@ def render_preview(
     spec: GridSpec,
     title: str = "",
     no_data_label: str = "no data",
+    orientation: str = "north up",
 ) -> None:
     """Write a PNG: p(occupied) and predictive variance side by side, atomically.
 
@@ -73,6 +90,8 @@ def render_preview(
         spec: the grid; its extent in metres is written under the panels.
         title: figure title.
         no_data_label: what NaN cells of ``probability`` mean, for the figure's key.
+        orientation: where north is in the panels, for the extent line
+            (:func:`orientation_label`); up is the map frame's +y.
 
     Maps larger than :data:`MAX_PREVIEW_PIXELS` a side are block-averaged first; small
     maps are enlarged by whole pixels. Probability is grey (free white, occupied black);
@@ -98,31 +117,43 @@ def render_preview(
 
     font = _font(18)
     small = _font(14)
+    title_font = _font(22)
     margin, top, bar = 30, 80 if title else 50, 16
-    canvas_w = 2 * pw + 3 * margin
+    labels = (("p(occupied)", 0.0, 1.0, _GREY),
+              ("predictive variance", lo, hi, _VIRIDIS))
+    extent = (f"x {spec.x0:.1f} .. {spec.x1:.1f} m, y {spec.y0:.1f} .. {spec.y1:.1f} m, "
+              f"{spec.resolution * factor:g} m cells ({orientation})")
+    # Each panel sits centred in a slot wide enough for its label and colour-bar ticks,
+    # and the canvas is wide enough for the title and text lines: a corridor a few
+    # cells wide would otherwise have its text cut and its labels drawn over each other.
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    slot = max(pw, _MIN_SLOT_PIXELS,
+               *(int(math.ceil(measure.textlength(label, font=font))) + 10
+                 for label, *_ in labels))
+    text_w = max(measure.textlength(extent, font=small),
+                 26 + measure.textlength(no_data_label, font=small),
+                 measure.textlength(title, font=title_font) if title else 0.0)
+    canvas_w = max(2 * slot + 3 * margin, int(math.ceil(text_w)) + 2 * margin)
     canvas_h = top + ph + bar + 110
     image = Image.new("RGB", (canvas_w, canvas_h), "white")
     draw = ImageDraw.Draw(image)
     if title:
-        draw.text((canvas_w // 2, 20), title, fill="black", font=_font(22), anchor="mt")
-    labels = (("p(occupied)", 0.0, 1.0, _GREY),
-              ("predictive variance", lo, hi, _VIRIDIS))
+        draw.text((canvas_w // 2, 20), title, fill="black", font=title_font, anchor="mt")
     for k, (panel, (label, vmin, vmax, colours)) in enumerate(zip(panels, labels,
                                                                    strict=True)):
-        x0 = margin + k * (pw + margin)
+        x_slot = margin + k * (slot + margin)
+        x0 = x_slot + (slot - pw) // 2
         image.paste(Image.fromarray(panel), (x0, top))
         draw.rectangle((x0 - 1, top - 1, x0 + pw, top + ph), outline="black")
-        draw.text((x0 + pw // 2, top - 8), label, fill="black", font=font, anchor="mb")
-        # Colour bar under the panel, with its range.
-        ramp = _colour(np.tile(np.linspace(0.0, 1.0, pw), (bar, 1)), colours)
+        draw.text((x_slot + slot // 2, top - 8), label, fill="black", font=font, anchor="mb")
+        # Colour bar under the panel's slot, with its range.
+        ramp = _colour(np.tile(np.linspace(0.0, 1.0, slot), (bar, 1)), colours)
         y_bar = top + ph + 12
-        image.paste(Image.fromarray(ramp), (x0, y_bar))
+        image.paste(Image.fromarray(ramp), (x_slot, y_bar))
         for frac, value in ((0.0, vmin), (0.5, 0.5 * (vmin + vmax)), (1.0, vmax)):
             anchor = "lt" if frac == 0.0 else "rt" if frac == 1.0 else "mt"
-            draw.text((x0 + frac * (pw - 1), y_bar + bar + 4), f"{value:.3g}", fill="black",
-                      font=small, anchor=anchor)
-    extent = (f"x {spec.x0:.1f} .. {spec.x1:.1f} m, y {spec.y0:.1f} .. {spec.y1:.1f} m, "
-              f"{spec.resolution * factor:g} m cells (north up)")
+            draw.text((x_slot + frac * (slot - 1), y_bar + bar + 4), f"{value:.3g}",
+                      fill="black", font=small, anchor=anchor)
     y_text = top + ph + bar + 44
     draw.text((margin, y_text), extent, fill="black", font=small)
     if np.isnan(p).any():
@@ -135,6 +166,8 @@ def render_preview(
 
 #: Longer side of a preview panel for small maps, pixels (enlarged by whole pixels).
 _PANEL_PIXELS = 800
+#: Narrowest slot of a panel, its label and its colour bar (three tick values), pixels.
+_MIN_SLOT_PIXELS = 240
 #: Colour ramps, 0..255 RGB at evenly spaced stops from 0 to 1. Viridis: 17 colours of
 #: matplotlib's table (CC0), interpolated linearly (within 6/255 of it: tests).
 _GREY = np.array([[255, 255, 255], [0, 0, 0]], dtype=float)
