@@ -27,14 +27,16 @@ def set_verbosity(level: int) -> None:
 
 def log(message: str) -> None:
     """One progress/log line on stderr (not when quiet)."""
+    # soft_wrap: one line stays one line (rich would break it at the console's width, 80
+    # columns off a terminal), so that logs can be searched line by line.
     if _verbosity >= NORMAL:
-        _console.print(message, highlight=False, markup=False)
+        _console.print(message, highlight=False, markup=False, soft_wrap=True)
 
 
 def debug(message: str) -> None:
     """One detail line on stderr, only when verbose."""
     if _verbosity >= VERBOSE:
-        _console.print(message, highlight=False, markup=False)
+        _console.print(message, highlight=False, markup=False, soft_wrap=True)
 
 
 @contextlib.contextmanager

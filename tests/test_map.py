@@ -478,3 +478,21 @@ def test_stdout_and_metadata_state_what_the_files_hold(model_path, tmp_path):
     assert meta["class_counts"] == counts
     assert meta["size_cells"] == [ds.width, ds.height] and meta["resolution_m"] == res[0]
     assert meta["bounds_m"] == pytest.approx([b.left, b.bottom, b.right, b.top])
+
+
+def test_a_map_that_misses_the_data_says_so_on_stderr(model_path, tmp_path):
+    # Bounds 20 m from the room: every cell is nodata, which stdout shows only as zero
+    # class counts; stderr names the cause and the data's extent.
+    result = runner.invoke(app, ["map", str(model_path), "--out", str(tmp_path / "away"),
+                                 "--resolution", "0.2", "--bounds", "20", "20", "24", "23"])
+    assert result.exit_code == 0, result.output
+    with rasterio.open(tmp_path / "away" / "class.tif") as ds:
+        assert np.all(ds.read(1) == 255)
+    warning = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warning) == 1 and "every cell of the map is nodata" in warning[0]
+    assert "check --bounds" in warning[0] and "x -2.0 .. 2.0 m" in warning[0]
+    # A map that holds data says nothing of the kind.
+    result = runner.invoke(app, ["map", str(model_path), "--out", str(tmp_path / "near"),
+                                 "--resolution", "0.2", "--bounds", "-1", "-1", "1", "1"])
+    assert result.exit_code == 0, result.output
+    assert "warning:" not in result.stderr

@@ -18,6 +18,7 @@ from gpocc.commands.map import (
     check_map_size,
     echo_map,
     map_spec,
+    warn_if_no_data,
     write_map,
 )
 from gpocc.commands.options import (
@@ -72,4 +73,5 @@ def build(
                             while_running=lambda: write_model(model, tmp / MODEL_FILE))
     echo_model(model, model_path, None)
     echo_map(summary, out, resolution, time.perf_counter() - mapping_started)
+    warn_if_no_data(summary, model)
     typer.echo(f"total time: {time.perf_counter() - started:.1f} s")

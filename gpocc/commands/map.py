@@ -58,6 +58,20 @@ def map_command(
             shutil.copyfile(model_path, tmp / kept)
         summary = write_map(model, str(model_path), spec, tmp, workers, scheduler)
     echo_map(summary, out, resolution, time.perf_counter() - started)
+    warn_if_no_data(summary, model)
+
+
+def warn_if_no_data(summary: MapSummary, model: GPModel) -> None:
+    """A warning on stderr when every cell of a written map is nodata: the bounds miss
+    the data (cells farther than ``map.max_beam_distance_m`` from every beam), which the
+    class counts on stdout show only as zeros."""
+    if sum(summary.class_counts.values()) > 0:
+        return
+    x0, y0, x1, y1 = model.extent
+    log(f"warning: every cell of the map is nodata: no cell lies within "
+        f"map.max_beam_distance_m ({model.config.map.max_beam_distance_m} m) of a beam; "
+        f"the samples span x {x0:.1f} .. {x1:.1f} m, y {y0:.1f} .. {y1:.1f} m: "
+        f"check --bounds")
 
 
 def _path_inside(path: Path, folder: Path) -> Path | None:
