@@ -276,3 +276,37 @@ def test_two_robots_upside_down_laser_and_pose_topic_map_the_room(tmp_path: Path
         "  - {name: r2, scan_topic: /robot2/scan, mount: {x_m: 0.2, yaw_deg: 180.0}}\n")
     assert_walls(build(path, tmp_path / "map", config))
 
+
+def test_pose_topic_covariance_notes_name_the_bound_used_and_skip_dropped_scans(
+        tmp_path: Path) -> None:
+    # AMCL at 10 Hz without TF; its covariance is "do not trust" from 8 s to 12 s, and two
+    # scans come before its first message.
+    bag = BagWriter("ros2-mcap")
+    scan_t = np.concatenate([[-1.2, -0.6], SCAN_T])
+    for t, r in zip(scan_t, ROT180.ranges(scan_t), strict=True):
+        bag.scan("/scan", "laser", T0 + t, ROT180.angles, r, ROT180.max_range)
+    pose_t = np.round(np.arange(0.0, LAP_S + 0.5, 0.1), 6)
+    unknown = (pose_t >= 8.0) & (pose_t <= 12.0)
+    for t, p, bad in zip(pose_t, base_pose(pose_t), unknown, strict=True):
+        bag.pose_cov("/amcl_pose", T0 + t, "map", (p[0], p[1], 0.0), yaw_quat(p[2]),
+                     cov6(0.004, 0.003, 1e6 if bad else 0.001))
+    sensor = SensorConfig(name="r", scan_topic="/scan", mount=MountConfig(x_m=0.2,
+                                                                          yaw_deg=180.0))
+    [batch] = read_inputs([bag.write(tmp_path / "amcl")], Config(sensors=(sensor,)))
+    assert batch.skipped_scans == 2 and batch.n_scans == SCAN_T.size
+    # Without TF a scan's pose and covariance come from the messages around it: the bound
+    # is max_pose_gap_s (0.25 s), not max_covariance_age_s (30 s by default).
+    gap = sensor.max_pose_gap_s
+    prov = batch.provenance
+    assert prov.covariance_source == (
+        f"/amcl_pose (held or interpolated up to max_pose_gap_s={gap:g} s)")
+    # Stale: used scans farther than the bound from every known covariance (brute force);
+    # the two scans without a pose are skipped, not stale too.
+    far = np.abs(SCAN_T[:, None] - pose_t[~unknown][None]).min(axis=1) > gap
+    assert far.sum() == 4
+    stale = [n for n in prov.notes if "from a known covariance" in n]
+    assert stale == [f"{far.sum()} scans more than max_pose_gap_s={gap:g} s from a known "
+                     "covariance on /amcl_pose use the config's pose_covariance"]
+    config_cov = sensor.pose_covariance_matrix
+    np.testing.assert_array_equal(batch.pose_covariances[far],
+                                  np.broadcast_to(config_cov, (far.sum(), 3, 3)))
