@@ -124,7 +124,10 @@ class _Covariance:
 
 def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
                  stamps: np.ndarray, tf: TfBuffer | None, map_frame: str | None,
-                 max_age_s: float) -> _Covariance:
+                 max_age_s: float, age_key: str, used: np.ndarray) -> _Covariance:
+    """Covariances at ``stamps`` (S,), held up to ``max_age_s`` (the config key
+    ``age_key``); ``used`` (S,) marks the scans that have a pose: only those are counted
+    as stale."""
     fallback = sensor.pose_covariance_matrix
     n = stamps.size
     config_only = _Covariance(np.broadcast_to(fallback, (n, 3, 3)).copy(), np.zeros(n, bool),
@@ -157,13 +160,15 @@ def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
             cov = rotate_covariances(cov, np.where(rot.valid, rot.poses[:, 2], 0.0))
     check = type(check)(cov, check.known, check.unknown_reason, check.repaired)
     at = covariance_at(stamps, series.stamps, check, fallback, max_age_s)
-    source = f"{series.topic} (held or interpolated up to max_covariance_age_s={max_age_s:g} s)"
+    source = f"{series.topic} (held or interpolated up to {age_key}={max_age_s:g} s)"
     unknown = int(np.count_nonzero(~check.known))
     if unknown:
         notes.append(f"{series.topic}: {unknown} of {check.known.size} covariances unknown "
                      f"({check.unknown_reason}); the config's pose_covariance stands in")
-    if at.stale:
-        notes.append(f"{at.stale} scans more than max_covariance_age_s={max_age_s:g} s from a "
+    # Scans without a pose are dropped (and counted as skipped): not stale as well.
+    stale = int(np.count_nonzero(used & ~at.from_input))
+    if stale:
+        notes.append(f"{stale} scans more than {age_key}={max_age_s:g} s from a "
                      f"known covariance on {series.topic} use the config's pose_covariance")
     return _Covariance(at.covariances, at.from_input, source, tuple(notes))
 
@@ -272,7 +277,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         body = (series.child_frame_id if series is not None and series.child_frame_id
                 and series.child_frame_id in tf.frames() else chain.body_frame())
         cov = _covariances(path, sensor, series, stamps, tf, chain.target,
-                           sensor.max_covariance_age_s)
+                           sensor.max_covariance_age_s, "max_covariance_age_s", valid)
         lever = _lever(tf, chain, body, scans.frame_id, stamps, poses[:, 2],
                        sensor.max_pose_gap_s)
         covariances = move_covariances(cov.covariances, lever)
@@ -301,7 +306,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                 (f"no fix on {series.topic} within max_covariance_age_s of the scan",
                  "sensors[].max_covariance_age_s", int(np.count_nonzero(stale)))) if r[2]]
             pose_source = f"topic {series.topic} anchoring odometry {odometry.topic}"
-            cov_age = sensor.max_covariance_age_s
+            cov_age, age_key = sensor.max_covariance_age_s, "max_covariance_age_s"
         else:
             poses, valid = interpolate_poses(series.stamps, series.poses, stamps,
                                              sensor.max_pose_gap_s)
@@ -309,8 +314,9 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                 skipped = [(f"no pose on {series.topic} within max_pose_gap_s of the scan",
                             "sensors[].max_pose_gap_s", int(np.count_nonzero(~valid)))]
             pose_source = f"topic {series.topic} ({series.msgtype.rsplit('/', 1)[-1]})"
-            cov_age = sensor.max_pose_gap_s
-        cov = _covariances(path, sensor, series, stamps, None, None, cov_age)
+            # The pose and its covariance come from the same messages: one time bound.
+            cov_age, age_key = sensor.max_pose_gap_s, "max_pose_gap_s"
+        cov = _covariances(path, sensor, series, stamps, None, None, cov_age, age_key, valid)
         covariances = cov.covariances
         has_cov = bool(cov.from_input[valid].any())
     notes.extend(cov.notes)
