@@ -282,6 +282,10 @@ def test_force_never_replaces_a_folder_it_reads(tmp_path, maps):
         ("bad.csv", "x,y,label\n1,2,1\n3,4,2\n", "line 3"),
         ("bad.csv", "a,b,c\n1,2,1\n", "header"),
         ("short.txt", "1 2 1\n3 4\n", "line 2"),
+        # Rows wider than the header (or than x y label): which value is which is unknown.
+        ("wide.csv", "x,y,label\n1,2,1\n3,4,0,1\n", "line 3: expected 3 values"),
+        ("wide.txt", "1 2 1\n3 4 0 1\n", "line 2: expected 3 values"),
+        ("narrow.csv", "label,id,y,x\n1,a,2,3\n0,4,5\n", "line 3: expected 4 values"),
         ("empty.csv", "# nothing\n", "no points"),
         ("one_class.csv", "x,y,label\n1,2,1\n3,4,1\n", "both"),
         ("blob.bin", b"\x00\xff\xfe\x01binary", "accepted ground truth"),
