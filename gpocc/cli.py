@@ -138,6 +138,11 @@ def main() -> None:
         build_app(chosen)(prog_name="gpocc")
     except SystemExit as exc:
         _exit_without_teardown(exc.code)
+    except KeyboardInterrupt:
+        # Ctrl-C while the command's modules load (numba, scipy: a second or two), before
+        # the command's own handler: nothing was written yet.
+        print("gpocc: interrupted before any output was written", file=sys.stderr)
+        _exit_without_teardown(130)
     _exit_without_teardown(0)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -319,6 +320,34 @@ class Config:
 
 # --------------------------------------------------------------------------- loading
 
+
+class _Loader(yaml.SafeLoader):
+    """``yaml.safe_load`` with two YAML 1.1 traps closed.
+
+    A repeated key is an error (PyYAML keeps the last one, so a second ``model:`` block
+    would silently drop the first). ``1e-6`` is a number (YAML 1.1 reads a float without
+    a dot as the string '1e-6', and the key would then be refused as not a number).
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: set[str] = set()
+        for key_node, _ in node.value:
+            if isinstance(key_node, yaml.ScalarNode) and key_node.tag != "tag:yaml.org,2002:merge":
+                if key_node.value in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key '{key_node.value}' is given twice",
+                        key_node.start_mark)
+                seen.add(key_node.value)
+        return super().construct_mapping(node, deep)
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
@@ -335,6 +364,15 @@ _POSITIVE_KEYS = {
     "calibration_max_position_std_m",
     "weight_variance", "bias_variance", "max_cells",
 }
+
+
+#: Larger variances (1 km, 1000 rad or deg standard deviation) are unit mistakes, and
+#: overflow the sigma-point and kernel arithmetic.
+_MAX_VARIANCE = 1e6
+#: A laser mount farther than this from the robot base is a unit mistake.
+_MAX_MOUNT_M = 1e3
+#: The largest integer a config key may hold (2^32 - 1: seeds and counts fit in int64).
+_MAX_INT = 2**32 - 1
 
 
 def _type_name(tp: Any) -> str:
@@ -369,6 +407,8 @@ def _convert(value: Any, tp: Any, key: str, source: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise GpoccError(f"{source}: key '{key}' must be an integer, got {value!r}")
+        if abs(value) > _MAX_INT:  # beyond numpy's int64 indices and counts
+            raise GpoccError(f"{source}: key '{key}' must be at most {_MAX_INT}, got {value}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -432,6 +472,16 @@ def _validate(config: Config, source: str) -> Config:
             raise GpoccError(f"{source}: key '{key}' must be a 3x3 matrix of (x, y, yaw)")
         if not np.allclose(cov, cov.T, atol=1e-12):
             raise GpoccError(f"{source}: key '{key}' must be symmetric")
+        if np.abs(cov).max() > _MAX_VARIANCE:
+            raise GpoccError(f"{source}: key '{key}' has an entry beyond {_MAX_VARIANCE:g} "
+                             f"(m^2, rad^2): a 1 km standard deviation; check its units")
+        for name in ("range_variance_m2", "bearing_variance_deg2"):
+            if getattr(sensor, name) > _MAX_VARIANCE:
+                raise GpoccError(f"{source}: key 'sensors[{i}].{name}' must be at most "
+                                 f"{_MAX_VARIANCE:g}, got {getattr(sensor, name)}")
+        if max(abs(sensor.mount.x_m), abs(sensor.mount.y_m)) > _MAX_MOUNT_M:
+            raise GpoccError(f"{source}: key 'sensors[{i}].mount' puts the laser more than "
+                             f"{_MAX_MOUNT_M:g} m from the robot base; check its units (metres)")
         if np.linalg.eigvalsh(cov).min() < -1e-12:
             raise GpoccError(
                 f"{source}: key '{key}' is not positive semi-definite; fix its off-diagonals"
@@ -487,6 +537,16 @@ def _validate(config: Config, source: str) -> Config:
             f"'max_input_noise_scale' must enclose 1 (the stated covariances), got "
             f"{t.min_input_noise_scale} and {t.max_input_noise_scale}"
         )
+    if config.samples.min_label_share > 1.0:
+        raise GpoccError(f"{source}: key 'samples.min_label_share' is a share of a cell's "
+                         f"samples, in [0, 1], got {config.samples.min_label_share}")
+    g = config.grid
+    if not (g.log_odds_free < 0.0 < g.log_odds_occupied and g.clamp_min < 0.0 < g.clamp_max):
+        raise GpoccError(
+            f"{source}: key 'grid' needs log_odds_free < 0 < log_odds_occupied and "
+            f"clamp_min < 0 < clamp_max, got {g.log_odds_free}, {g.log_odds_occupied}, "
+            f"{g.clamp_min}, {g.clamp_max}"
+        )
     if config.model.quadrature_level > 10:
         raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")
     if not 0.0 < config.model.blend_overlap <= 1.0:
@@ -512,7 +572,7 @@ def load_config(path: str | Path | None) -> Config:
     if not p.is_file():
         raise GpoccError(f"{p}: config file not found; check the path")
     try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        data = yaml.load(p.read_text(encoding="utf-8"), Loader=_Loader)  # noqa: S506 - safe
     except (UnicodeDecodeError, ValueError):
         raise GpoccError(f"{p}: not a text (UTF-8) YAML file; give the job's "
                          "YAML config") from None
@@ -522,7 +582,9 @@ def load_config(path: str | Path | None) -> Config:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise GpoccError(f"{p}: not valid YAML{where}; fix the syntax") from None
+        problem = getattr(exc, "problem", None)
+        what = f" ({problem})" if problem else ""
+        raise GpoccError(f"{p}: not valid YAML{where}{what}; fix the syntax") from None
     return config_from_dict(data, str(p))
 
 

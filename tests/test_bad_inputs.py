@@ -65,6 +65,8 @@ def corpus(tmp_path_factory) -> Path:
     (root / "binary.yaml").write_bytes(bytes(range(256)) * 4)
     (root / "seed_float.yaml").write_text("seed: 1e23\n")
     (root / "seed_huge.yaml").write_text("seed: 100000000000000000000000\n")
+    np.save(root / "bare_array.npy", np.zeros(3))
+    (root / "bare_array.npy").rename(root / "bare_array.npz")  # np.load gives an array
     (root / "a_file").write_text("not a folder\n")
     (root / "user_dir").mkdir()
     (root / "user_dir" / "notes.txt").write_text("mine\n")
@@ -143,6 +145,10 @@ CASES = [
      "huge.mcap", "out.npz"),
     ("grid-huge-bounds", ["grid", "{root}/ok.mcap", "--resolution", "0.001", "--bounds",
                           "-1e4", "-1e4", "1e4", "1e4", "--out", "{root}/out"], "grid", "out"),
+    # A malformed address (no port) is refused by Dask with a ValueError.
+    ("map-scheduler-no-port", ["map", "{root}/good.npz", "--resolution", "0.3",
+                               "--scheduler", "not-an-address", "--out", "{root}/out"],
+     "not-an-address", "out"),
     # OS errors
     ("map-out-under-a-file", ["map", "{root}/good.npz", "--resolution", "0.3",
                               "--out", "{root}/a_file/out"], "a_file", "a_file/out"),
@@ -159,6 +165,10 @@ CASES = [
                           "--out", "{root}/out.npz"], "seed_huge.yaml", "out.npz"),
     ("train-negative-seed", ["train", "{root}/ok.mcap", "--seed", "-1",
                              "--out", "{root}/out.npz"], "--seed", "out.npz"),
+    ("map-npy-as-model", ["map", "{root}/bare_array.npz", "--resolution", "0.3",
+                          "--out", "{root}/out"], "bare_array.npz`gpocc train", "out"),
+    ("info-npy-as-model", ["info", "{root}/bare_array.npz"], "bare_array.npz`gpocc train",
+     None),
     ("config-is-a-folder", ["train", "{root}/ok.mcap", "--config", "{root}/user_dir",
                             "--out", "{root}/out.npz"], "user_dir", "out.npz"),
 ] + [

@@ -230,3 +230,24 @@ def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
     stderr = proc.stderr.read()
     assert proc.wait(timeout=60) == 141, stderr
     assert "error" not in stderr and "Traceback" not in stderr
+
+
+def test_ctrl_c_while_the_command_loads_is_one_line(monkeypatch, capsys) -> None:
+    """Ctrl-C in the second or two the command's modules take to import (before its own
+    handler runs) ends with status 130 and one line, not a KeyboardInterrupt traceback."""
+    from gpocc import cli
+
+    def interrupted(name: str):
+        raise KeyboardInterrupt
+
+    def exit_code(code):
+        raise SystemExit(code)
+
+    monkeypatch.setattr(cli.importlib, "import_module", interrupted)
+    monkeypatch.setattr(cli, "_exit_without_teardown", exit_code)
+    monkeypatch.setattr(sys, "argv", ["gpocc", "build", "in.log", "--out", "x"])
+    with pytest.raises(SystemExit) as ended:
+        cli.main()
+    assert ended.value.code == 130
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == ["gpocc: interrupted before any output was written"]

@@ -57,6 +57,17 @@ def test_defaults_and_round_trip():
         ("samples: [1, 2]\n", "'samples' must be a mapping"),
         ("- just\n- a list\n", "must be a YAML mapping"),
         ("model: {kernel: nn\n", "not valid YAML at line"),
+        # PyYAML keeps the last of repeated keys: the first model block would be dropped.
+        ("seed: 1\nseed: 2\n", "key 'seed' is given twice"),
+        ("model:\n  kernel: se\nmodel:\n  neighbours: 10\n", "line 3 (key 'model' is given"),
+        ("samples:\n  beam_stride: 100000000000000000000\n", "must be at most"),
+        ("samples:\n  min_label_share: 2\n", "in [0, 1]"),
+        ("grid:\n  clamp_min: 4\n  clamp_max: -4\n", "clamp_min < 0 < clamp_max"),
+        ("grid:\n  log_odds_occupied: -1.0\n", "log_odds_free < 0 < log_odds_occupied"),
+        ("sensors:\n  - pose_covariance: [[1.0e300, 0, 0], [0, 1, 0], [0, 0, 1]]\n",
+         "check its units"),
+        ("sensors:\n  - range_variance_m2: 1.0e300\n", "must be at most"),
+        ("sensors:\n  - mount: {x_m: 1.0e12}\n", "from the robot base"),
     ],
 )
 def test_bad_config_names_key_and_file(tmp_path, text, words):
@@ -67,6 +78,23 @@ def test_bad_config_names_key_and_file(tmp_path, text, words):
     message = str(err.value)
     assert str(path) in message
     assert words in message
+
+
+def test_numbers_in_exponent_form_are_numbers(tmp_path):
+    """YAML 1.1 reads 1e-3 (no dot) as a string; written unquoted it is the number."""
+    path = tmp_path / "job.yaml"
+    path.write_text("samples:\n  thin_cell_m: 1e-1\n  hit_gap_m: 25E-2\n"
+                    "map:\n  max_cells: 300000000\n  margin_m: +2e0\n")
+    config = load_config(path)
+    assert (config.samples.thin_cell_m, config.samples.hit_gap_m) == (0.1, 0.25)
+    assert (config.map.margin_m, config.map.max_cells) == (2.0, 300_000_000)
+    path.write_text("samples:\n  thin_cell_m: '1e-1'\n")  # quoted: still a string
+    with pytest.raises(GpoccError, match="must be a number"):
+        load_config(path)
+    # merge keys are not repeated keys
+    path.write_text("samples:\n  <<: {thin_cell_m: 0.2, hit_gap_m: 0.1}\n  hit_gap_m: 0.3\n")
+    config = load_config(path)
+    assert (config.samples.thin_cell_m, config.samples.hit_gap_m) == (0.2, 0.3)
 
 
 def test_cli_reports_bad_config_in_one_line(tmp_path):

@@ -255,6 +255,26 @@ def test_existing_out_is_refused_without_force(tmp_path, maps):
     ]
 
 
+def test_force_never_replaces_a_folder_it_reads(tmp_path, maps):
+    """--out naming the evaluated map folder, or the folder of the ground truth, would
+    delete an input when --force replaces it: one error line, both left intact."""
+    folder, _ = maps
+    (folder / "metadata.json").write_text(json.dumps({"gpocc_version": "0.1.0"}))
+    truth = _write_csv(tmp_path / "truth.csv", *_truth_points(9))
+    before = sorted(p.name for p in folder.iterdir())
+    result = _invoke(str(folder), "--ground-truth", str(truth), "--out", str(folder), "--force")
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    lines = _error_lines(result)
+    assert len(lines) == 1 and "is the input" in lines[0] and str(folder) in lines[0]
+    assert sorted(p.name for p in folder.iterdir()) == before
+    out = tmp_path / "eval"
+    assert _invoke(str(folder), "--ground-truth", str(truth), "--out", str(out)).exit_code == 0
+    inside = _write_csv(out / "truth.csv", *_truth_points(9))
+    result = _invoke(str(folder), "--ground-truth", str(inside), "--out", str(out), "--force")
+    assert result.exit_code == 2 and len(_error_lines(result)) == 1
+    assert str(inside) in _error_lines(result)[0] and inside.is_file()
+
+
 @pytest.mark.parametrize(
     "name, content, message",
     [
@@ -262,6 +282,10 @@ def test_existing_out_is_refused_without_force(tmp_path, maps):
         ("bad.csv", "x,y,label\n1,2,1\n3,4,2\n", "line 3"),
         ("bad.csv", "a,b,c\n1,2,1\n", "header"),
         ("short.txt", "1 2 1\n3 4\n", "line 2"),
+        # Rows wider than the header (or than x y label): which value is which is unknown.
+        ("wide.csv", "x,y,label\n1,2,1\n3,4,0,1\n", "line 3: expected 3 values"),
+        ("wide.txt", "1 2 1\n3 4 0 1\n", "line 2: expected 3 values"),
+        ("narrow.csv", "label,id,y,x\n1,a,2,3\n0,4,5\n", "line 3: expected 4 values"),
         ("empty.csv", "# nothing\n", "no points"),
         ("one_class.csv", "x,y,label\n1,2,1\n3,4,1\n", "both"),
         ("blob.bin", b"\x00\xff\xfe\x01binary", "accepted ground truth"),

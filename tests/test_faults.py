@@ -158,6 +158,27 @@ def test_force_replaces_only_gpocc_outputs(model_path, tmp_path):
     assert _leftovers(tmp_path) == []
 
 
+def test_force_never_replaces_an_output_that_holds_an_input(tmp_path):
+    """`gpocc build SPLIT/train.mcap --config SPLIT/train.yaml --out SPLIT --force` would
+    delete the log it reads: refused before any work, naming the input."""
+    split = tmp_path / "split"
+    split.mkdir()
+    (split / "train.yaml").write_text("# Written by gpocc split: reads train.mcap beside it.\n")
+    (split / "train.mcap").write_bytes(b"log")
+    assert is_gpocc_output(split)
+    for inputs, named in (([split / "train.mcap", None], "train.mcap"),
+                          ([tmp_path / "other.log", split / "train.yaml"], "train.yaml"),
+                          ([split], "is the input")):
+        with pytest.raises(GpoccError, match=named):
+            prepare_output(split, True, inputs=inputs)
+        atomic.release_all_claims()
+    assert sorted(p.name for p in split.iterdir()) == ["train.mcap", "train.yaml"]
+    assert _leftovers(tmp_path) == []
+    # An input beside (not inside) the output does not stop --force.
+    prepare_output(split, True, inputs=[tmp_path / "split.log", tmp_path / "splitx" / "a"])
+    atomic.release_all_claims()
+
+
 def test_rename_noreplace_never_clobbers(tmp_path):
     src, dst = tmp_path / "a", tmp_path / "b"
     src.write_text("new")

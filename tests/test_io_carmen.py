@@ -92,6 +92,8 @@ def test_robotlaser1(tmp_path: Path) -> None:
         ("FLASER 4 1 2 3 0 0 0 0 0 0 1.0 pippo 1.0", "needs 15 tokens"),  # a beam missing
         ("FLASER 4 1 2 3 x 0 0 0 0 0 0 1.0 pippo 1.0", "non-numeric value 'x'"),
         ("FLASER four 1 2 3 4 0 0 0 0 0 0 1.0 pippo 1.0", "beam count"),
+        # 11 tokens, as many as 0 beams need: said "needs 11 tokens, got 11" before
+        ("FLASER 0 0 0 0 0 0 0 1.0 pippo 1.0", "at least one beam"),
         ("FLASER 4 1 2 3 4 nan 0 0 0 0 0 1.0 pippo 1.0", "pose is not finite"),
         # finite, but its beams' samples would overflow (found by make fuzz)
         ("FLASER 4 1 2 3 4 0 1.8e188 0 0 0 0 1.0 pippo 1.0", "coordinate beyond 1e\\+08 m"),

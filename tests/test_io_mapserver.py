@@ -186,6 +186,13 @@ def test_bad_map_server_files_give_clear_errors(tmp_path):
     with pytest.raises(GpoccError, match="yaw"):
         read_map_server(tmp_path / "yaw.yaml")
 
+    # Swapped thresholds would call the free cells occupied and the walls free.
+    for occupied, free in (("0.1", "0.9"), ("0.5", "0.5"), ("1.5", "0.2"), ("0.65", "-0.1")):
+        (tmp_path / "swapped.yaml").write_text(
+            good.replace("0.65", occupied).replace("0.196", free))
+        with pytest.raises(GpoccError, match="swapped.yaml: needs 0 <= free_thresh < occ"):
+            read_map_server(tmp_path / "swapped.yaml")
+
     (tmp_path / "raw.yaml").write_text(good + "mode: raw\n")
     with pytest.raises(GpoccError, match="mode 'raw'"):
         read_map_server(tmp_path / "raw.yaml")

@@ -55,7 +55,7 @@ def build(
     force: Force = False,
 ) -> None:
     """Train a model and map it in one run: the map folder, with the model as model.npz."""
-    prepare_output(out, force)
+    prepare_output(out, force, inputs=[*inputs, config])
     check_map_options(resolution, workers)
     cfg = job_config(config, input_noise, seed)
     what = f"the map of {', '.join(map(str, inputs))}"

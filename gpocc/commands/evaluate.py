@@ -41,7 +41,7 @@ def evaluate(
     map covered.
     """
     if out is not None:
-        prepare_output(out, force)
+        prepare_output(out, force, inputs=[*maps, ground_truth])
     located = [probability_raster(p) for p in maps]
     names = unique_names([n for n, _ in located], list(maps))
     points, labels = load_truth(ground_truth)

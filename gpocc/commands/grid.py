@@ -31,7 +31,7 @@ def grid_command(
     force: Force = False,
 ) -> None:
     """Build the classic log-odds occupancy grid (the baseline) and write a map folder."""
-    prepare_output(out, force)
+    prepare_output(out, force, inputs=[*inputs, config])
     cfg = load_config(config)
     res = cfg.map.resolution_m if resolution is None else check_resolution(resolution)
     started = time.perf_counter()

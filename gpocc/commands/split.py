@@ -46,7 +46,7 @@ def split(
     go to DIR/train.mcap with a config DIR/train.yaml that reads it; the labelled points
     go to DIR/heldout.csv (x,y,label), usable as `gpocc evaluate --ground-truth`.
     """
-    prepare_output(out, force)
+    prepare_output(out, force, inputs=[input_path, config_path])
     config = load_config(config_path)
     check_at_least("--every", every, 2, " (every scan would be held out)")
     check_at_least("--keep-every", keep_every, 1)

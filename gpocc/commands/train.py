@@ -30,7 +30,7 @@ def train(
     force: Force = False,
 ) -> None:
     """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
-    prepare_output(out, force, folder=False)
+    prepare_output(out, force, folder=False, inputs=[*inputs, config])
     cfg = job_config(config, input_noise, seed)
     started = time.perf_counter()
     model = learn_model(inputs, cfg)

@@ -10,7 +10,8 @@ Three kinds of file are accepted:
   cells give 1, free cells 0, unknown cells nothing;
 * a labelled point file: CSV with a header naming the columns ``x,y,label`` (other
   columns ignored), or whitespace-separated text with the columns ``x y label`` (an
-  optional ``x y label`` header line); ``#`` starts a comment. Labels are 1 (occupied)
+  optional ``x y label`` header line); ``#`` starts a comment. Every row holds one value
+  for each column. Labels are 1 (occupied)
   and 0 or -1 (free).
 """
 
@@ -128,6 +129,7 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     split = (lambda s: [t.strip() for t in s.split(",")]) if comma else str.split
     tokens = [(n, split(line)) for n, line in rows]
     columns = (0, 1, 2)
+    width, where = 3, "x y label"
     first_line, first = tokens[0]
     if not is_number(first[0]):
         names = [t.lower() for t in first]
@@ -138,17 +140,19 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
                 f"(missing {', '.join(missing)}); {ACCEPTED}"
             )
         columns = (names.index("x"), names.index("y"), names.index("label"))
+        width, where = len(names), f"the header (line {first_line})"
         tokens = tokens[1:]
     elif comma:
         raise GpoccError(f"{path}: a CSV point file needs the header line x,y,label; {ACCEPTED}")
     if not tokens:
         raise GpoccError(f"{path}: the point file holds no points; {ACCEPTED}")
-    width = max(columns) + 1
+    # A row wider or narrower than the header (or than x y label) is a shifted or
+    # mis-split file: which value is which column cannot be known.
     for lineno, row in tokens:
-        if len(row) < width:
+        if len(row) != width:
             raise GpoccError(
-                f"{path}: line {lineno}: expected the columns x, y, label, got {len(row)} "
-                f"value(s); {ACCEPTED}"
+                f"{path}: line {lineno}: expected {width} values, one for each column of "
+                f"{where}, got {len(row)}; {ACCEPTED}"
             )
     try:
         table = np.array([[row[c] for c in columns] for _, row in tokens], dtype=float)

@@ -203,7 +203,10 @@ def load_model(path: str | Path) -> GPModel:
     if not p.is_file():
         raise GpoccError(f"{p}: model file not found; create one with `gpocc train`")
     try:
-        with np.load(p, allow_pickle=False) as data:
+        loaded = np.load(p, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array
+            raise ValueError("not an .npz archive")
+        with loaded as data:
             meta = json.loads(bytes(data["metadata"]).decode())
             arrays = {name: data[name] for name in _ARRAYS}
             coverage_bits = data["coverage"] if "coverage" in data.files else None

@@ -30,7 +30,7 @@ import os
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from gpocc.errors import GpoccError
@@ -231,13 +231,16 @@ def _refuse_existing(target: Path, force: bool, folder: bool | None) -> None:
         )
 
 
-def prepare_output(path: str | os.PathLike[str], force: bool, folder: bool = True) -> None:
+def prepare_output(path: str | os.PathLike[str], force: bool, folder: bool = True,
+                   inputs: Iterable[str | os.PathLike[str] | None] = ()) -> None:
     """At a command's start: claim output ``path`` and check it may be written.
 
     An existing ``path`` is refused unless ``force``, and with ``force`` unless it is a
-    previous gpocc output of the same kind (``folder`` or file). So a refused or contended
-    output fails before any work. When the parent folder does not exist yet, the claim is
-    taken when writing (creating folders here would leave them behind on a later error).
+    previous gpocc output of the same kind (``folder`` or file) that holds none of the
+    command's ``inputs`` (replacing it would delete an input the command reads, e.g.
+    ``gpocc evaluate MAP --out MAP --force``). So a refused or contended output fails
+    before any work. When the parent folder does not exist yet, the claim is taken when
+    writing (creating folders here would leave them behind on a later error).
     """
     target = Path(path)
     if target.parent.is_dir():
@@ -245,6 +248,24 @@ def prepare_output(path: str | os.PathLike[str], force: bool, folder: bool = Tru
     else:
         _check_ancestor(target)
     _refuse_existing(target, force, folder)
+    _refuse_inputs_inside(target, inputs)
+
+
+def _refuse_inputs_inside(target: Path, inputs: Iterable[str | os.PathLike[str] | None]
+                          ) -> None:
+    if not (target.exists() or target.is_symlink()):
+        return
+    resolved = target.resolve()
+    for given in inputs:
+        if given is None:
+            continue
+        path = Path(given).resolve()
+        if path == resolved or resolved in path.parents:
+            what = "is" if path == resolved else "holds"
+            raise GpoccError(
+                f"{target}: {what} the input {given}, which replacing it with --force would "
+                f"delete; choose another --out"
+            )
 
 
 def _check_ancestor(target: Path) -> None:

@@ -146,7 +146,12 @@ def _parse_flaser(path: Path, lineno: int, tokens: list[str]) -> _Scan:
             f"{path}: line {lineno}: FLASER needs the beam count as its second token; "
             "fix or delete that line"
         ) from None
-    if n <= 0 or len(tokens) != n + 11:
+    if n <= 0:
+        raise GpoccError(
+            f"{path}: line {lineno}: FLASER with {n} beams (the second token); a scan needs "
+            "at least one beam: fix or delete that line"
+        )
+    if len(tokens) != n + 11:
         raise GpoccError(
             f"{path}: line {lineno}: FLASER with {n} beams needs {n + 11} tokens, got "
             f"{len(tokens)} (truncated line?); fix or delete that line"

@@ -226,6 +226,11 @@ def read_map_server(yaml_path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid
     resolution = number("resolution")
     occupied_thresh = number("occupied_thresh")
     free_thresh = number("free_thresh")
+    if not 0.0 <= free_thresh < occupied_thresh <= 1.0:
+        raise GpoccError(
+            f"{yaml_path}: needs 0 <= free_thresh < occupied_thresh <= 1, got free_thresh "
+            f"{free_thresh}, occupied_thresh {occupied_thresh}; {fix}"
+        )
     negate = bool(int(number("negate", 0)))
     mode = str(meta.get("mode", "trinary")).strip().lower()
     if mode not in ("trinary", "scale"):

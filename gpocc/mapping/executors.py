@@ -138,7 +138,7 @@ def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = No
 
         try:
             client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError) as exc:
+        except (OSError, TimeoutError, ValueError) as exc:  # ValueError: a malformed address
             raise GpoccError(
                 f"cannot reach the Dask scheduler at {scheduler} ({exc}); check the address"
             ) from None
