@@ -1,12 +1,14 @@
-"""gpocc.parallel.thread_map: fn over items on helper threads, results in order."""
+"""gpocc.parallel: thread_map (fn over items on helper threads, results in order) and
+worker_pool (processes)."""
 
 from __future__ import annotations
 
+import multiprocessing.pool
 import threading
 
 import pytest
 
-from gpocc.parallel import thread_map
+from gpocc.parallel import thread_map, worker_pool
 
 
 def _threads() -> set[str]:
@@ -79,3 +81,32 @@ def test_one_worker_and_no_items() -> None:
     with thread_map(lambda k: k, [], workers=2) as results:
         assert list(results) == []
     assert _no_helper_left()
+
+
+def _square(k: int) -> int:
+    return k * k
+
+
+def _init_nothing() -> None:
+    pass
+
+
+def test_worker_pool_maintenance_thread_does_not_wake_on_every_result(monkeypatch) -> None:
+    """The pool's maintenance thread waits for worker exits and state changes only; the
+    stock Pool also woke (and polled every worker) for each result in the pipe."""
+    wakes = []
+    stock = multiprocessing.pool.Pool._wait_for_updates
+
+    def counted(sentinels, change_notifier, timeout=None):
+        wakes.append(len(sentinels))
+        return stock(sentinels, change_notifier, timeout)
+
+    # The maintenance thread calls it on the base class (``Pool._handle_workers``).
+    monkeypatch.setattr(multiprocessing.pool.Pool, "_wait_for_updates", staticmethod(counted))
+    with worker_pool(2, _init_nothing, ()) as pool:
+        assert pool.map(_square, range(300), chunksize=1) == [k * k for k in range(300)]
+        assert list(pool.imap(_square, range(200))) == [k * k for k in range(200)]
+    # One wait to start with, and one per state change (each map's end, close): never
+    # one per result (500 results).
+    assert 1 <= len(wakes) <= 10
+
