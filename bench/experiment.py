@@ -85,6 +85,10 @@ VARIANTS: dict[str, dict[str, object]] = {
     "hit-patches-clearance-0.05": _DEFAULT,
     # Session 9: neighbouring blocks blended across half a block instead of a whole one.
     "blend-0.5": {**_DEFAULT, "model.blend_overlap": 0.5},
+    # Session 13: fewer (issue 14's speed) and more (the knob table's most exact) training
+    # samples per map anchor; maps only (docs/results.md, session 13).
+    "neighbours-96": {**_DEFAULT, "model.neighbours": 96},
+    "neighbours-256": {**_DEFAULT, "model.neighbours": 256},
 }
 
 
