@@ -365,3 +365,42 @@ def test_evaluate_scores_geotiffs_written_by_gdal(tmp_path, map_options, truth_o
     scores[scores == NODATA] = 0.5
     auc = json.loads((tmp_path / "o" / "results.json").read_text())["maps"][0]["auc"]
     assert auc == pytest.approx(roc_auc_score(labels, scores), abs=1e-9)
+
+
+def test_truth_that_misses_every_map_is_an_error_and_writes_nothing(tmp_path, maps):
+    """Points 100 m east of the maps (another frame): every score would be p = 0.5's."""
+    gp_folder, bare = maps
+    points, labels = _truth_points(3)
+    truth = _write_csv(tmp_path / "far.csv", points + [100.0, 0.0], labels)
+    out = tmp_path / "scores"
+    result = _invoke(str(gp_folder), str(bare), "--ground-truth", str(truth),
+                     "--out", str(out))
+    assert result.exit_code == 2
+    errors = _error_lines(result)
+    assert len(errors) == 1 and "none of its 500 points lies on a cell with data" in errors[0]
+    assert "Traceback" not in result.output and not out.exists()
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 2  # one per map, with both extents
+    x0, y0, x1, y1 = SPEC.bounds
+    assert f"the map spans x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m" in warnings[0]
+    assert f"the points x {points[:, 0].min() + 100:.1f} .. " in warnings[0]
+
+
+def test_a_map_that_misses_the_truth_is_scored_with_a_warning(tmp_path, maps):
+    """One map covers the points, the other (moved 100 m west) none: the covered map is
+    scored as before, the other at p = 0.5 everywhere (AUC 0.5), with a warning."""
+    gp_folder, _ = maps
+    moved = GridSpec(x0=SPEC.x0 - 100.0, y0=SPEC.y0, resolution=SPEC.resolution,
+                     width=SPEC.width, height=SPEC.height)
+    elsewhere = tmp_path / "elsewhere.tif"
+    write_geotiff(elsewhere, _probability(2), moved, nodata=NODATA)
+    points, labels = _truth_points(4)
+    truth = _write_csv(tmp_path / "t.csv", points, labels)
+    result = _invoke(str(gp_folder), str(elsewhere), "--ground-truth", str(truth))
+    assert result.exit_code == 0, result.output
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and str(elsewhere) in warnings[0]
+    rows = {line.split()[0]: line.split() for line in result.stdout.splitlines()[1:]}
+    scores, _ = _sampled_with_rasterio(gp_folder / "probability.tif", points)
+    assert float(rows["gp_map"][1]) == pytest.approx(roc_auc_score(labels, scores), abs=1e-4)
+    assert rows["elsewhere"][1] == "0.5000" and rows["elsewhere"][-1] == "0.0%"

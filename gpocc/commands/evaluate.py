@@ -18,6 +18,7 @@ from gpocc.evaluation.report import (
 )
 from gpocc.evaluation.truth import load_truth
 from gpocc.io.atomic import prepare_output
+from gpocc.io.rasters import read_raster
 from gpocc.progress import log
 
 
@@ -56,7 +57,28 @@ def evaluate(
     results = []
     for name, (_, raster) in zip(names, located, strict=True):
         results.append(evaluate_map(name, raster, points, labels))
+        if results[-1].coverage == 0.0:
+            warn_uncovered(raster, points)
+    if all(r.coverage == 0.0 for r in results):
+        # Every score would be that of p = 0.5 at every point (AUC 0.5): not a result.
+        raise GpoccError(
+            f"{ground_truth}: none of its {labels.size} points lies on a cell with data in "
+            f"{'the map' if len(results) == 1 else 'any of the maps'}; the truth and the "
+            f"map{'' if len(results) == 1 else 's'} must share one frame (extents above)"
+        )
     typer.echo(results_table(results))
     if out is not None:
         write_outputs(out, force, results, list(maps), ground_truth, labels)
         log(f"wrote {out}/roc.png, reliability.png, roc.csv, results.json, results.md")
+
+
+def warn_uncovered(raster: Path, points: np.ndarray) -> None:
+    """A warning on stderr for a map that has no value at any truth point, with both
+    extents: a truth in another frame, or a map of another area, scores AUC 0.5."""
+    _, spec, _ = read_raster(raster)
+    x0, y0, x1, y1 = spec.bounds
+    (px0, py0), (px1, py1) = points.min(axis=0), points.max(axis=0)
+    log(f"warning: {raster}: none of the {len(points)} truth points lies on a cell with data; "
+        f"the map spans x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m, the points x "
+        f"{px0:.1f} .. {px1:.1f}, y {py0:.1f} .. {py1:.1f} m; its scores count every point "
+        f"as p = 0.5")
