@@ -496,3 +496,31 @@ def test_a_map_that_misses_the_data_says_so_on_stderr(model_path, tmp_path):
                                  "--resolution", "0.2", "--bounds", "-1", "-1", "1", "1"])
     assert result.exit_code == 0, result.output
     assert "warning:" not in result.stderr
+
+
+def test_more_workers_than_cores_are_capped_with_a_note(model_path, tmp_path, monkeypatch):
+    """``--workers 100000`` must not start a process per chunk of anchors: the map runs
+    on the usable cores (here made 2), says so, and equals the serial map."""
+    import gpocc.commands.map as map_command
+    from gpocc.mapping import executors
+
+    monkeypatch.setattr(map_command, "default_workers", lambda: 2)
+    started = []
+    real_pool = executors.worker_pool
+
+    def counting_pool(workers, *args):
+        started.append(workers)
+        return real_pool(workers, *args)
+
+    monkeypatch.setattr(executors, "worker_pool", counting_pool)
+    result = runner.invoke(app, ["map", str(model_path), "--out", str(tmp_path / "many"),
+                                 "--resolution", "0.2", "--workers", "100000"])
+    assert result.exit_code == 0, result.output
+    assert "note: --workers 100000 is more than the 2 core(s) this process may use; " \
+        "using 2" in result.stderr
+    assert started == [2]
+    assert json.loads((tmp_path / "many" / "metadata.json").read_text())["workers"] == 2
+    serial = run_map(model_path, tmp_path / "one", "--resolution", "0.2", "--workers", "1")
+    with rasterio.open(serial / "probability.tif") as a, \
+            rasterio.open(tmp_path / "many" / "probability.tif") as b:
+        np.testing.assert_array_equal(a.read(1), b.read(1))

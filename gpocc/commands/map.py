@@ -114,13 +114,28 @@ def check_map_size(spec: GridSpec, config: Config, what: str, configurable: bool
     check_map_server_size(spec, config.map.max_pgm_pixels)
 
 
+def local_workers(workers: int | None) -> int:
+    """The map's local processes: ``--workers``, at most the cores this process may use
+    (with a note on stderr), or all of them. Anchors are CPU-bound and single-threaded:
+    more processes than cores add no speed, and each holds its own neighbour index and
+    compiled kernels (``--workers 100000`` started one process per chunk of anchors)."""
+    cores = default_workers()
+    if workers is None:
+        return cores
+    if workers > cores:
+        log(f"note: --workers {workers} is more than the {cores} core(s) this process may "
+            f"use; using {cores}")
+        return cores
+    return workers
+
+
 def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
               workers: int | None, scheduler: str | None,
               while_running: Callable[[], None] | None = None) -> MapSummary:
     """Map ``model`` over ``spec`` into ``folder`` (private to this run) with its
     metadata, which names the model ``model_name``; ``while_running()``: other work of
     the caller, done while the workers compute (:func:`gpocc.mapping.mapper.make_map`)."""
-    n_workers = workers or default_workers()
+    n_workers = local_workers(workers) if not scheduler else (workers or default_workers())
     cells = block_cells(model.config.model.block_size_m, spec.resolution)
     total = len(plan_blocks(spec, cells))
     log(f"mapping {spec.width} x {spec.height} cells at {spec.resolution} m in {total} "

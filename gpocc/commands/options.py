@@ -38,7 +38,8 @@ InputNoise = Annotated[Switch | None, typer.Option(
 Seed = Annotated[int | None, typer.Option("--seed", help="Overrides the config's seed.")]
 Resolution = Annotated[float, typer.Option("--resolution", help="Cell size, metres.")]
 Workers = Annotated[int | None, typer.Option(
-    "--workers", help="Local processes for the map's local problems (default: all cores).")]
+    "--workers", help="Local processes for the map's local problems (default and most: the "
+    "cores this process may use).")]
 Scheduler = Annotated[str | None, typer.Option(
     "--scheduler", help="Dask scheduler address tcp://HOST:PORT.")]
 Inputs = Annotated[list[Path], typer.Argument(
