@@ -98,3 +98,18 @@ def test_info_errors_are_one_line(tmp_path: Path, case: str) -> None:
     assert len(lines) == 1, result.stderr
     assert lines[0].startswith("gpocc info: error: ")
     assert words in lines[0]
+
+
+def test_a_path_with_a_semicolon_keeps_the_whole_problem(tmp_path: Path) -> None:
+    """The problem part of the message is kept whole: it used to be cut at the first
+    '; ', here inside the folder's name."""
+    folder = tmp_path / "lab; day 2"
+    folder.mkdir()
+    two = folder / "two.mcap"
+    write_bag(two, [_batch(), _batch()], [("/scan", "/pose"), ("/b_scan", "/amcl_pose")], "mcap")
+    result = _run(str(two))
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert (f"{two}: cannot choose the pose topic for /b_scan among /amcl_pose, /pose (no TF "
+            f"to settle it); a config for all its lasers: sensors: [") in lines[0]

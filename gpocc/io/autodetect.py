@@ -50,6 +50,17 @@ def _flow_yaml(entries: list[tuple[str, str, str]]) -> str:
     return f"sensors: [{items}]"
 
 
+class PoseSourceError(GpoccError):
+    """No pose source can be chosen for a laser: ``problem`` (what is wrong, naming the
+    input) and ``fix`` (a config line for that laser), printed as ``problem; fix``. A
+    bag with several lasers replaces the fix by one config line for all of them."""
+
+    def __init__(self, problem: str, fix: str) -> None:
+        super().__init__(f"{problem}; {fix}")
+        self.problem = problem
+        self.fix = fix
+
+
 def pose_topic_for(contents: BagContents, scan_topic: str, path: object,
                    name: str | None = None) -> str:
     """The pose topic to use with ``scan_topic`` (``/tf`` when only TF gives the pose).
@@ -66,16 +77,18 @@ def pose_topic_for(contents: BagContents, scan_topic: str, path: object,
     if not cands:
         if has_tf:
             return TF_POSE
-        raise GpoccError(
+        raise PoseSourceError(
             f"{path}: no pose topic or TF for the laser {scan_topic} (topics: "
-            f"{contents.listing()}); record /tf, or name the pose topic in the config: "
+            f"{contents.listing()})",
+            f"record /tf, or name the pose topic in the config: "
             f"{_flow_yaml([(name, scan_topic, 'POSE_TOPIC')])}")
     if has_tf:
         amcl = [c for c in cands if c.rstrip("/").endswith("amcl_pose")]
         return (amcl or cands)[0]
-    raise GpoccError(
+    raise PoseSourceError(
         f"{path}: cannot choose the pose topic for {scan_topic} among {', '.join(cands)} "
-        f"(no TF to settle it); put this in the config, keeping the right one: "
+        f"(no TF to settle it)",
+        f"put this in the config, keeping the right one: "
         f"{_flow_yaml([(name, scan_topic, cands[0])])}")
 
 
@@ -95,8 +108,8 @@ def detect_sensors(contents: BagContents, path: object) -> list[SensorConfig]:
     for scan in scans:
         try:
             pose = pose_topic_for(contents, scan, path)
-        except GpoccError as exc:
-            problems.append((scan, str(exc)))
+        except PoseSourceError as exc:
+            problems.append((scan, exc.problem))
             continue
         sensors.append(SensorConfig(name=sensor_name(scan), scan_topic=scan, pose_topic=pose))
     if problems:
@@ -106,6 +119,6 @@ def detect_sensors(contents: BagContents, path: object) -> list[SensorConfig]:
             cands = pose_candidates(contents, scan)
             pose = done.pose_topic if done else (cands[0] if cands else "POSE_TOPIC")
             entries.append((sensor_name(scan), scan, pose))
-        first = problems[0][1].split("; ")[0]
-        raise GpoccError(f"{first}; a config for all its lasers: {_flow_yaml(entries)}")
+        raise GpoccError(f"{problems[0][1]}; a config for all its lasers: "
+                         f"{_flow_yaml(entries)}")
     return sensors
