@@ -1,5 +1,5 @@
 """``python -m gpocc`` runs the CLI."""
 
-from gpocc.cli import main
+from gpocc.entry import main
 
 main()

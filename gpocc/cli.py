@@ -26,6 +26,7 @@ import typer
 
 import gpocc
 from gpocc import progress
+from gpocc.entry import INTERRUPTED
 from gpocc.errors import GpoccError
 from gpocc.lifecycle import command_scope
 
@@ -141,7 +142,7 @@ def main() -> None:
     except KeyboardInterrupt:
         # Ctrl-C while the command's modules load (numba, scipy: a second or two), before
         # the command's own handler: nothing was written yet.
-        print("gpocc: interrupted before any output was written", file=sys.stderr)
+        print(INTERRUPTED, file=sys.stderr)
         _exit_without_teardown(130)
     _exit_without_teardown(0)
 

@@ -251,3 +251,26 @@ def test_ctrl_c_while_the_command_loads_is_one_line(monkeypatch, capsys) -> None
     assert ended.value.code == 130
     lines = capsys.readouterr().err.strip().splitlines()
     assert lines == ["gpocc: interrupted before any output was written"]
+
+
+def test_ctrl_c_while_the_cli_itself_loads_is_one_line() -> None:
+    """Ctrl-C while ``gpocc.cli`` imports typer (before its own handler can exist): the
+    console script's entry point ends with status 130 and one line, no traceback. The
+    interrupt is raised by the import of typer in a fresh interpreter."""
+    script = (
+        "import builtins, sys\n"
+        "real = builtins.__import__\n"
+        "def importing(name, *args, **kwargs):\n"
+        "    if name == 'typer':\n"
+        "        raise KeyboardInterrupt\n"
+        "    return real(name, *args, **kwargs)\n"
+        "builtins.__import__ = importing\n"
+        "sys.argv = ['gpocc', 'config']\n"
+        "from gpocc.entry import main\n"
+        "main()\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          cwd=REPO, timeout=60)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "gpocc: interrupted before any output was written"]

@@ -1,0 +1,24 @@
+"""The ``gpocc`` console script's entry point, light enough to be in place at once.
+
+:func:`gpocc.cli.main` turns a Ctrl-C into one line and status 130 once it runs, but
+importing :mod:`gpocc.cli` itself (typer, rich, pydantic: 0.2-0.3 s) came first, and a
+Ctrl-C then printed a KeyboardInterrupt traceback. This module imports nothing but
+:mod:`sys` before it catches that.
+"""
+
+from __future__ import annotations
+
+import sys
+
+#: What a Ctrl-C before any work prints (the same line as :func:`gpocc.cli.main`'s).
+INTERRUPTED = "gpocc: interrupted before any output was written"
+
+
+def main() -> None:
+    """Import the CLI, then run it; a Ctrl-C during the import is one line, status 130."""
+    try:
+        from gpocc.cli import main as run
+    except KeyboardInterrupt:
+        print(INTERRUPTED, file=sys.stderr)
+        raise SystemExit(130) from None
+    run()
