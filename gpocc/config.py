@@ -24,11 +24,14 @@ from gpocc.errors import GpoccError
 
 @dataclass(frozen=True)
 class MountConfig:
-    """Static laser mount on the robot base: offset (metres) and yaw (degrees)."""
+    """Static laser mount on the robot base: offset (metres), yaw (degrees), and
+    upside_down (rolled 180 degrees about its x axis, so it sweeps clockwise seen from
+    above: its bearings are mirrored)."""
 
     x_m: float = 0.0
     y_m: float = 0.0
     yaw_deg: float = 0.0
+    upside_down: bool = False
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from gpocc.cli import app
-from gpocc.config import Config, MountConfig, SensorConfig
+from gpocc.config import Config, MountConfig, SensorConfig, load_config
 from gpocc.evaluation.world import cast_rays
 from gpocc.io.inputs import read_inputs
 
@@ -310,3 +310,22 @@ def test_pose_topic_covariance_notes_name_the_bound_used_and_skip_dropped_scans(
     config_cov = sensor.pose_covariance_matrix
     np.testing.assert_array_equal(batch.pose_covariances[far],
                                   np.broadcast_to(config_cov, (far.sum(), 3, 3)))
+
+
+def test_an_upside_down_laser_without_tf_is_set_in_the_config_mount(tmp_path: Path) -> None:
+    """The upside-down laser with a pose topic and no TF: ``mount.upside_down`` mirrors
+    its bearings (as TF's roll does) and the room's walls come out where they are; the
+    same mount without it puts them elsewhere."""
+    bag = BagWriter("mcap")
+    add_robot(bag, UPSIDE_DOWN, "amcl")
+    path = bag.write(tmp_path / "flipped.mcap")
+    laser = "  - {name: r, scan_topic: /scan, mount: {x_m: 0.2, y_m: 0.05%s}}\n"
+    flipped, level = tmp_path / "flipped.yaml", tmp_path / "level.yaml"
+    flipped.write_text("sensors:\n" + laser % ", upside_down: true")
+    level.write_text("sensors:\n" + laser % "")
+    [batch] = read_inputs([path], load_config(flipped))
+    np.testing.assert_allclose(batch.angles, -UPSIDE_DOWN.angles, atol=1e-6)
+    assert "sensors[].mount.upside_down: bearings mirrored" in batch.provenance.notes
+    assert_walls(build(path, tmp_path / "flipped", flipped))
+    with pytest.raises(AssertionError):
+        assert_walls(build(path, tmp_path / "level", level))

@@ -155,3 +155,24 @@ def test_real_logs(name: str, scans: int, beams: int, extent: tuple[float, float
     # The README's extent of the endpoints (computed independently of this reader); a
     # wrong bearing convention (clockwise, or a quarter turn off) changes it by metres.
     np.testing.assert_allclose(_endpoint_extent(batch), extent, atol=0.15)
+
+
+def test_an_upside_down_mount_mirrors_the_bearings(tmp_path: Path) -> None:
+    """Four beams at -90, -45, 0, 45 degrees from a laser at the origin facing +x: upside
+    down, the first beam points to +y, not -y (its endpoint is where samples put it)."""
+    from dataclasses import replace
+
+    from gpocc.config import MountConfig
+    from gpocc.samples.beam import beam_points, laser_poses, mount_vector
+
+    log = _write(tmp_path, [_flaser([2.0] * 4, (0, 0, 0), 1.0)])
+    level = read_carmen(log, SENSOR)
+    sensor = replace(SENSOR, mount=MountConfig(upside_down=True))
+    flipped = read_carmen(log, sensor)
+    np.testing.assert_allclose(np.degrees(flipped.angles), [90, 45, 0, -45])
+    np.testing.assert_array_equal(flipped.angles, -level.angles)
+    lasers = laser_poses(flipped.poses, mount_vector(sensor))
+    ends = beam_points(lasers[:, None, :], flipped.angles[None, :], flipped.ranges)
+    root = math.sqrt(2.0)
+    np.testing.assert_allclose(ends[0], [[0, 2], [root, root], [2, 0], [root, -root]],
+                               atol=1e-12)

@@ -249,7 +249,8 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
         sensor=sensor.name,
         source=str(path),
         stamps=stamps,
-        angles=scans[0].angles.copy(),
+        # An upside-down laser sweeps clockwise seen from above: mirrored bearings.
+        angles=-scans[0].angles if sensor.mount.upside_down else scans[0].angles.copy(),
         ranges=ranges,
         poses=poses,
         pose_covariances=covariance,

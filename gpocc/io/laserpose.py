@@ -293,6 +293,9 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                              "pose_topic")
         if why and tf:
             notes.append(f"poses from {series.topic}: {why}")
+        if sensor.mount.upside_down:
+            angles = -angles  # as for an upside-down laser found in TF
+            notes.append("sensors[].mount.upside_down: bearings mirrored")
         fused = None
         if odometry is not None and odometry.stamps.size and odometry.topic != series.topic:
             fused = anchored_poses(series, odometry, stamps, sensor.max_pose_gap_s,
