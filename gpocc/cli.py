@@ -136,7 +136,7 @@ def main() -> None:
     completing = any(key.endswith("_COMPLETE") for key in os.environ)
     chosen = (words[0],) if words and words[0] in known and not completing else None
     try:
-        build_app(chosen)(prog_name="gpocc")
+        code = build_app(chosen)(prog_name="gpocc", standalone_mode=False)
     except SystemExit as exc:
         _exit_without_teardown(exc.code)
     except KeyboardInterrupt:
@@ -144,7 +144,29 @@ def main() -> None:
         # the command's own handler: nothing was written yet.
         print(INTERRUPTED, file=sys.stderr)
         _exit_without_teardown(130)
-    _exit_without_teardown(0)
+    except _usage_errors() as exc:
+        line = usage_error_line(exc)
+        if line:  # none for a bare ``gpocc``: typer has printed the help
+            print(line, file=sys.stderr)
+        _exit_without_teardown(exc.exit_code)
+    _exit_without_teardown(code if isinstance(code, int) else 0)
+
+
+def _usage_errors() -> tuple[type[Exception], ...]:
+    """Click's ``ClickException`` as typer raises it (its own copy of click in recent
+    typer, click itself before): the base of every usage error."""
+    return tuple(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+def usage_error_line(exc: Exception) -> str:
+    """A usage error (unknown option, missing argument, a value of the wrong type) as one
+    line, like every other error: ``gpocc map: error: ... (see 'gpocc map --help')``;
+    empty when the error carries no message. Typer drew a usage line, a hint and a box
+    of several lines instead."""
+    ctx = getattr(exc, "ctx", None)
+    where = ctx.command_path if ctx is not None else "gpocc"
+    message = " ".join(exc.format_message().split())
+    return f"{where}: error: {message} (see '{where} --help')" if message else ""
 
 
 def _exit_without_teardown(code: int | str | None) -> None:

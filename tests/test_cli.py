@@ -274,3 +274,24 @@ def test_ctrl_c_while_the_cli_itself_loads_is_one_line() -> None:
     assert proc.returncode == 130, proc.stderr
     assert proc.stderr.strip().splitlines() == [
         "gpocc: interrupted before any output was written"]
+
+
+@pytest.mark.parametrize(("args", "line"), [
+    (["map", "--nonsense"],
+     "gpocc map: error: No such option: --nonsense (see 'gpocc map --help')"),
+    (["map"], "gpocc map: error: Missing argument 'MODEL'. (see 'gpocc map --help')"),
+    (["mapp"], "gpocc: error: No such command 'mapp'. Did you mean 'map'? "
+               "(see 'gpocc --help')"),
+    (["build", "in.log", "--out", "x", "--resolution", "fine"],
+     "gpocc build: error: Invalid value for '--resolution': "),
+])
+def test_usage_errors_are_one_line(args: list[str], line: str) -> None:
+    """A mistyped command line gets one error line (status 2) like any other error, not
+    typer's usage line, hint and box."""
+    proc = subprocess.run([sys.executable, "-m", "gpocc", *args], capture_output=True,
+                          text=True, cwd=REPO, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(line)
+    assert proc.stdout == ""
