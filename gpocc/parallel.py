@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from gpocc.blas import single_threaded_blas
+from gpocc.errors import GpoccError
 
 _PR_SET_PDEATHSIG = 1
 
@@ -88,15 +89,94 @@ def worker_pool(workers: int, initializer: Callable[..., None],
                      initargs=(os.getpid(), initializer, initargs))
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    # The processes that will do the work: none of them may end before the pool does.
+    pool.gpocc_workers = tuple(pool._pool)  # type: ignore[attr-defined]
     try:
         yield pool
     except BaseException:
         # Ctrl-C, SIGTERM, an error, or the consumer stopping: no worker may outlive it.
-        pool.terminate()
-        pool.join()
+        if _a_worker_died(pool):
+            _kill_workers(pool)
+        else:
+            pool.terminate()
+            pool.join()
         raise
+    if _a_worker_died(pool):  # every result is in, but the pool's own shutdown could hang
+        _kill_workers(pool)
+        return
     pool.close()
     pool.join()
+
+
+def _a_worker_died(pool: multiprocessing.pool.Pool) -> bool:
+    return any(p.exitcode is not None for p in getattr(pool, "gpocc_workers", ()))
+
+
+def _kill_workers(pool: multiprocessing.pool.Pool) -> None:
+    """End every worker of ``pool`` at once, without the pool's own shutdown.
+
+    A worker that died while it waited for a task (or sent a result) held a queue's lock,
+    and the pool's ``close``/``join``, ``terminate`` and exit-time finaliser all wait for
+    that lock forever (gpocc hung so after a worker was killed with ``kill -9`` at the end
+    of a map). So: the maintenance thread is told to stop replacing workers, the
+    finaliser is cancelled, and the workers are killed; the pool's helper threads are
+    daemons and are left behind.
+    """
+    pool._worker_handler._state = multiprocessing.pool.TERMINATE
+    pool._change_notifier.put(None)
+    pool._terminate.cancel()
+    processes = {*getattr(pool, "gpocc_workers", ()), *pool._pool}  # replacements too
+    for process in processes:
+        if process.exitcode is None:
+            process.kill()
+    for process in processes:
+        process.join(timeout=5.0)
+
+
+#: Seconds between checks that a pool's workers are alive while waiting for results.
+WORKER_CHECK_S = 1.0
+
+
+def check_workers(pool: multiprocessing.pool.Pool) -> None:
+    """Raise :class:`GpoccError` if a worker of ``pool`` (a :func:`worker_pool`) has died.
+
+    ``multiprocessing.Pool`` replaces a worker that dies, but the task it held is lost and
+    its result never comes: without this check a worker killed outright (the kernel's
+    out-of-memory killer, ``kill -9``) left the map or the training waiting forever.
+    """
+    for process in getattr(pool, "gpocc_workers", ()):
+        code = process.exitcode
+        if code is None:
+            continue
+        if code == -signal.SIGKILL:
+            how = "was killed by signal 9 (SIGKILL: perhaps out of memory; try fewer --workers)"
+        elif code < 0:
+            how = f"was killed by signal {-code}"
+        else:
+            how = f"ended with exit status {code}"
+        raise GpoccError(f"a worker process {how} during the run; nothing was written")
+
+
+def watched(pool: multiprocessing.pool.Pool, results: Any) -> Iterator[Any]:
+    """The items of ``results`` (``pool.imap``'s iterator), checking every
+    :data:`WORKER_CHECK_S` seconds of waiting that no worker has died."""
+    while True:
+        try:
+            yield results.next(timeout=WORKER_CHECK_S)
+        except StopIteration:
+            return
+        except multiprocessing.TimeoutError:
+            check_workers(pool)
+
+
+def wait_for(pool: multiprocessing.pool.Pool, result: multiprocessing.pool.AsyncResult) -> Any:
+    """``result.get()`` (of ``pool.map_async`` or ``apply_async``), checking every
+    :data:`WORKER_CHECK_S` seconds of waiting that no worker has died."""
+    while True:
+        try:
+            return result.get(timeout=WORKER_CHECK_S)
+        except multiprocessing.TimeoutError:
+            check_workers(pool)
 
 
 @contextlib.contextmanager

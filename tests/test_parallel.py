@@ -4,11 +4,18 @@ worker_pool (processes)."""
 from __future__ import annotations
 
 import multiprocessing.pool
+import os
+import signal
+import subprocess
+import sys
 import threading
+import time
 
 import pytest
 
-from gpocc.parallel import thread_map, worker_pool
+from gpocc import parallel
+from gpocc.errors import GpoccError
+from gpocc.parallel import thread_map, wait_for, watched, worker_pool
 
 
 def _threads() -> set[str]:
@@ -110,3 +117,57 @@ def test_worker_pool_maintenance_thread_does_not_wake_on_every_result(monkeypatc
     # one per result (500 results).
     assert 1 <= len(wakes) <= 10
 
+
+
+def _die_on(k: int) -> int:
+    if k == 5:  # killed outright, as by the kernel's out-of-memory killer
+        os.kill(os.getpid(), signal.SIGKILL)
+    return k
+
+
+def test_a_worker_killed_outright_is_an_error_not_a_hang(monkeypatch) -> None:
+    """The stock Pool replaces the dead worker but never returns the task it held, so
+    ``imap`` and ``map`` waited forever; watched() and wait_for() raise instead."""
+    monkeypatch.setattr(parallel, "WORKER_CHECK_S", 0.2)
+    for consume in ("imap", "map_async"):
+        started = time.monotonic()
+        with pytest.raises(GpoccError, match=r"killed by signal 9 \(SIGKILL: perhaps out"):
+            with worker_pool(2, _init_nothing, ()) as pool:
+                if consume == "imap":
+                    list(watched(pool, pool.imap(_die_on, range(20))))
+                else:
+                    wait_for(pool, pool.map_async(_die_on, range(20), chunksize=1))
+        assert time.monotonic() - started < 30.0
+
+
+def test_watched_and_wait_for_give_every_result_when_workers_live() -> None:
+    with worker_pool(2, _init_nothing, ()) as pool:
+        assert list(watched(pool, pool.imap(_square, range(50)))) == [
+            k * k for k in range(50)]
+        assert wait_for(pool, pool.map_async(_square, range(50))) == [k * k for k in range(50)]
+
+
+
+def test_a_worker_killed_while_idle_does_not_hang_the_pool_s_end_or_the_exit() -> None:
+    """A worker killed while it waits for a task (holding the task queue's lock) after
+    every result is in: leaving worker_pool, and then the interpreter (whose exit runs the
+    pool's finaliser), must not wait for that lock forever. In a fresh interpreter."""
+    script = (
+        "import os, signal, time\n"
+        "from gpocc.parallel import worker_pool\n"
+        "def square(k):\n"
+        "    return k * k\n"
+        "def init():\n"
+        "    pass\n"
+        "if __name__ == '__main__':\n"
+        "    with worker_pool(2, init, ()) as pool:\n"
+        "        assert pool.map(square, range(10)) == [k * k for k in range(10)]\n"
+        "        os.kill(pool.gpocc_workers[0].pid, signal.SIGKILL)\n"
+        "        while pool.gpocc_workers[0].exitcode is None:\n"
+        "            time.sleep(0.05)\n"
+        "    print('left')\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "left"

@@ -31,7 +31,7 @@ from gpocc.gp.expected import (
 from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, NeighbourIndex, cholesky_solve, try_cholesky
-from gpocc.parallel import default_workers, worker_pool
+from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
 _JITTER = 1e-8
@@ -218,7 +218,8 @@ def negative_log_likelihood(
                 held is not patch for held, patch in zip(executor.patches, patches, strict=True)):
             raise ValueError("the pool holds other patches than those to evaluate")
         one = functools.partial(_resident_patch_negative_log_likelihood, *arguments, **options)
-        by_cost = executor.pool.map(one, executor.order, chunksize=1)
+        by_cost = wait_for(executor.pool,
+                           executor.pool.map_async(one, executor.order, chunksize=1))
         terms = [None] * len(patches)
         for index, term in zip(executor.order, by_cost, strict=True):
             terms[index] = term

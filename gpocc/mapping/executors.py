@@ -21,7 +21,7 @@ from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
 from gpocc.mapping.blocks import Anchor, AnchorLattice, AnchorResult, predict_anchor
-from gpocc.parallel import worker_pool
+from gpocc.parallel import watched, worker_pool
 
 _worker_state: dict[str, object] = {}
 
@@ -106,7 +106,8 @@ class AnchorExecutor:
                                            pure=False) for chunk in chunks]
             results: Iterator[list[AnchorResult]] = (f.result() for f in futures)
         elif self._pool is not None:
-            results = self._pool.imap(functools.partial(_compute_in_worker, lattice), chunks)
+            results = watched(self._pool, self._pool.imap(
+                functools.partial(_compute_in_worker, lattice), chunks))
         else:
             results = (compute_chunk(self.model, lattice, chunk) for chunk in chunks)
         return _in_order(chunks, results, on_done)
