@@ -144,6 +144,11 @@ def main() -> None:
         # the command's own handler: nothing was written yet.
         print(INTERRUPTED, file=sys.stderr)
         _exit_without_teardown(130)
+    except typer.Abort:
+        # An EOFError (or typer.Abort) in a command: typer's standalone mode printed this
+        # line; without it the Abort would end in a traceback.
+        print("Aborted.", file=sys.stderr)
+        _exit_without_teardown(1)
     except _usage_errors() as exc:
         line = usage_error_line(exc)
         if line:  # none for a bare ``gpocc``: typer has printed the help

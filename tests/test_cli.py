@@ -295,3 +295,26 @@ def test_usage_errors_are_one_line(args: list[str], line: str) -> None:
     assert len(lines) == 1, proc.stderr
     assert lines[0].startswith(line)
     assert proc.stdout == ""
+
+
+def test_an_abort_in_a_command_is_one_line_not_a_traceback() -> None:
+    """An EOFError escaping a command becomes typer's Abort, which the standalone mode
+    printed as "Aborted." (status 1); without standalone mode it must not end in a
+    traceback."""
+    script = (
+        "import functools, sys\n"
+        "import gpocc.commands.config as c\n"
+        "real = c.config_command\n"
+        "@functools.wraps(real)\n"
+        "def eof(*args, **kwargs):\n"
+        "    raise EOFError\n"
+        "c.config_command = eof\n"
+        "sys.argv = ['gpocc', 'config']\n"
+        "from gpocc.entry import main\n"
+        "main()\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          cwd=REPO, timeout=60)
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines() == ["Aborted."]
