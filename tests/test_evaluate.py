@@ -377,13 +377,19 @@ def test_truth_that_misses_every_map_is_an_error_and_writes_nothing(tmp_path, ma
                      "--out", str(out))
     assert result.exit_code == 2
     errors = _error_lines(result)
-    assert len(errors) == 1 and "none of its 500 points lies on a cell with data" in errors[0]
+    assert len(errors) == 1 and "none of its 500 points (x " in errors[0]
+    assert "lies on a cell with data in any of the 2 maps" in errors[0]
     assert "Traceback" not in result.output and not out.exists()
     warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
     assert len(warnings) == 2  # one per map, with both extents
     x0, y0, x1, y1 = SPEC.bounds
     assert f"the map spans x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m" in warnings[0]
     assert f"the points x {points[:, 0].min() + 100:.1f} .. " in warnings[0]
+    # Quiet: no warnings, and the error alone still gives both extents of one map.
+    quiet = _invoke(str(bare), "--ground-truth", str(truth), "--quiet")
+    assert quiet.exit_code == 2 and quiet.stderr.count("\n") == 1
+    assert (f"(x {points[:, 0].min() + 100:.1f} .. " in quiet.stderr
+            and f"in the map (x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m)" in quiet.stderr)
 
 
 def test_a_map_that_misses_the_truth_is_scored_with_a_warning(tmp_path, maps):

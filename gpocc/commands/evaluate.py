@@ -61,10 +61,12 @@ def evaluate(
             warn_uncovered(raster, points)
     if all(r.coverage == 0.0 for r in results):
         # Every score would be that of p = 0.5 at every point (AUC 0.5): not a result.
+        where = (f"the map ({_map_extent(located[0][1])})" if len(results) == 1
+                 else f"any of the {len(results)} maps")
         raise GpoccError(
-            f"{ground_truth}: none of its {labels.size} points lies on a cell with data in "
-            f"{'the map' if len(results) == 1 else 'any of the maps'}; the truth and the "
-            f"map{'' if len(results) == 1 else 's'} must share one frame (extents above)"
+            f"{ground_truth}: none of its {labels.size} points ({_points_extent(points)}) "
+            f"lies on a cell with data in {where}; the truth and the map"
+            f"{'' if len(results) == 1 else 's'} must share one frame"
         )
     typer.echo(results_table(results))
     if out is not None:
@@ -75,10 +77,16 @@ def evaluate(
 def warn_uncovered(raster: Path, points: np.ndarray) -> None:
     """A warning on stderr for a map that has no value at any truth point, with both
     extents: a truth in another frame, or a map of another area, scores AUC 0.5."""
-    _, spec, _ = read_raster(raster)
-    x0, y0, x1, y1 = spec.bounds
-    (px0, py0), (px1, py1) = points.min(axis=0), points.max(axis=0)
     log(f"warning: {raster}: none of the {len(points)} truth points lies on a cell with data; "
-        f"the map spans x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m, the points x "
-        f"{px0:.1f} .. {px1:.1f}, y {py0:.1f} .. {py1:.1f} m; its scores count every point "
-        f"as p = 0.5")
+        f"the map spans {_map_extent(raster)}, the points {_points_extent(points)}; its "
+        f"scores count every point as p = 0.5")
+
+
+def _map_extent(raster: Path) -> str:
+    x0, y0, x1, y1 = read_raster(raster)[1].bounds
+    return f"x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m"
+
+
+def _points_extent(points: np.ndarray) -> str:
+    (x0, y0), (x1, y1) = points.min(axis=0), points.max(axis=0)
+    return f"x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m"
