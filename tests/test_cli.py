@@ -253,6 +253,12 @@ def test_ctrl_c_while_the_command_loads_is_one_line(monkeypatch, capsys) -> None
     assert lines == ["gpocc: interrupted before any output was written"]
 
 
+def _run_script(script: str) -> subprocess.CompletedProcess:
+    """``script`` in a fresh interpreter from the repository, its output captured."""
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          cwd=REPO, timeout=60)
+
+
 def test_ctrl_c_while_the_cli_itself_loads_is_one_line() -> None:
     """Ctrl-C while ``gpocc.cli`` imports typer (before its own handler can exist): the
     console script's entry point ends with status 130 and one line, no traceback. The
@@ -269,8 +275,7 @@ def test_ctrl_c_while_the_cli_itself_loads_is_one_line() -> None:
         "from gpocc.entry import main\n"
         "main()\n"
     )
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          cwd=REPO, timeout=60)
+    proc = _run_script(script)
     assert proc.returncode == 130, proc.stderr
     assert proc.stderr.strip().splitlines() == [
         "gpocc: interrupted before any output was written"]
@@ -313,8 +318,7 @@ def test_an_abort_in_a_command_is_one_line_not_a_traceback() -> None:
         "from gpocc.entry import main\n"
         "main()\n"
     )
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                          cwd=REPO, timeout=60)
+    proc = _run_script(script)
     assert proc.returncode == 1, proc.stderr
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines() == ["Aborted."]
