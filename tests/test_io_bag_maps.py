@@ -329,3 +329,22 @@ def test_an_upside_down_laser_without_tf_is_set_in_the_config_mount(tmp_path: Pa
     assert_walls(build(path, tmp_path / "flipped", flipped))
     with pytest.raises(AssertionError):
         assert_walls(build(path, tmp_path / "level", level))
+
+
+def test_a_split_of_an_upside_down_laser_reads_back_unmirrored(tmp_path: Path) -> None:
+    """``gpocc split`` writes the scans as read (bearings already mirrored by
+    ``mount.upside_down``); its train.yaml must not mirror them a second time."""
+    bag = BagWriter("mcap")
+    add_robot(bag, UPSIDE_DOWN, "amcl")
+    path = bag.write(tmp_path / "flipped.mcap")
+    config = tmp_path / "flipped.yaml"
+    config.write_text("sensors:\n  - {name: r, scan_topic: /scan, "
+                      "mount: {x_m: 0.2, y_m: 0.05, upside_down: true}}\n")
+    [read] = read_inputs([path], load_config(config))
+    result = runner.invoke(app, ["split", str(path), "--config", str(config), "--every", "4",
+                                 "--out", str(tmp_path / "split"), "--quiet"])
+    assert result.exit_code == 0, result.output
+    train = load_config(tmp_path / "split" / "train.yaml")
+    assert train.sensors[0].mount == MountConfig(x_m=0.2, y_m=0.05)
+    [again] = read_inputs([tmp_path / "split" / "train.mcap"], train)
+    np.testing.assert_allclose(again.angles, read.angles, atol=1e-6)

@@ -96,8 +96,11 @@ def train_config(config: Config, sensors: list[tuple[SensorConfig, str, str]]) -
         sensors: (sensor config, scan topic, pose topic) per written sensor; the noise
             settings are kept, the input globs dropped (the bag is the only input).
     """
+    # The bag holds the scans as read: an upside-down laser's bearings already mirrored
+    # (mount.upside_down acts when reading), so reading it must not mirror them again.
     entries = tuple(
-        dataclasses.replace(s, inputs=(), scan_topic=scan, pose_topic=pose)
+        dataclasses.replace(s, inputs=(), scan_topic=scan, pose_topic=pose,
+                            mount=dataclasses.replace(s.mount, upside_down=False))
         for s, scan, pose in sensors
     )
     return dataclasses.replace(config, sensors=entries)
