@@ -70,15 +70,26 @@ class _Pool(multiprocessing.pool.Pool):
     of the parent's CPU in an Intel map (155 chunks) and 0.11 s in its training (430
     patch results), taken from the two cores the workers use. A worker that exits is
     still seen at once through its sentinel, which the thread keeps waiting on.
+
+    ``workers`` are the processes started with the pool: none of them may end before it
+    does (the pool replaces a dead one, but the task it held is lost).
     """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.workers = tuple(self._pool)
 
     def _get_sentinels(self):
         return [self._change_notifier._reader]
 
+    def dead_worker_exitcode(self) -> int | None:
+        """The exit code of the first of :attr:`workers` that has ended, or None."""
+        return next((p.exitcode for p in self.workers if p.exitcode is not None), None)
+
 
 @contextlib.contextmanager
 def worker_pool(workers: int, initializer: Callable[..., None],
-                initargs: tuple[Any, ...]) -> Iterator[multiprocessing.pool.Pool]:
+                initargs: tuple[Any, ...]) -> Iterator[_Pool]:
     """A ``multiprocessing.Pool`` of ``workers`` processes, each set up by
     ``initializer(*initargs)``, that ends (terminated on any exception) with the block."""
     # Workers start with SIGTERM blocked, so none can run the parent's handler (see
@@ -89,30 +100,24 @@ def worker_pool(workers: int, initializer: Callable[..., None],
                      initargs=(os.getpid(), initializer, initargs))
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-    # The processes that will do the work: none of them may end before the pool does.
-    pool.gpocc_workers = tuple(pool._pool)  # type: ignore[attr-defined]
     try:
         yield pool
     except BaseException:
         # Ctrl-C, SIGTERM, an error, or the consumer stopping: no worker may outlive it.
-        if _a_worker_died(pool):
+        if pool.dead_worker_exitcode() is not None:
             _kill_workers(pool)
         else:
             pool.terminate()
             pool.join()
         raise
-    if _a_worker_died(pool):  # every result is in, but the pool's own shutdown could hang
-        _kill_workers(pool)
+    if pool.dead_worker_exitcode() is not None:
+        _kill_workers(pool)  # every result is in, but the pool's own shutdown could hang
         return
     pool.close()
     pool.join()
 
 
-def _a_worker_died(pool: multiprocessing.pool.Pool) -> bool:
-    return any(p.exitcode is not None for p in getattr(pool, "gpocc_workers", ()))
-
-
-def _kill_workers(pool: multiprocessing.pool.Pool) -> None:
+def _kill_workers(pool: _Pool) -> None:
     """End every worker of ``pool`` at once, without the pool's own shutdown.
 
     A worker that died while it waited for a task (or sent a result) held a queue's lock,
@@ -125,7 +130,7 @@ def _kill_workers(pool: multiprocessing.pool.Pool) -> None:
     pool._worker_handler._state = multiprocessing.pool.TERMINATE
     pool._change_notifier.put(None)
     pool._terminate.cancel()
-    processes = {*getattr(pool, "gpocc_workers", ()), *pool._pool}  # replacements too
+    processes = {*pool.workers, *pool._pool}  # replacements too
     for process in processes:
         if process.exitcode is None:
             process.kill()
@@ -137,27 +142,26 @@ def _kill_workers(pool: multiprocessing.pool.Pool) -> None:
 WORKER_CHECK_S = 1.0
 
 
-def check_workers(pool: multiprocessing.pool.Pool) -> None:
+def check_workers(pool: _Pool) -> None:
     """Raise :class:`GpoccError` if a worker of ``pool`` (a :func:`worker_pool`) has died.
 
     ``multiprocessing.Pool`` replaces a worker that dies, but the task it held is lost and
     its result never comes: without this check a worker killed outright (the kernel's
     out-of-memory killer, ``kill -9``) left the map or the training waiting forever.
     """
-    for process in getattr(pool, "gpocc_workers", ()):
-        code = process.exitcode
-        if code is None:
-            continue
-        if code == -signal.SIGKILL:
-            how = "was killed by signal 9 (SIGKILL: perhaps out of memory; try fewer --workers)"
-        elif code < 0:
-            how = f"was killed by signal {-code}"
-        else:
-            how = f"ended with exit status {code}"
-        raise GpoccError(f"a worker process {how} during the run; nothing was written")
+    code = pool.dead_worker_exitcode()
+    if code is None:
+        return
+    if code == -signal.SIGKILL:
+        how = "was killed by signal 9 (SIGKILL: perhaps out of memory; try fewer --workers)"
+    elif code < 0:
+        how = f"was killed by signal {-code}"
+    else:
+        how = f"ended with exit status {code}"
+    raise GpoccError(f"a worker process {how} during the run; nothing was written")
 
 
-def watched(pool: multiprocessing.pool.Pool, results: Any) -> Iterator[Any]:
+def watched(pool: _Pool, results: Any) -> Iterator[Any]:
     """The items of ``results`` (``pool.imap``'s iterator), checking every
     :data:`WORKER_CHECK_S` seconds of waiting that no worker has died."""
     while True:
@@ -169,7 +173,7 @@ def watched(pool: multiprocessing.pool.Pool, results: Any) -> Iterator[Any]:
             check_workers(pool)
 
 
-def wait_for(pool: multiprocessing.pool.Pool, result: multiprocessing.pool.AsyncResult) -> Any:
+def wait_for(pool: _Pool, result: multiprocessing.pool.AsyncResult) -> Any:
     """``result.get()`` (of ``pool.map_async`` or ``apply_async``), checking every
     :data:`WORKER_CHECK_S` seconds of waiting that no worker has died."""
     while True:

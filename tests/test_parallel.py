@@ -162,8 +162,8 @@ def test_a_worker_killed_while_idle_does_not_hang_the_pool_s_end_or_the_exit() -
         "if __name__ == '__main__':\n"
         "    with worker_pool(2, init, ()) as pool:\n"
         "        assert pool.map(square, range(10)) == [k * k for k in range(10)]\n"
-        "        os.kill(pool.gpocc_workers[0].pid, signal.SIGKILL)\n"
-        "        while pool.gpocc_workers[0].exitcode is None:\n"
+        "        os.kill(pool.workers[0].pid, signal.SIGKILL)\n"
+        "        while pool.workers[0].exitcode is None:\n"
         "            time.sleep(0.05)\n"
         "    print('left')\n"
     )
