@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from rosbag_scenes import T0, BagWriter, cov6
+from rosbag_scenes import T0, BagWriter, compose, cov6, inverse
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
@@ -69,18 +69,6 @@ def drift(t: np.ndarray) -> np.ndarray:
     """(N, 3) map -> odom: the localiser's correction, growing with time."""
     t = np.asarray(t, float)
     return np.column_stack([0.03 * t, -0.02 * t, 0.01 * t])
-
-
-def se2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a (+) b`` for (N, 3) poses."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1],
-                            a[:, 1] + s * b[:, 0] + c * b[:, 1], a[:, 2] + b[:, 2]])
-
-
-def se2_inverse(a: np.ndarray) -> np.ndarray:
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([-c * a[:, 0] - s * a[:, 1], s * a[:, 0] - c * a[:, 1], -a[:, 2]])
 
 
 class Laser:
@@ -132,7 +120,7 @@ def add_robot(bag: BagWriter, laser: Laser, pose: str, prefix: str = "",
     end = LAP_S + 0.5
     if pose == "tf":
         ot = np.arange(0.0, end, 1 / 30)
-        odom = se2(se2_inverse(drift(ot)), base_pose(ot))
+        odom = compose(inverse(drift(ot)), base_pose(ot))
         for t, p in zip(ot, odom, strict=True):
             bag.tf("/tf", T0 + t, [(f"{prefix}odom", f"{prefix}base_link", (p[0], p[1], 0.0),
                                     yaw_quat(p[2]))])
@@ -241,7 +229,7 @@ def test_tf_bag_reads_the_same_from_every_storage_format(tf_bags: dict[str, Path
     # The two scans before the first TF are dropped and counted, not fatal.
     assert ref.n_scans == SCAN_T.size and ref.skipped_scans == 2
     assert ref.provenance.skipped[0][2] == 2
-    truth = se2(base_pose(ref.stamps - T0), np.array([[0.2, 0.0, math.pi]]))
+    truth = compose(base_pose(ref.stamps - T0), np.array([[0.2, 0.0, math.pi]]))
     assert np.abs(ref.poses[:, :2] - truth[:, :2]).max() < 1e-3
     assert np.abs(np.angle(np.exp(1j * (ref.poses[:, 2] - truth[:, 2])))).max() < 1e-3
     for fmt, [batch] in batches.items():
