@@ -33,6 +33,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from campus import write_campus  # noqa: E402
+from proctree import process_tree  # noqa: E402
 
 CARMEN = Path(os.environ.get("GPOCC_CARMEN_DIR", ROOT.parent / "shared" / "data" / "carmen"))
 INTEL = CARMEN / "intel.gfs.log"
@@ -71,14 +72,10 @@ def _tree_memory(pid: int) -> int:
     sets counted those pages once per process (campus training with 2 workers: 1024 MiB
     summed resident sets against 426 MiB PSS at the same instant)."""
     total = 0
-    stack = [pid]
-    while stack:
-        p = stack.pop()
+    for p in process_tree(pid):
         try:
             total += _process_memory(p)
-            with open(f"/proc/{p}/task/{p}/children") as fh:
-                stack.extend(int(c) for c in fh.read().split())
-        except (FileNotFoundError, ProcessLookupError, PermissionError):
+        except (FileNotFoundError, ProcessLookupError, PermissionError):  # it has ended
             continue
     return total
 

@@ -22,21 +22,9 @@ import sys
 import threading
 import time
 
+from proctree import process_tree
+
 _TICKS = os.sysconf("SC_CLK_TCK")
-
-
-def _tree(pid: int) -> list[int]:
-    """``pid`` and all its descendants."""
-    found, stack = [], [pid]
-    while stack:
-        p = stack.pop()
-        found.append(p)
-        try:
-            with open(f"/proc/{p}/task/{p}/children") as fh:
-                stack.extend(int(c) for c in fh.read().split())
-        except OSError:
-            pass
-    return found
 
 
 def _cpu_seconds(pid: int) -> float | None:
@@ -73,7 +61,7 @@ def main() -> None:
     samples: list[tuple[float, dict[int, float]]] = []
     while proc.poll() is None:
         now = time.perf_counter() - started
-        row = {p: c for p in _tree(proc.pid) if (c := _cpu_seconds(p)) is not None}
+        row = {p: c for p in process_tree(proc.pid) if (c := _cpu_seconds(p)) is not None}
         samples.append((now, row))
         time.sleep(0.05)
     reader.join()
