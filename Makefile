@@ -1,26 +1,35 @@
-# Every set-up step lives here: a fresh machine needs only python3 (3.11+) and make.
+# Every set-up step lives here: a fresh machine needs only python3 (3.11+) with its headers,
+# a C compiler (gpocc's compiled loops, gpocc/_kernels.c) and make.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
+KERNELS_STAMP := $(VENV)/.kernels-stamp
 DEMO_OUT ?= demo-out
 
 .PHONY: install bytecode demo test lint fuzz bench experiment clean
 
-install: $(STAMP)
+install: $(KERNELS_STAMP)
 
 # gpocc's byte-code, compiled ahead: an editable install compiles none, and where
 # PYTHONDONTWRITEBYTECODE is set (as on this project's machines) every command would
 # compile its ~70 modules from source, 0.2-0.5 s of each start. Up-to-date files are
 # skipped, so this costs nothing when nothing changed.
-bytecode: $(STAMP)
+bytecode: $(KERNELS_STAMP)
 	$(BIN)/python -m compileall -q gpocc
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[test]'
-	touch $(STAMP)
+	touch $(STAMP) $(KERNELS_STAMP)
+
+# The compiled loops (gpocc/_kernels.c, built by the install above with the system's C
+# compiler): rebuilt in place when their source changes. gpocc refuses to load a library
+# older than its source.
+$(KERNELS_STAMP): gpocc/_kernels.c $(STAMP)
+	$(BIN)/python -m pip install -q --no-deps -e .
+	touch $(KERNELS_STAMP)
 
 demo: bytecode
 	$(BIN)/gpocc info data/sample/intel_sample.mcap --config data/sample/sample.yaml
@@ -32,18 +41,18 @@ test: bytecode
 	$(BIN)/ruff check gpocc tests bench
 	$(BIN)/python -m pytest -n 2 -q -rs
 
-lint: $(STAMP)
+lint: $(KERNELS_STAMP)
 	$(BIN)/ruff check gpocc tests bench
 
 # Fresh random inputs for the fuzz tests (make test runs a fixed set); FUZZ_EXAMPLES each.
 FUZZ_EXAMPLES ?= 2000
-fuzz: $(STAMP)
+fuzz: $(KERNELS_STAMP)
 	GPOCC_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(BIN)/python -m pytest -n 2 -q \
 		tests/test_fuzz.py tests/test_io_messages.py::test_decoding_gives_a_clean_error_or_a_valid_batch
 
 BENCH_STAMP := $(VENV)/.bench-stamp
 
-$(BENCH_STAMP): $(STAMP)
+$(BENCH_STAMP): $(KERNELS_STAMP)
 	$(BIN)/python -m pip install -q -e '.[test,bench]'
 	touch $(BENCH_STAMP)
 
@@ -54,4 +63,4 @@ experiment: bytecode
 	$(BIN)/python bench/experiment.py
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache build gpocc/_kernels*.so

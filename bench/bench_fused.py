@@ -1,4 +1,4 @@
-"""Compiled (numba) against numpy expected NN kernels on real Intel neighbourhoods.
+"""Compiled (C) against numpy expected NN kernels on real Intel neighbourhoods.
 
 Run ``.venv/bin/python bench/bench_fused.py [MODEL.npz]``. Takes 20 neighbourhoods of
 ``model.neighbours`` samples (160) around random samples of a trained Intel model (or
@@ -67,7 +67,7 @@ def main() -> None:
 
     print(f"{len(problems)} problems of {neighbours} samples, level {level}, "
           f"{pairs:.0f} same-scan pairs each on average")
-    print(f"{'':6} {'numpy ms':>9} {'numba ms':>9} {'speed-up':>9} {'max |diff|':>11}")
+    print(f"{'':6} {'numpy ms':>9} {'C ms':>9} {'speed-up':>9} {'max |diff|':>11}")
     with single_threaded_blas():
         for what in ("K", "K+dK", "cross"):
             times, results = {}, {}

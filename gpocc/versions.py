@@ -11,14 +11,15 @@ import gpocc
 
 
 def software_versions(rasters: bool = True) -> dict[str, str]:
-    """Versions of gpocc, numpy, scipy, numba (the expected kernels) and Python, by name;
+    """Versions of gpocc, numpy, scipy, the compiler of gpocc's compiled loops (``kernels``,
+    e.g. ``gcc 12.2.0``) and Python, by name;
     with ``rasters`` also rasterio and GDAL (every GeoTIFF byte of a map folder). A model
     file writes no raster, and importing rasterio only to read its version cost 0.5 s of
     every ``gpocc train``."""
-    import numba
+    from gpocc import compiled
 
     versions = {"gpocc": gpocc.__version__, "numpy": np.__version__,
-                "scipy": scipy.__version__, "numba": numba.__version__}
+                "scipy": scipy.__version__, "kernels": compiled.compiler()}
     if rasters:
         import rasterio
 

@@ -471,7 +471,7 @@ def test_bad_shapes_are_rejected():
 
 
 def test_compiled_arcsin_matches_numpy_to_two_ulp():
-    from gpocc.gp import fused
+    from gpocc import compiled as fused
 
     x = np.concatenate([np.linspace(-1.0, 1.0, 20_001), [0.5, -0.5, 0.975, 1e-300, -0.0],
                         np.random.default_rng(20).uniform(-1.0, 1.0, 20_000)])
@@ -483,7 +483,7 @@ def test_compiled_arcsin_matches_numpy_to_two_ulp():
 def test_compiled_root_of_joint_covariance_reproduces_it():
     """Semi-definite Cholesky roots, compiled and numpy, of joint covariances of full rank
     and of rank 3 (no per-point noise: both points move only with the shared pose)."""
-    from gpocc.gp import fused
+    from gpocc import compiled as fused
 
     means, covs, scan_ids, factors, _ = _scan_problem(21, n=30)
     i, j = ex.same_scan_pairs(covs, scan_ids, factors)
@@ -515,7 +515,7 @@ def test_compiled_root_of_joint_covariance_reproduces_it():
 @pytest.mark.parametrize("level", [1, 2, 3])
 @pytest.mark.parametrize("mixed", [True, False], ids=["mixed", "uniform"])
 def test_compiled_nn_path_matches_numpy_reference(level, mixed, monkeypatch):
-    """Fused numba loops against the numpy path: values, gradients, cross, correlated pairs;
+    """Compiled loops against the numpy path: values, gradients, cross, correlated pairs;
     ``mixed``: points with zero covariance (one node) among others (the point-major loops),
     else every point with the same rule (the node-major loops)."""
     means, covs, scan_ids, factors, _ = _scan_problem(22, n=40)
@@ -548,7 +548,7 @@ def test_node_major_loops_give_the_point_major_sums(level, n):
     alone; the cross loop agrees to round-off (its general path, L != 4, sums node by
     node). The rule's weights are made unequal, so that a weight given to the wrong node
     changes the sums."""
-    from gpocc.gp import fused
+    from gpocc import compiled as fused
 
     rng = np.random.default_rng(47)
     kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))

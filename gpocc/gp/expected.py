@@ -15,7 +15,7 @@ only (the expected matrix is symmetric): a handful of vectorised kernel calls in
 for a little over half of the kernel evaluations (arcsin for the NN kernel, the cost that
 dominates) and blocks that stay in cache. Points whose covariance is zero get one node.
 
-For the NN kernel the same sums run in compiled loops (:mod:`gpocc.gp.fused`: arcsin,
+For the NN kernel the same sums run in compiled loops (:mod:`gpocc.compiled`: arcsin,
 quadrature reduction and the 4 x 4 roots of same-scan pairs fused, no node-pair
 temporaries); the numpy code here is their reference (``USE_FUSED = False``) and serves the
 SE kernel. Node sets are cached for repeated calls on the same inputs (training).
@@ -36,12 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.polynomial.hermite_e import hermegauss
 
+from gpocc import compiled as _fused_module  # the NN kernel's loops; numpy: the reference
 from gpocc.gp.kernels import Kernel, NeuralNetworkKernel, SquaredExponentialKernel
-
-try:  # compiled loops for the default (NN) kernel; the numpy path below is the reference
-    from gpocc.gp import fused as _fused_module
-except ImportError:  # pragma: no cover - numba is a declared dependency
-    _fused_module = None
 
 #: Smallest share of a point's covariance trace due to the shared pose error for its
 #: same-scan pairs to get the correlated 4-D rule.
@@ -56,14 +52,14 @@ ZERO_VARIANCE_M2 = 1e-24
 _BLOCK_NODES = 192
 _PAIR_CHUNK = 1 << 19
 
-#: Use the compiled loops of :mod:`gpocc.gp.fused` for the NN kernel. Tests switch it off to
+#: Use the compiled loops of :mod:`gpocc.compiled` for the NN kernel. Tests switch it off to
 #: compare against the numpy path.
 USE_FUSED = True
 
 
 def _fused(kernel: Kernel):
     """The fused-loop module when it applies to ``kernel`` (the NN kernel), else None."""
-    if USE_FUSED and _fused_module is not None and isinstance(kernel, NeuralNetworkKernel):
+    if USE_FUSED and isinstance(kernel, NeuralNetworkKernel):
         return _fused_module
     return None
 
@@ -243,7 +239,7 @@ def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansio
         return _Expansion(means.copy(), np.ones(n), np.arange(n + 1, dtype=np.intp), 1)
     if not zero.any():
         starts = np.arange(n + 1, dtype=np.intp) * w.shape[0]
-        if USE_FUSED and _fused_module is not None:
+        if USE_FUSED:
             # (M, 2) with contiguous columns: what the kernels read fastest.
             flat = _fused_module.gaussian_nodes_2d(means, covariances, unit).T
         else:
@@ -329,7 +325,7 @@ def _cached_expansion(means: np.ndarray, covariances: np.ndarray, level: int) ->
     digest = hashlib.blake2b(digest_size=20)
     # The compiled and the numpy path build the nodes apart (equal to round-off): the
     # tests that compare the two paths must not be served the other path's nodes.
-    compiled = bool(USE_FUSED and _fused_module is not None)
+    compiled = bool(USE_FUSED)
     for a in (means, covariances, np.array([level, compiled])):
         a = np.ascontiguousarray(a)
         digest.update(str((a.dtype.str, a.shape)).encode())
@@ -390,7 +386,7 @@ def same_scan_pairs(
     # A pair is treated as correlated only when the shared pose error is a noticeable
     # part (POSE_SHARE_MIN) of both points' covariances: below that the cross-covariance
     # is negligible and the product rule is both cheaper and exactly positive definite.
-    if USE_FUSED and _fused_module is not None and scan_ids.dtype.kind in "iu" \
+    if USE_FUSED and scan_ids.dtype.kind in "iu" \
             and scan_ids.dtype.isnative:
         return _fused_module.correlated_pairs(
             np.ascontiguousarray(covariances, dtype=np.float64), scan_ids,

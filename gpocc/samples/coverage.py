@@ -16,9 +16,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
+from gpocc import compiled
 from gpocc.config import Config, SensorConfig
 from gpocc.io.scans import ScanBatch
 from gpocc.samples.beam import (
@@ -94,23 +94,6 @@ def beam_segments(batch: ScanBatch, sensor: SensorConfig, config: Config
     return start, end
 
 
-@numba.njit(cache=True, error_model="numpy", nogil=True)
-def _mark_segments(start: np.ndarray, end: np.ndarray, covered: np.ndarray
-                   ) -> None:  # pragma: no cover - compiled
-    """Set the cells of ``covered`` (H, W) that hold a point every 1 cell along each
-    segment ``start -> end`` (N, 2), cell units from the raster's corner, or its end."""
-    height, width = covered.shape
-    for s in range(start.shape[0]):
-        dx, dy = end[s, 0] - start[s, 0], end[s, 1] - start[s, 1]
-        length = math.hypot(dx, dy)
-        ux, uy = dx / max(length, 1e-12), dy / max(length, 1e-12)
-        for k in range(int(math.floor(length)) + 2):  # 0, 1, ..., and the end
-            t = min(float(k), length)
-            col = min(max(int(start[s, 0] + t * ux), 0), width - 1)
-            row = min(max(int(start[s, 1] + t * uy), 0), height - 1)
-            covered[row, col] = True
-
-
 def coverage_of_segments(start: np.ndarray, end: np.ndarray,
                          cell_m: float = COVERAGE_CELL_M) -> Coverage:
     """The coverage raster of (N, 2) segments ``start -> end`` (metres)."""
@@ -126,8 +109,8 @@ def coverage_of_segments(start: np.ndarray, end: np.ndarray,
     # Points in cell units relative to the corner (non-negative): the cell index is the
     # integer part.
     origin = np.array([x0, y0])
-    _mark_segments(np.ascontiguousarray((start - origin) / cell_m),
-                   np.ascontiguousarray((end - origin) / cell_m), covered)
+    compiled.mark_segments(np.ascontiguousarray((start - origin) / cell_m),
+                           np.ascontiguousarray((end - origin) / cell_m), covered)
     return Coverage(float(x0), float(y0), cell_m, step, covered)
 
 
