@@ -22,13 +22,15 @@ $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[test]'
-	touch $(STAMP) $(KERNELS_STAMP)
+	touch $(STAMP)
 
 # The compiled loops (gpocc/_kernels.c, built by the install above with the system's C
-# compiler): rebuilt in place when their source changes. gpocc refuses to load a library
-# older than its source.
+# compiler): rebuilt in place when their source is newer than the library. gpocc refuses
+# to load a library older than its source.
 $(KERNELS_STAMP): gpocc/_kernels.c $(STAMP)
-	$(BIN)/python -m pip install -q --no-deps -e .
+	@if [ -z "$$(find gpocc -maxdepth 1 -name '_kernels*.so' -newer gpocc/_kernels.c)" ]; then \
+		echo "$(BIN)/python -m pip install -q --no-deps -e ."; \
+		$(BIN)/python -m pip install -q --no-deps -e .; fi
 	touch $(KERNELS_STAMP)
 
 demo: bytecode

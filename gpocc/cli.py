@@ -2,7 +2,7 @@
 
 Commands are plain functions registered here from :data:`COMMANDS` (command modules never
 import this module, so there is no import cycle). The console script imports only the
-module of the command it runs: importing all of them (numba, scipy.optimize, rosbags, ...)
+module of the command it runs: importing all of them (numba then, scipy.optimize, rosbags, ...)
 took about a second more per run than one command needs. Registration adds what every command
 shares: ``--quiet`` / ``--verbose`` and the error policy: errors a user can fix
 (:class:`gpocc.errors.GpoccError`) become one line on stderr and exit status 2; results
@@ -140,7 +140,7 @@ def main() -> None:
     except SystemExit as exc:
         _exit_without_teardown(exc.code)
     except KeyboardInterrupt:
-        # Ctrl-C while the command's modules load (numba, scipy: a second or two), before
+        # Ctrl-C while the command's modules load (scipy, typer: about a second), before
         # the command's own handler: nothing was written yet.
         print(INTERRUPTED, file=sys.stderr)
         _exit_without_teardown(130)
@@ -177,10 +177,10 @@ def usage_error_line(exc: Exception) -> str:
 def _exit_without_teardown(code: int | str | None) -> None:
     """End the process once the command is done, skipping the interpreter's teardown.
 
-    Finalising numba's and matplotlib's module graphs took 0.5-1 s after every command
-    (Intel: ``gpocc map`` ends 1 s sooner). Every output is already written and closed
-    (atomically), so only the exit handlers matter: they run (logging flush,
-    multiprocessing clean-up), then stdout and stderr are flushed. With any other thread
+    Finalising numba's (then a dependency) and matplotlib's module graphs took 0.5-1 s
+    after every command (Intel: ``gpocc map`` ended 1 s sooner). Every output is already
+    written and closed (atomically), so only the exit handlers matter: they run (logging
+    flush, multiprocessing clean-up), then stdout and stderr are flushed. With any other thread
     alive, or under a profiler or tracer, the normal exit runs.
     """
     if threading.active_count() > 1 or sys.getprofile() or sys.gettrace():

@@ -55,10 +55,9 @@ def compute_chunk(model: GPModel, lattice: AnchorLattice,
 def _init_worker(model: GPModel) -> None:
     # gpocc.parallel's initialiser has made BLAS single-threaded for this process.
     _worker_state.update(process_model=model, single_threaded=True)
-    # Load the compiled kernels now, while the parent lays out the tile (numba's first
-    # call in a process loads its registries: about 0.45 s) and build the index. A
-    # failure here would make the pool restart the worker forever; the anchors that
-    # meet the same problem report it.
+    # Build the neighbour index and touch every routine an anchor uses now, while the
+    # parent lays out the tile. A failure here would make the pool restart the worker
+    # forever; the anchors that meet the same problem report it.
     with contextlib.suppress(Exception):
         warm_up(model)
 
