@@ -587,7 +587,7 @@ def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):
     factors[::7] *= 1e-3  # pose share below the threshold
     covs[::11] = 0.0
     ids = rng.integers(0, 9, n)
-    # big-endian ids are not compiled for: they take the numpy rule
+    # the compiled rule converts any integer width and byte order
     for scan_ids in (ids, ids.astype(np.int32), ids.astype(">i8")):
         compiled = ex.same_scan_pairs(covs, scan_ids, factors)
         monkeypatch.setattr(ex, "USE_FUSED", False)

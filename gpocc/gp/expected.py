@@ -386,11 +386,10 @@ def same_scan_pairs(
     # A pair is treated as correlated only when the shared pose error is a noticeable
     # part (POSE_SHARE_MIN) of both points' covariances: below that the cross-covariance
     # is negligible and the product rule is both cheaper and exactly positive definite.
-    if USE_FUSED and scan_ids.dtype.kind in "iu" \
-            and scan_ids.dtype.isnative:
-        return _fused_module.correlated_pairs(
-            np.ascontiguousarray(covariances, dtype=np.float64), scan_ids,
-            np.ascontiguousarray(pose_factors), POSE_SHARE_MIN, ZERO_VARIANCE_M2)
+    if USE_FUSED and scan_ids.dtype.kind in "iu":
+        # gpocc.compiled converts layout, dtype and byte order for the C loop.
+        return _fused_module.correlated_pairs(covariances, scan_ids, pose_factors,
+                                              POSE_SHARE_MIN, ZERO_VARIANCE_M2)
     pose_part = np.einsum("nij,nij->n", pose_factors, pose_factors)
     trace = covariances[:, 0, 0] + covariances[:, 1, 1]
     live = pose_part > POSE_SHARE_MIN * trace
@@ -425,8 +424,7 @@ def _correlated_values(
         rows = _nparams(kernel) + (1 if with_scale_gradient else 0) if with_gradient else 1
         out = np.empty((rows, i.shape[0]))
         fused.nn_same_scan_pairs(
-            means, covariances, pose_factors, i.astype(np.intp), j.astype(np.intp),
-            np.ascontiguousarray(unit), np.ascontiguousarray(w), kernel.root_two_s,
+            means, covariances, pose_factors, i, j, unit, w, kernel.root_two_s,
             kernel.arcsin_scale, float(input_scale), out, with_gradient, with_scale_gradient)
         return out[0].copy(), (out if with_gradient else None)
     values = np.empty(i.shape[0])
@@ -717,20 +715,17 @@ def expected_local_system(
     correlated = scan_ids is not None and pose_factors is not None
     if correlated:
         scan_ids, pose_factors = _check_scan_inputs(n, scan_ids, pose_factors)
-        scan_ids = np.ascontiguousarray(scan_ids, dtype=np.int64)
-        pose_factors = np.ascontiguousarray(pose_factors)
     else:
         scan_ids, pose_factors = np.zeros(n, dtype=np.int64), np.zeros((n, 2, 3))
-    queries = np.ascontiguousarray(queries, dtype=np.float64)
+    queries = np.asarray(queries, dtype=np.float64)
     k = np.empty((n, n))
     cross = np.empty((queries.shape[0], n))
     prior = np.empty(queries.shape[0])
+    # gpocc.compiled gives the C loop its C-ordered float64 / int64 copies where needed.
     fused.nn_local_system(
-        np.ascontiguousarray(means), np.ascontiguousarray(covariances), scan_ids,
-        pose_factors, queries, np.ascontiguousarray(unit), np.ascontiguousarray(weights),
-        np.ascontiguousarray(unit4), np.ascontiguousarray(weights4), kernel.root_two_s,
-        kernel.arcsin_scale, float(diagonal), correlated, POSE_SHARE_MIN, ZERO_VARIANCE_M2,
-        k, cross, prior)
+        means, covariances, scan_ids, pose_factors, queries, unit, weights, unit4, weights4,
+        kernel.root_two_s, kernel.arcsin_scale, float(diagonal), correlated, POSE_SHARE_MIN,
+        ZERO_VARIANCE_M2, k, cross, prior)
     return k, cross, prior
 
 
