@@ -53,7 +53,7 @@ def main() -> None:
     lattice, anchors = map_anchors(model, args.resolution)
     index = NeighbourIndex(model.samples)
     chosen = anchors[:: max(1, len(anchors) // args.anchors)][: args.anchors]
-    predict_anchor(model, index, lattice, chosen[0])  # numba and caches warm
+    predict_anchor(model, index, lattice, chosen[0])  # compiled loops and caches warm
     profiler = cProfile.Profile() if args.profile else None
     if profiler is not None:
         profiler.enable()
