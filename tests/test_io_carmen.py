@@ -176,3 +176,37 @@ def test_an_upside_down_mount_mirrors_the_bearings(tmp_path: Path) -> None:
     root = math.sqrt(2.0)
     np.testing.assert_allclose(ends[0], [[0, 2], [root, root], [2, 0], [root, -root]],
                                atol=1e-12)
+
+
+def test_describe_counts_first_tokens_and_stamps_as_whole_line_splitting_does(tmp_path):
+    # describe_carmen looks at each line's first and last tokens only. Oracle: the
+    # whole-line split, on odd whitespace, comments, short and malformed lines.
+    lines = ["FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 12.5 host 10.25",
+             "  \tFLASER 1 1.0 0 0 0 0 0 0 11.0 host 9.5  \t",
+             "ODOM 0 0 0 0 0 0 7.0 host 8.0",
+             "# FLASER 1 1 0 0 0 0 0 0 1 host 1.0",
+             "#comment",
+             "",
+             "   ",
+             "FLASER",
+             "ROBOTLASER1 0 0 0 0 0 0 0 host 11.75\r",
+             "FLASER 1 1 0 0 0 0 0 0 1 host notanumber",
+             "PARAM robot_front_laser_max 50.0",
+             "\tODOM\t1\t2\t3\t0\t0\t0\t7.0\thost\t3.5"]
+    path = tmp_path / "odd.log"
+    path.write_text("\n".join(lines) + "\n")
+    counts: dict[str, int] = {}
+    stamps = []
+    for line in lines:
+        tokens = line.split()
+        if not tokens or tokens[0].startswith("#"):
+            continue
+        counts[tokens[0]] = counts.get(tokens[0], 0) + 1
+        if tokens[0] in ("FLASER", "ROBOTLASER1"):
+            try:
+                stamps.append(float(tokens[-1]))
+            except ValueError:
+                pass
+    contents = describe_carmen(path)
+    assert contents.counts == counts
+    assert (contents.start_s, contents.end_s) == (min(stamps), max(stamps))

@@ -91,13 +91,15 @@ def describe_carmen(path: str | Path) -> CarmenContents:
     counts: Counter[str] = Counter()
     stamps: list[float] = []
     for line in _lines(path):
-        tokens = line.split()
-        if not tokens or tokens[0].startswith(_SKIPPED):
+        # Only the first and last tokens matter: splitting whole lines took 0.04 s of
+        # every Intel job (and its reader splits them again).
+        head = line.split(None, 1)
+        if not head or head[0].startswith(_SKIPPED):
             continue
-        counts[tokens[0]] += 1
-        if tokens[0] in ("FLASER", "ROBOTLASER1"):
+        counts[head[0]] += 1
+        if head[0] in ("FLASER", "ROBOTLASER1"):
             try:
-                stamps.append(float(tokens[-1]))
+                stamps.append(float(line.rsplit(None, 1)[-1]))
             except ValueError:
                 pass
     return CarmenContents(
