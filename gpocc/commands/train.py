@@ -12,6 +12,7 @@ import typer
 from gpocc.commands.options import ConfigFile, Force, InputNoise, Inputs, Seed, Switch
 from gpocc.config import Config, load_config
 from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
+from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.limits import check_seed
@@ -59,12 +60,15 @@ def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
     read_s = time.perf_counter() - started
     log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
     # The coverage raster is built beside the samples (both mostly numpy and compiled
-    # loops that release the GIL; campus: 1 s less). The thread has ended before the
-    # learner forks its workers.
-    with ThreadPoolExecutor(1, thread_name_prefix="gpocc-coverage") as helper:
+    # loops that release the GIL; campus: 1 s less), and the optimiser is imported
+    # meanwhile (Intel: 0.1-0.2 s less). The threads have ended before the learner forks
+    # its workers: a fork during an import could leave the children its lock.
+    with ThreadPoolExecutor(2, thread_name_prefix="gpocc-samples-helper") as helper:
         coverage_of_beams = helper.submit(beam_coverage, batches, cfg)
+        optimiser = helper.submit(load_optimiser)
         samples = build_samples(batches, cfg)
         coverage = coverage_of_beams.result()
+        optimiser.result()
     training_cfg = cfg.model.training
     calibration = (calibration_points(
         batches, cfg, training_cfg.calibration_every,

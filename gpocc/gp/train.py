@@ -310,6 +310,13 @@ def learn_hyperparameters(
                          negative_log_likelihood_counted, learn_scale)
 
 
+def load_optimiser() -> None:
+    """Import scipy.optimize now (0.1-0.2 s), for a caller with a core to spare before
+    :func:`learn_hyperparameters` (``gpocc train`` builds its samples meanwhile). Imported
+    at the learner's start, it kept both freshly forked workers idle."""
+    import scipy.optimize  # noqa: F401
+
+
 def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem], level: int,
               config: TrainingConfig, seed: int,
               negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
