@@ -194,6 +194,33 @@ def test_skipped_problems_and_unmasked_map_agree_inside_the_support(room_model):
                                rtol=1e-12, atol=0)
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_anchors_laid_out_in_bands_give_the_one_band_map(room_model, monkeypatch, workers):
+    # predict_tile lays out (support mask, supported anchors) and queues one band of
+    # lattice rows at a time; the mask is built from pieces. Oracle: one band and one
+    # Support.mask call over the whole window.
+    from gpocc.mapping import blend
+    from gpocc.mapping.executors import anchor_executor
+
+    model, _ = room_model
+    spec = GridSpec.from_bounds(-6, -4.5, 6, 4.5, 0.25)
+    lattice = AnchorLattice.of_model(spec, model.config.model)
+    support = Support(model.coverage, 1.5)
+    layers = {}
+    for rows in (1, 3, 10_000):
+        monkeypatch.setattr(blend, "BAND_ROWS", rows)
+        with anchor_executor(model, workers) as executor:
+            layers[rows] = predict_tile(model, lattice, 0, 0, spec, support,
+                                        executor=executor)
+    one = layers[10_000]
+    np.testing.assert_array_equal(np.isnan(one.probability),
+                                  ~support.mask(spec, lattice.cells))
+    for rows in (1, 3):
+        assert layers[rows].anchors == one.anchors
+        for name in ("mean", "variance", "probability", "unsure"):
+            np.testing.assert_array_equal(getattr(layers[rows], name), getattr(one, name))
+
+
 def jumps_at_and_inside_block_boundaries(values: np.ndarray, cells: int):
     """Max |difference| of adjacent cells across block boundaries and within blocks."""
     diff = np.abs(np.diff(values))
