@@ -9,8 +9,10 @@
  * their formulas are those of the numba versions (docs/benchmarks.md, session 14).
  *
  * Each exported loop is compiled twice (GCC's target_clones on x86-64): for x86-64-v3
- * (AVX2 and FMA, so that a * b + c may become one fused multiply-add: one rounding
- * instead of two) and for the baseline; the loader picks the clone the CPU runs.
+ * (AVX2 and FMA: with setup.py's -ffp-contract=fast, a * b + c becomes one fused
+ * multiply-add, one rounding instead of two; -std=c11 alone would forbid that, and the
+ * loops took 25% longer) and for the baseline (no FMA: its results may differ from the
+ * other clone's in the last bits); the loader picks the clone the CPU runs.
  * setup.py compiles with -ffinite-math-only -fno-signed-zeros -fno-math-errno
  * -fno-trapping-math: no input here is NaN or infinite (samples and queries are checked
  * finite upstream), and without them GCC will not turn the branch-free arcsin's
@@ -98,7 +100,7 @@ static inline double dz(double ua, double ub, double hz)
     return ua * ub - hz * (ua * ua + ub * ub);
 }
 
-/* dz/dlog g of the input-noise scale g (gpocc/gp/fused.py: _dz_scale). */
+/* dz/dlog g of the input-noise scale g (gpocc.gp.expected's gradient in log g). */
 static inline double dz_scale(double a1, double a2, double b1, double b2, double z,
                               double da1, double da2, double db1, double db2)
 {
