@@ -2,7 +2,8 @@
 against OctoMap on the same scans, and a campus-sized case.
 
 ``gpocc build`` (train and map in one process) is measured beside the two commands.
-Run ``make bench`` (or ``.venv/bin/python bench/run_bench.py [--quick] [--no-campus]``).
+Run ``make bench`` (or ``.venv/bin/python bench/run_bench.py [--quick] [--no-campus]
+[--repeats N]``).
 Each command runs as its own process, as a user would run it; peak memory is the sampled
 maximum of the physical memory of the process and its children (map workers included):
 their summed proportional set size (PSS), which counts a page that forked workers share
@@ -223,11 +224,34 @@ def table(rows: list[list[str]], header: list[str]) -> str:
     return "\n".join(lines)
 
 
+def repeated_build(work: Path, config: Path, repeats: int) -> None:
+    """``gpocc build`` on Intel and OctoMap, alternately, ``repeats`` times: one run of each
+    says little on a machine whose speed drifts by 20% within minutes, so the table gives
+    every pair (measured back to back) and the median."""
+    if repeats < 1:
+        return
+    rows, builds, octos = [], [], []
+    for run in range(1, repeats + 1):
+        built = run_method(work, "gp (build)", config, 0.1)[0][1]
+        octo = run_octomap([INTEL], config, 0.1)
+        builds.append(built.wall_s)
+        octos.append(octo.wall_s)
+        rows.append([str(run), f"{built.wall_s:.2f}", f"{built.peak_mib:.0f}",
+                     f"{octo.wall_s:.2f}", f"{built.wall_s / octo.wall_s:.1f}"])
+    rows.append(["**median**", f"{np.median(builds):.2f}", "", f"{np.median(octos):.2f}",
+                 f"{np.median(np.divide(builds, octos)):.1f}"])
+    print(f"\n## Intel, 0.1 m: `gpocc build` and OctoMap, {repeats} pairs back to back\n")
+    print(table(rows, ["run", "build wall s", "build peak MiB", "OctoMap wall s",
+                       "ratio"]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="skip the scaling tables")
     parser.add_argument("--no-campus", action="store_true", help="skip the campus case")
     parser.add_argument("--campus-only", action="store_true", help="only the campus case")
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="pairs of Intel `gpocc build` and OctoMap runs (0: none)")
     args = parser.parse_args()
     if not INTEL.is_file():
         raise SystemExit(f"{INTEL} not found: the benchmark needs ../shared/data/carmen/")
@@ -255,6 +279,7 @@ def main() -> None:
                          f"{totals[method] / totals['octomap']:.1f} x OctoMap"])
         print("\n## Intel, 0.1 m, all scans\n")
         print(table(rows, ["method", "stage", "wall s", "CPU s", "peak MiB", "detail"]))
+        repeated_build(work, base, args.repeats)
         if not args.no_campus:
             campus(work)
         if args.quick:
