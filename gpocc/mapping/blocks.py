@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gpocc.config import ModelConfig
-from gpocc.gp.local import NeighbourIndex, predict_local
+from gpocc.gp.local import LocalProblem, NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
 from gpocc.gridspec import GridSpec
 
@@ -181,9 +181,10 @@ class AnchorLattice:
 
 
 def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice,
-                   anchor: Anchor) -> AnchorResult:
+                   anchor: Anchor, problem: LocalProblem | None = None) -> AnchorResult:
     """Predict the cells of ``anchor``'s footprint (those in ``anchor.inside``, or all)
-    from the neighbours of its centre.
+    from the neighbours of its centre (``problem``, if the caller looked them up:
+    :func:`anchor_problems`).
 
     The footprint never depends on how the map is tiled, so neither do the values.
     """
@@ -194,8 +195,8 @@ def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice
     if wanted.shape != shape:
         raise ValueError(f"anchor mask {wanted.shape} does not match its footprint {shape}")
     queries = np.column_stack(window.cell_centres_at(*np.nonzero(wanted)))
-    centre = lattice.centre(anchor)
-    problem = index.problem(centre, model.config.model.neighbours)
+    if problem is None:
+        problem = anchor_problems(model, index, lattice, [anchor])[0]
     pred = predict_local(model.kernel, model.noise_variance, problem, queries, model.level)
     layers = []
     for values in (pred.mean, pred.variance, pred.prior_variance):
@@ -203,3 +204,10 @@ def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice
         layer[wanted] = values
         layers.append(layer)
     return AnchorResult(anchor, block, weight, *layers)
+
+
+def anchor_problems(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice,
+                    anchors: list[Anchor]) -> list[LocalProblem]:
+    """The local problem of each of ``anchors``: its centre's neighbours, from one look-up."""
+    centres = np.array([lattice.centre(anchor) for anchor in anchors]).reshape(-1, 2)
+    return index.problems(centres, model.config.model.neighbours)

@@ -20,7 +20,13 @@ from gpocc.blas import single_threaded_blas
 from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
-from gpocc.mapping.blocks import Anchor, AnchorLattice, AnchorResult, predict_anchor
+from gpocc.mapping.blocks import (
+    Anchor,
+    AnchorLattice,
+    AnchorResult,
+    anchor_problems,
+    predict_anchor,
+)
 from gpocc.parallel import watched, worker_pool
 
 _worker_state: dict[str, object] = {}
@@ -49,7 +55,9 @@ def compute_chunk(model: GPModel, lattice: AnchorLattice,
     # (it walks the loaded libraries), a fifth of an anchor, so they skip it.
     limit = nullcontext() if _worker_state.get("single_threaded") else single_threaded_blas()
     with limit:
-        return [predict_anchor(model, index, lattice, anchor) for anchor in chunk]
+        problems = anchor_problems(model, index, lattice, chunk)
+        return [predict_anchor(model, index, lattice, anchor, problem)
+                for anchor, problem in zip(chunk, problems, strict=True)]
 
 
 def _init_worker(model: GPModel) -> None:
