@@ -310,6 +310,51 @@ def test_a_failure_beside_the_workers_leaves_no_output_and_no_process(model_path
     assert multiprocessing.active_children() == []
 
 
+@pytest.mark.parametrize("tile_pixels", [12, 4096])
+def test_writing_side_work_runs_once_on_a_thread_after_the_last_anchor(model_path, tmp_path,
+                                                                        tile_pixels):
+    # gpocc build writes its model file there: beside the map's own files, after every
+    # anchor is in (no busy worker to slow down), before make_map returns.
+    import threading
+
+    from gpocc.mapping.blocks import AnchorLattice
+    from gpocc.mapping.mapper import make_map
+
+    model = load_model(model_path)
+    model = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, tile_pixels=tile_pixels)))
+    spec = GridSpec.from_bounds(-2.5, -2.0, 6.0, 6.0, 0.1)
+    done, calls = [], []
+
+    def while_writing():
+        calls.append((threading.current_thread() is threading.main_thread(), sum(done)))
+
+    summary = make_map(model, spec, tmp_path, workers=2, progress=done.append,
+                       while_writing=while_writing)
+    blocks = AnchorLattice.of_model(spec, model.config.model).shape
+    assert (summary.tiles > 1) == (tile_pixels == 12)
+    assert calls == [(False, blocks[0] * blocks[1])]
+
+
+def test_a_failure_while_writing_leaves_no_output_and_no_process(model_path, tmp_path):
+    import multiprocessing
+
+    from gpocc.io.atomic import atomic_directory
+    from gpocc.mapping.mapper import make_map
+
+    model = load_model(model_path)
+    spec = GridSpec.from_bounds(-1.0, -1.0, 1.5, 0.5, 0.1)
+
+    def disk_full():
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(GpoccError, match="No space left on device"), \
+            atomic_directory(tmp_path / "map") as folder:
+        make_map(model, spec, folder, workers=2, while_writing=disk_full)
+    assert list(tmp_path.iterdir()) == []
+    assert multiprocessing.active_children() == []
+
+
 def test_bounds_and_grid_geometry(model_path, tmp_path):
     out = run_map(model_path, tmp_path / "b", "--resolution", "0.25",
                   "--bounds", "-1", "-1", "1.5", "0.5")

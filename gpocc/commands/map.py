@@ -131,10 +131,10 @@ def local_workers(workers: int | None) -> int:
 
 def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
               workers: int | None, scheduler: str | None,
-              while_running: Callable[[], None] | None = None) -> MapSummary:
+              while_writing: Callable[[], None] | None = None) -> MapSummary:
     """Map ``model`` over ``spec`` into ``folder`` (private to this run) with its
-    metadata, which names the model ``model_name``; ``while_running()``: other work of
-    the caller, done while the workers compute (:func:`gpocc.mapping.mapper.make_map`)."""
+    metadata, which names the model ``model_name``; ``while_writing()``: other work of
+    the caller, done beside the map's own writing (:func:`gpocc.mapping.mapper.make_map`)."""
     n_workers = local_workers(workers) if not scheduler else (workers or default_workers())
     cells = block_cells(model.config.model.block_size_m, spec.resolution)
     total = len(plan_blocks(spec, cells))
@@ -142,7 +142,7 @@ def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
         f"blocks ({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
     with progress_bar(total, "blocks") as advance:
         summary = make_map(model, spec, folder, n_workers, scheduler, advance,
-                           while_running=while_running)
+                           while_writing=while_writing)
     write_metadata(folder, map_metadata(model_name, model, summary,
                                         workers=n_workers, scheduler=scheduler))
     return summary

@@ -9,8 +9,10 @@ done, so no process ever holds the whole map.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,7 +39,8 @@ class MapSummary:
     ``stage_seconds``: wall seconds of ``predict`` (local problems and blending, all
     tiles, with what the map process does meanwhile: loading the writers, the caller's
     ``while_running``), ``write`` (tile rasters) and ``finish`` (mosaics, map_server
-    files, preview).
+    files, preview; the caller's ``while_writing`` runs beside the last tile's rasters
+    and these).
     """
 
     spec: GridSpec
@@ -81,6 +84,7 @@ def make_map(
     scheduler: str | None = None,
     progress: Callable[[int], None] | None = None,
     while_running: Callable[[], None] | None = None,
+    while_writing: Callable[[], None] | None = None,
 ) -> MapSummary:
     """Compute the map of ``model`` over ``spec`` and write its layers into ``out_dir``
     (:class:`gpocc.mapping.folder.MapFolder`; ``metadata.json`` is the caller's).
@@ -89,7 +93,10 @@ def make_map(
     has queued them for the local workers, so that the caller's own work (``gpocc
     build`` writes its model file) is done while they compute; after the last tile if
     no tile had anchors. With one worker the anchors are computed in this process as
-    they are collected, and nothing overlaps."""
+    they are collected, and nothing overlaps. ``while_writing()`` runs on a thread of
+    this process while the last tile's rasters and the mosaics, map_server files and
+    preview are written, when a core is free (``gpocc build`` writes its model file
+    there); its error, if any, is raised after them."""
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
@@ -108,36 +115,50 @@ def make_map(
     # load the compiled kernels meanwhile.
     rows, cols = lattice.shape
     tick = time.perf_counter()
-    with anchor_executor(model, workers, scheduler, rows * cols) as executor:
-        # The GeoTIFF and PNG writers are loaded once the workers have the first tile's
-        # anchors: before, the workers waited for them (0.3 s of every Intel map).
-        side = _SideWork(([prepare_writer, prepare_preview] if executor.local_workers else [])
-                         + ([while_running] if while_running is not None else []))
-        stages["predict"] += time.perf_counter() - tick
-        for row0, col0, window in windows:
-            tick = time.perf_counter()
-            layers = predict_tile(model, lattice, row0, col0, window, support,
-                                  progress=progress, executor=executor, while_running=side)
+    beside: Future | None = None
+    with contextlib.ExitStack() as helper:
+        with anchor_executor(model, workers, scheduler, rows * cols) as executor:
+            # The GeoTIFF and PNG writers are loaded once the workers have the first
+            # tile's anchors: before, the workers waited for them (0.3 s of every Intel
+            # map).
+            side = _SideWork(
+                ([prepare_writer, prepare_preview] if executor.local_workers else [])
+                + ([while_running] if while_running is not None else []))
             stages["predict"] += time.perf_counter() - tick
-            tick = time.perf_counter()
-            n_blocks += layers.anchors
-            probability, unsure = layers.probability, layers.unsure
-            variance = layers.variance.astype(np.float32)
-            classes = classify(probability, occupied, free, unsure)
-            # The preview draws cells too uncertain to classify as no data.
-            folder.add(row0, col0, window, probability, variance, classes,
-                       decided=np.where(unsure, np.nan, probability))
-            stages["write"] += time.perf_counter() - tick
+            for row0, col0, window in windows:
+                tick = time.perf_counter()
+                layers = predict_tile(model, lattice, row0, col0, window, support,
+                                      progress=progress, executor=executor,
+                                      while_running=side)
+                stages["predict"] += time.perf_counter() - tick
+                tick = time.perf_counter()
+                if while_writing is not None and (row0, col0) == windows[-1][:2]:
+                    # After the workers were forked (never fork beside a thread), when
+                    # their last anchors are in and a core is free.
+                    beside = helper.enter_context(ThreadPoolExecutor(
+                        1, thread_name_prefix="gpocc-map-writing")).submit(while_writing)
+                n_blocks += layers.anchors
+                probability, unsure = layers.probability, layers.unsure
+                variance = layers.variance.astype(np.float32)
+                classes = classify(probability, occupied, free, unsure)
+                # The preview draws cells too uncertain to classify as no data.
+                folder.add(row0, col0, window, probability, variance, classes,
+                           decided=np.where(unsure, np.nan, probability))
+                stages["write"] += time.perf_counter() - tick
 
-    tick = time.perf_counter()
-    side()  # no tile had anchors; counted in predict, as on a tile that had some
-    stages["predict"] += time.perf_counter() - tick
-    title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
-    # The preview shows what a user may rely on: cells too uncertain to classify (and so
-    # exported as unknown) are drawn as no data; probability.tif keeps the model's value.
-    tick = time.perf_counter()
-    counts = folder.finish(title, no_data_label="no data or too uncertain (class: unsure)")
-    stages["finish"] = time.perf_counter() - tick
+        tick = time.perf_counter()
+        side()  # no tile had anchors; counted in predict, as on a tile that had some
+        stages["predict"] += time.perf_counter() - tick
+        title = f"gpocc map ({'input noise' if model.input_noise else 'no input noise'})"
+        # The preview shows what a user may rely on: cells too uncertain to classify (and
+        # so exported as unknown) are drawn as no data; probability.tif keeps the model's
+        # value.
+        tick = time.perf_counter()
+        counts = folder.finish(title,
+                               no_data_label="no data or too uncertain (class: unsure)")
+        if beside is not None:
+            beside.result()
+        stages["finish"] = time.perf_counter() - tick
     return MapSummary(spec=spec, tiles=len(windows), blocks=n_blocks,
                       seconds=time.perf_counter() - started, class_counts=counts,
                       stage_seconds=stages)
