@@ -290,7 +290,9 @@ def test_side_work_runs_once_even_when_the_first_tile_has_no_anchors(model_path,
     assert np.isnan(first).all()  # the first tile really had nothing to compute
 
 
-def test_a_failure_beside_the_workers_leaves_no_output_and_no_process(model_path, tmp_path):
+@pytest.mark.parametrize("side", ["while_running", "while_writing"])
+def test_a_failure_beside_the_workers_leaves_no_output_and_no_process(model_path, tmp_path,
+                                                                      side):
     import multiprocessing
 
     from gpocc.io.atomic import atomic_directory
@@ -305,7 +307,7 @@ def test_a_failure_beside_the_workers_leaves_no_output_and_no_process(model_path
     # atomic_directory turns the OS error into gpocc's one-line error.
     with pytest.raises(GpoccError, match="No space left on device"), \
             atomic_directory(tmp_path / "map") as folder:
-        make_map(model, spec, folder, workers=2, while_running=disk_full)
+        make_map(model, spec, folder, workers=2, **{side: disk_full})
     assert list(tmp_path.iterdir()) == []  # neither the map nor its temporary folder
     assert multiprocessing.active_children() == []
 
@@ -334,25 +336,6 @@ def test_writing_side_work_runs_once_on_a_thread_after_the_last_anchor(model_pat
     blocks = AnchorLattice.of_model(spec, model.config.model).shape
     assert (summary.tiles > 1) == (tile_pixels == 12)
     assert calls == [(False, blocks[0] * blocks[1])]
-
-
-def test_a_failure_while_writing_leaves_no_output_and_no_process(model_path, tmp_path):
-    import multiprocessing
-
-    from gpocc.io.atomic import atomic_directory
-    from gpocc.mapping.mapper import make_map
-
-    model = load_model(model_path)
-    spec = GridSpec.from_bounds(-1.0, -1.0, 1.5, 0.5, 0.1)
-
-    def disk_full():
-        raise OSError(28, "No space left on device")
-
-    with pytest.raises(GpoccError, match="No space left on device"), \
-            atomic_directory(tmp_path / "map") as folder:
-        make_map(model, spec, folder, workers=2, while_writing=disk_full)
-    assert list(tmp_path.iterdir()) == []
-    assert multiprocessing.active_children() == []
 
 
 def test_bounds_and_grid_geometry(model_path, tmp_path):
