@@ -194,6 +194,31 @@ def test_skipped_problems_and_unmasked_map_agree_inside_the_support(room_model):
                                rtol=1e-12, atol=0)
 
 
+def test_mask_pieces_are_bit_for_bit_the_whole_mask_on_aligned_grids():
+    # A map grid aligned with the coverage grid puts many cells exactly at the distance
+    # limit; a piece computed from its own sub-grid's origin put some of them on the
+    # other side (last-bit differences in the cell centres). Oracle: the whole mask.
+    from gpocc.samples.coverage import Coverage
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        coverage = Coverage(0.0, 0.0, 0.1, 0.05, rng.random((40, 40)) < 0.02)
+        support = Support(coverage, float(rng.choice([0.3, 0.5, 1.0, 1.5])))
+        spec = GridSpec.from_bounds(-1.0, -1.0, 5.0, 5.0, float(rng.choice([0.05, 0.1, 0.2])))
+        cells = int(rng.integers(3, 12))
+        whole = support.mask(spec, cells)
+        r0, c0 = int(rng.integers(0, 3)) * cells, int(rng.integers(0, 3)) * cells
+        c1 = int(rng.integers(c0, spec.width + 1))
+        pieces, row = [], r0
+        while row < spec.height:
+            stop = min(spec.height, row + int(rng.integers(1, 5)) * cells)
+            pieces.append(support.mask(spec, cells, rows=(row, stop), cols=(c0, c1)))
+            row = stop
+        np.testing.assert_array_equal(np.vstack(pieces), whole[r0:, c0:c1])
+    with pytest.raises(ValueError, match="multiple of 4"):
+        support.mask(spec, 4, rows=(2, 8))
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_anchors_laid_out_in_bands_give_the_one_band_map(room_model, monkeypatch, workers):
     # predict_tile lays out (support mask, supported anchors) and queues one band of

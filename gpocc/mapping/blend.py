@@ -68,9 +68,10 @@ BAND_ROWS = 4
 class _TileSupport:
     """The support mask of a tile and two blocks around it (which hold the footprint of
     every anchor over the tile), computed a band of anchors at a time and only as far
-    down as their footprints reach. Its pieces start on the lattice's block rows, so it
-    is the mask one call over the whole window gives, and whether an anchor is computed
-    does not depend on the tiling or the bands."""
+    down as their footprints reach. Every piece is computed in the whole map's frame
+    (:meth:`Support.mask` with rows and columns), so it is bit for bit that part of the
+    map's mask: whether a cell is inside, and an anchor computed, does not depend on the
+    tiling or the bands."""
 
     def __init__(self, lattice: AnchorLattice, support: Support, tile: Block) -> None:
         spec, cells = lattice.spec, lattice.cells
@@ -82,13 +83,12 @@ class _TileSupport:
         self.done = self.r0  # rows [r0, done) of the mask are computed
 
     def _compute_to(self, row: int) -> None:
-        # Whole blocks from r0 on (the last one cut at r1, as in one call).
+        # Whole blocks from r0 on (the last one cut at r1).
         cells = self.lattice.cells
         row = min(self.r1, self.r0 + -(-(row - self.r0) // cells) * cells)
         if row > self.done:
             self.mask[self.done - self.r0:row - self.r0] = self.support.mask(
-                self.lattice.spec.window(self.done, self.c0, row - self.done,
-                                         self.c1 - self.c0), cells)
+                self.lattice.spec, cells, rows=(self.done, row), cols=(self.c0, self.c1))
             self.done = row
 
     def split(self, anchors: list[Anchor]) -> tuple[list[Anchor], list[Anchor]]:

@@ -41,18 +41,29 @@ class Support:
                                        + 1e-12)
         return distance <= limit
 
-    def mask(self, spec: GridSpec, cells: int) -> np.ndarray:
-        """(H, W) bool of ``spec``'s cells inside the support.
+    def mask(self, spec: GridSpec, cells: int, rows: tuple[int, int] | None = None,
+             cols: tuple[int, int] | None = None) -> np.ndarray:
+        """(H, W) bool of ``spec``'s cells inside the support; with ``rows`` and ``cols``
+        ([start, stop) cell indices of ``spec``, starts multiples of ``cells``), only
+        that part of it.
 
         Whole ``cells`` x ``cells`` groups are decided from their centre when it lies
         farther than the group's half-diagonal from the support boundary (the distance is
-        1-Lipschitz), so only groups near the boundary query every cell.
+        1-Lipschitz), so only groups near the boundary query every cell. Every coordinate
+        is computed in ``spec``'s frame, so a part is bit for bit that part of the whole:
+        a cell exactly at the limit stays on the same side however the mask is cut.
         """
-        xs, ys = spec.cell_centres()
-        inside = np.zeros(spec.shape, dtype=bool)
+        r_lo, r_hi = (0, spec.height) if rows is None else rows
+        c_lo, c_hi = (0, spec.width) if cols is None else cols
+        if r_lo % cells or c_lo % cells or not (0 <= r_lo <= r_hi <= spec.height
+                                                 and 0 <= c_lo <= c_hi <= spec.width):
+            raise ValueError(f"rows {rows} and cols {cols} must start on a multiple of "
+                             f"{cells} and lie in the {spec.height} x {spec.width} grid")
+        inside = np.zeros((r_hi - r_lo, c_hi - c_lo), dtype=bool)
         half = cells * spec.resolution * math.sqrt(0.5)
-        groups = [(r, c) for r in range(0, spec.height, cells)
-                  for c in range(0, spec.width, cells)]
+        groups = [(r, c) for r in range(r_lo, r_hi, cells) for c in range(c_lo, c_hi, cells)]
+        if not groups:
+            return inside
         centres = np.array([
             [spec.x0 + (c + min(cells, spec.width - c) / 2) * spec.resolution,
              spec.y1 - (r + min(cells, spec.height - r) / 2) * spec.resolution]
@@ -60,19 +71,21 @@ class Support:
         maybe = self.within(centres, half)
         surely = self.within(centres, -half) if self.max_distance_m > half else \
             np.zeros(len(groups), dtype=bool)
-        boundary = np.zeros(spec.shape, dtype=bool)
+        boundary = np.zeros(inside.shape, dtype=bool)
         for (r, c), m, s in zip(groups, maybe, surely, strict=True):
             if m:
-                window = (slice(r, r + cells), slice(c, c + cells))
+                window = (slice(r - r_lo, r - r_lo + cells), slice(c - c_lo, c - c_lo + cells))
                 (inside if s else boundary)[window] = True
         # The cells of the boundary groups in batches of look-ups (one per group took
         # two thirds of the Intel map's mask), row-major like ``boundary``'s True cells.
-        rows, cols = np.nonzero(boundary)
-        found = np.empty(rows.size, dtype=bool)
-        for lo in range(0, rows.size, _LOOKUP_BATCH):
-            r, c = rows[lo:lo + _LOOKUP_BATCH], cols[lo:lo + _LOOKUP_BATCH]
-            found[lo:lo + r.size] = self.within(np.column_stack([xs[r, c], ys[r, c]]))
-        inside[rows, cols] = found
+        local_rows, local_cols = np.nonzero(boundary)
+        found = np.empty(local_rows.size, dtype=bool)
+        for lo in range(0, local_rows.size, _LOOKUP_BATCH):
+            r = local_rows[lo:lo + _LOOKUP_BATCH] + r_lo
+            c = local_cols[lo:lo + _LOOKUP_BATCH] + c_lo
+            xs, ys = spec.cell_centres_at(r, c)
+            found[lo:lo + r.size] = self.within(np.column_stack([xs, ys]))
+        inside[local_rows, local_cols] = found
         return inside
 
 
