@@ -297,3 +297,25 @@ def test_a_stopped_map_leaves_no_workers_and_no_temporary(model_path, tmp_path, 
                                      "--workers", "1", "--out", str(out)])
         assert result.exit_code == 0, result.output
         assert _leftovers(tmp_path) == []
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="reads /proc (Linux)")
+def test_outputs_take_the_umask_without_the_umask_being_set(tmp_path, monkeypatch):
+    # Setting the umask to read it (os.umask(0), then back) gives files that another
+    # thread creates in that instant mode 0666: gpocc build writes its model file on a
+    # thread beside the map's own files.
+    previous = os.umask(0o027)
+    try:
+        def refuse(mask):
+            raise AssertionError(f"os.umask({mask:o}) called while writing outputs")
+
+        monkeypatch.setattr(atomic.os, "umask", refuse)
+        with atomic.atomic_path(tmp_path / "layer.tif") as tmp:
+            tmp.write_bytes(b"x")
+        with atomic.atomic_output_file(tmp_path / "model.npz") as tmp:
+            tmp.write_bytes(b"x")
+    finally:
+        monkeypatch.undo()
+        os.umask(previous)
+    assert (tmp_path / "layer.tif").stat().st_mode & 0o777 == 0o640
+    assert (tmp_path / "model.npz").stat().st_mode & 0o777 == 0o640

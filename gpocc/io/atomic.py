@@ -47,6 +47,16 @@ _claims: dict[Path, tuple[Path, int]] = {}
 
 
 def _umask() -> int:
+    """The process's umask, read without setting it where the system allows (Linux):
+    setting it to read it would, for that instant, give files that other threads create
+    (gpocc build's model file, written beside the map's own) a mode of 0666."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
     mask = os.umask(0)
     os.umask(mask)
     return mask
