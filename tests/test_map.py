@@ -552,3 +552,36 @@ def test_more_workers_than_cores_are_capped_with_a_note(model_path, tmp_path, mo
     with rasterio.open(serial / "probability.tif") as a, \
             rasterio.open(tmp_path / "many" / "probability.tif") as b:
         np.testing.assert_array_equal(a.read(1), b.read(1))
+
+
+def test_the_writing_thread_is_waited_for_through_further_interrupts():
+    # On the way out of an interrupted map the folder's clean-up must not race the thread
+    # still writing into it: a second Ctrl-C (here: an alarm raising KeyboardInterrupt
+    # twice) must not end the wait early.
+    import signal
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from gpocc.mapping.mapper import _wait_through_interrupts
+
+    release = threading.Event()
+    interrupts = []
+
+    def interrupt(signum, frame):
+        interrupts.append(time.monotonic())
+        if len(interrupts) == 2:
+            release.set()
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            future = pool.submit(release.wait)
+            signal.setitimer(signal.ITIMER_REAL, 0.05, 0.05)
+            _wait_through_interrupts(future)
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            assert future.done() and len(interrupts) >= 2
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)

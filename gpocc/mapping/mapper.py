@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,6 +76,19 @@ class _SideWork:
             call()
 
 
+def _wait_through_interrupts(future: Future) -> None:
+    """Wait for ``future`` even through further Ctrl-Cs: on the way out of a failed or
+    interrupted map, the output folder's clean-up must not race a thread still writing
+    into it (it could leave the temporary folder behind). The wait is the thread's
+    remaining work (``gpocc build``: at most the model file, 0.1-0.2 s)."""
+    while True:
+        try:
+            wait([future])
+            return
+        except KeyboardInterrupt:
+            continue
+
+
 def make_map(
     model: GPModel,
     spec: GridSpec,
@@ -137,6 +150,7 @@ def make_map(
                     # their last anchors are in and a core is free.
                     beside = helper.enter_context(ThreadPoolExecutor(
                         1, thread_name_prefix="gpocc-map-writing")).submit(while_writing)
+                    helper.callback(_wait_through_interrupts, beside)
                 n_blocks += layers.anchors
                 probability, unsure = layers.probability, layers.unsure
                 variance = layers.variance.astype(np.float32)
