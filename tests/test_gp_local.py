@@ -244,3 +244,4 @@ def test_problems_of_many_centres_are_the_brute_force_neighbourhoods(neighbours)
         assert local.sensor_names == ()
         single = index.problem(centre, neighbours)
         np.testing.assert_array_equal(single.index, problem.index)
+    assert index.problems(np.empty((0, 2)), neighbours) == []
