@@ -94,8 +94,10 @@ class _TileSupport:
     def split(self, anchors: list[Anchor]) -> tuple[list[Anchor], list[Anchor]]:
         """:func:`supported_anchors` of ``anchors`` (some of the tile's)."""
         if anchors:
-            self._compute_to(max(b.row0 + b.rows
-                                 for b in map(self.lattice.footprint_block, anchors)))
+            # A footprint's rows depend on its anchor's row alone: the lowest row reaches
+            # farthest (supported_anchors below takes every anchor's footprint).
+            lowest = self.lattice.footprint_block(max(anchors, key=lambda a: a.row))
+            self._compute_to(lowest.row0 + lowest.rows)
         return supported_anchors(self.lattice, anchors, self.mask, self.r0, self.c0)
 
     def inside(self) -> np.ndarray:

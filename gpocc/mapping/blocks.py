@@ -209,5 +209,5 @@ def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice
 def anchor_problems(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice,
                     anchors: list[Anchor]) -> list[LocalProblem]:
     """The local problem of each of ``anchors``: its centre's neighbours, from one look-up."""
-    centres = np.array([lattice.centre(anchor) for anchor in anchors]).reshape(-1, 2)
+    centres = [lattice.centre(anchor) for anchor in anchors]
     return index.problems(centres, model.config.model.neighbours)

@@ -103,8 +103,8 @@ def make_map(
     (:class:`gpocc.mapping.folder.MapFolder`; ``metadata.json`` is the caller's).
 
     ``while_running()`` is called exactly once: as soon as the first tile with anchors
-    has queued them for the local workers, so that the caller's own work (``gpocc
-    build`` writes its model file) is done while they compute; after the last tile if
+    has queued them for the local workers, so that the caller's own work is done while
+    they compute (the map loads its GeoTIFF and PNG writers there); after the last tile if
     no tile had anchors. With one worker the anchors are computed in this process as
     they are collected, and nothing overlaps. ``while_writing()`` runs on a thread of
     this process while the last tile's rasters and the mosaics, map_server files and

@@ -109,8 +109,7 @@ def coverage_of_segments(start: np.ndarray, end: np.ndarray,
     # Points in cell units relative to the corner (non-negative): the cell index is the
     # integer part.
     origin = np.array([x0, y0])
-    compiled.mark_segments(np.ascontiguousarray((start - origin) / cell_m),
-                           np.ascontiguousarray((end - origin) / cell_m), covered)
+    compiled.mark_segments((start - origin) / cell_m, (end - origin) / cell_m, covered)
     return Coverage(float(x0), float(y0), cell_m, step, covered)
 
 
