@@ -11,13 +11,15 @@ import typer
 
 from gpocc.commands.options import ConfigFile, Force, InputNoise, Inputs, Seed, Switch
 from gpocc.config import Config, load_config
+from gpocc.gp.growth import Growth
 from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
+from gpocc.io.records import input_records
 from gpocc.limits import check_seed
 from gpocc.progress import log, progress_bar
-from gpocc.samples.beams import build_samples
+from gpocc.samples.beams import build_pool, finish_samples
 from gpocc.samples.coverage import beam_coverage
 from gpocc.samples.heldout import calibration_points
 
@@ -66,7 +68,8 @@ def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
     with ThreadPoolExecutor(2, thread_name_prefix="gpocc-samples-helper") as helper:
         coverage_of_beams = helper.submit(beam_coverage, batches, cfg)
         optimiser = helper.submit(load_optimiser)
-        samples = build_samples(batches, cfg)
+        pool = build_pool(batches, cfg)
+        samples = finish_samples(pool, cfg)
         coverage = coverage_of_beams.result()
         optimiser.result()
     training_cfg = cfg.model.training
@@ -84,7 +87,9 @@ def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
     learn_s = time.perf_counter() - started - read_s - samples_s
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
-    return dataclasses.replace(model, training={**model.training, "timings_s": timings})
+    growth = Growth(pool, input_records(inputs, batches, cfg), calibration)
+    return dataclasses.replace(model, training={**model.training, "timings_s": timings},
+                               growth=growth)
 
 
 def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:

@@ -24,6 +24,7 @@ from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import autodetect, bags, carmen
 from gpocc.io.bags import SCAN_TYPE, BagContents, TopicSummary
+from gpocc.io.frames import input_transform, transform_batch
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
 
@@ -234,7 +235,10 @@ def read_input(path: str | Path, config: Config,
         batches = [carmen.read_carmen(path, sensors[0])]
     else:
         batches = bags.read_bag(path, sensors)
-    return [replace(b, sensor_config=s) for b, s in zip(batches, sensors, strict=True)]
+    # A recording made in another map frame: its poses moved into the job's (config inputs).
+    transform = input_transform(path, config)
+    return [transform_batch(replace(b, sensor_config=s), transform)
+            for b, s in zip(batches, sensors, strict=True)]
 
 
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:

@@ -1,0 +1,128 @@
+"""Adding logs to a trained model (``gpocc update``): new samples join the model's kept
+state (:mod:`gpocc.gp.growth`) without reading its old logs again.
+
+The result is the model training on all logs at once would give, but for the
+hyperparameters: they are kept (learning them is most of a training's cost; an update
+then costs in proportion to the new logs) unless ``relearn`` asks to learn them on the
+union, which gives that model exactly. The classifier is always fitted anew on the union.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+
+from gpocc.config import Config, config_to_dict
+from gpocc.errors import GpoccError
+from gpocc.gp.growth import Growth, growth_of_older_model, join_calibration
+from gpocc.gp.model import GPModel, build_model, refit_model
+from gpocc.io.records import InputRecord
+from gpocc.io.scans import ScanBatch
+from gpocc.samples.beams import build_pool, finish_samples, merge_pools
+from gpocc.samples.coverage import beam_coverage, sample_coverage, union_coverage
+from gpocc.samples.heldout import CalibrationPoints, calibration_points
+
+#: Config sections an update takes from the model: its samples were built and its
+#: hyperparameters learned with them.
+MODEL_SECTIONS = ("samples", "model")
+
+
+def _differences(kept: object, given: object, prefix: str) -> list[str]:
+    if isinstance(kept, dict) and isinstance(given, dict):
+        return [d for key in kept for d in _differences(kept[key], given.get(key),
+                                                         f"{prefix}.{key}")]
+    return [] if kept == given else [prefix]
+
+
+def update_config(model: GPModel, given: Config | None, model_path: str | Path,
+                  config_path: str | Path | None) -> Config:
+    """The config of an update: the model's, with ``given``'s job settings (``seed``,
+    ``sensors`` added to the model's, ``inputs``, ``classify``, ``map``, ``grid``).
+
+    Raises:
+        GpoccError: ``given`` sets a ``samples`` or ``model`` key (the kernel, say) other
+            than the model's, or changes a sensor the model already holds.
+    """
+    kept = model.config
+    if given is None:
+        return kept
+    kept_dict, given_dict = config_to_dict(kept), config_to_dict(given)
+    for section in MODEL_SECTIONS:
+        changed = _differences(kept_dict[section], given_dict[section], section)
+        if changed:
+            raise GpoccError(
+                f"{config_path}: key '{changed[0]}' differs from the model {model_path}'s "
+                f"({_value(kept_dict, changed[0])!r} there): an update keeps the model's "
+                f"samples and model settings; remove the key or train a new model")
+    sensors = {s.name: s for s in kept.sensors}
+    for i, sensor in enumerate(given.sensors):
+        if sensor.name in sensors and sensor != sensors[sensor.name]:
+            raise GpoccError(
+                f"{config_path}: sensors[{i}] ('{sensor.name}') differs from the sensor of "
+                f"that name in the model {model_path}; give it the model's settings "
+                f"(`gpocc info {model_path}`) or another name")
+    added = tuple(s for s in given.sensors if s.name not in sensors)
+    inputs = {e.path: e for e in kept.inputs}
+    inputs.update({e.path: e for e in given.inputs})
+    return dataclasses.replace(given, samples=kept.samples, model=kept.model,
+                               sensors=kept.sensors + added, inputs=tuple(inputs.values()))
+
+
+def _value(data: dict, dotted: str) -> object:
+    for key in dotted.split("."):
+        data = data.get(key) if isinstance(data, dict) else None  # type: ignore[assignment]
+    return data
+
+
+def model_growth(model: GPModel) -> tuple[Growth, list[str]]:
+    """The model's growth state, or the stand-in of an older file and what it lacks."""
+    if model.growth is not None:
+        return model.growth, []
+    samples_cfg = model.config.samples
+    return growth_of_older_model(model.samples, model.input_noise_scale, model.input_noise,
+                                 model.inputs, samples_cfg.thin_cell_m,
+                                 samples_cfg.min_label_share)
+
+
+def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
+                 records: tuple[InputRecord, ...], config: Config, relearn: bool,
+                 on_evaluation: Callable[[int], None] | None = None) -> GPModel:
+    """``model`` with the samples of ``batches`` (from the inputs ``records``) added.
+
+    Args:
+        model: the model to grow.
+        growth: its state (:func:`model_growth`).
+        batches: the new logs' scans, read with ``config``.
+        records: the new inputs.
+        config: from :func:`update_config`.
+        relearn: learn the hyperparameters on the union (else keep the model's).
+        on_evaluation: progress of the likelihood evaluations (``relearn``).
+    """
+    old = growth.pool
+    new = build_pool(batches, config, scan_offset=old.n_scans,
+                     sensor_names=old.samples.sensor_names)
+    pool = merge_pools(old, new, config)
+    samples = finish_samples(pool, config)
+    coverage = union_coverage(
+        model.coverage if model.coverage is not None else sample_coverage(model.samples.means),
+        beam_coverage(batches, config))
+    calibration = growth.calibration
+    training = config.model.training
+    if training.classifier_offset == "beams":
+        calibration = join_calibration(calibration, _offset(calibration_points(
+            batches, config, training.calibration_every,
+            max_position_std_m=training.calibration_max_position_std_m), old.n_scans))
+    inputs = model.inputs + tuple(r.path for r in records)
+    if relearn:
+        grown = build_model(samples, config, inputs=inputs, on_evaluation=on_evaluation,
+                            coverage=coverage, calibration=calibration)
+    else:
+        grown = refit_model(samples, config, model, inputs=inputs, coverage=coverage,
+                            calibration=calibration)
+    return dataclasses.replace(grown, growth=Growth(pool, growth.records + records,
+                                                    calibration))
+
+
+def _offset(points: CalibrationPoints, scans: int) -> CalibrationPoints:
+    return dataclasses.replace(points, scan_ids=points.scan_ids + scans)
