@@ -230,9 +230,15 @@ def write_model(model: GPModel, path: str | Path) -> None:
     if model.growth is not None:
         meta["growth"], growth_arrays = _growth_parts(model.growth)
         arrays.update(growth_arrays)
-    with open(path, "wb") as fh:
-        np.savez_compressed(fh, metadata=np.frombuffer(json.dumps(meta).encode(), np.uint8),
-                            **arrays)
+    arrays = {"metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
+    # What np.savez_compressed writes (an .npz numpy.load reads), at zlib level 1: the
+    # arrays are mostly float64 noise, which level 6 (numpy's) packs 2% smaller in four
+    # times the time (Intel: 0.45 s of a 2.5 s update).
+    with open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED,
+                                                 compresslevel=1) as archive:
+        for name, array in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as entry:
+                np.lib.format.write_array(entry, np.asanyarray(array), allow_pickle=False)
 
 
 def _growth_parts(growth: Growth) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
