@@ -12,6 +12,7 @@ import typer
 from gpocc.commands.options import ConfigFile
 from gpocc.config import Config, load_config
 from gpocc.errors import GpoccError
+from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
@@ -131,7 +132,7 @@ def format_model(path: Path, model: GPModel) -> list[str]:
         f"from {len(np.unique(samples.scan_ids))} scans",
         "  sensors: " + ", ".join(f"{n} ({c} samples)" for n, c in
                                   zip(names, per_sensor, strict=False)),
-        "  inputs: " + (", ".join(model.inputs) or "(not recorded)"),
+        *_input_lines(model),
     ]
     if "log_marginal_likelihood" in training:
         lines.append(f"  log marginal likelihood: {training['log_marginal_likelihood']:.3f} "
@@ -139,6 +140,25 @@ def format_model(path: Path, model: GPModel) -> list[str]:
     lines.append("  training time: " + (
         ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
         + f" (total {sum(timings.values()):.1f} s)" if timings else "(not recorded)"))
+    return lines
+
+
+def _input_lines(model: GPModel) -> list[str]:
+    """The model's inputs, one line each: scans, time span, transform, sensors."""
+    listing = input_listing(model.growth, model.inputs)
+    if not listing:
+        return ["  inputs: (not recorded)"]
+    lines = ["  inputs:"]
+    for entry in listing:
+        if "scans" not in entry:
+            lines.append(f"    {entry['path']} (no record: model file of an older gpocc)")
+            continue
+        span = ("no scans" if entry["start_s"] is None else
+                f"{entry['start_s']:.3f} .. {entry['end_s']:.3f} s")
+        t = entry["transform"]
+        lines.append(f"    {entry['path']}: {entry['scans']} scans, time span {span}, "
+                     f"transform x {t['x_m']:g} m, y {t['y_m']:g} m, yaw {t['yaw_deg']:g} "
+                     f"deg, sensors {', '.join(entry['sensors']) or '(none)'}")
     return lines
 
 

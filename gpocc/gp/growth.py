@@ -82,3 +82,11 @@ def join_calibration(first: CalibrationPoints | None, second: CalibrationPoints 
     return CalibrationPoints(np.concatenate([c.points for c in parts]),
                              np.concatenate([c.labels for c in parts]),
                              np.concatenate([c.scan_ids for c in parts]))
+
+
+def input_listing(growth: Growth | None, inputs: tuple[str, ...]) -> list[dict]:
+    """Every input of a model as plain data (path, content hash, scans, time span,
+    sensors, transform; only the path for files that kept no records)."""
+    if growth is None or len(growth.records) != len(inputs):
+        return [{"path": p} for p in inputs]
+    return [r.as_dict() for r in growth.records]
