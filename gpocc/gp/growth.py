@@ -89,4 +89,6 @@ def input_listing(growth: Growth | None, inputs: tuple[str, ...]) -> list[dict]:
     sensors, transform; only the path for files that kept no records)."""
     if growth is None or len(growth.records) != len(inputs):
         return [{"path": p} for p in inputs]
-    return [r.as_dict() for r in growth.records]
+    # Records without a content hash stand for inputs of older files: only their path
+    # is known.
+    return [r.as_dict() if r.sha256 else {"path": r.path} for r in growth.records]
