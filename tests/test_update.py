@@ -193,7 +193,7 @@ def test_an_older_model_file_loads_and_updates(logs, tmp_path):
     assert b_ids.min() >= first_new
     assert new.growth.pool.n_scans == first_new + 10
     info = gpocc("info", str(tmp_path / "new.npz")).output
-    assert "no record: model file of an older gpocc" in info
+    assert "not recorded: added by an older gpocc" in info
 
 
 SENSOR = "sensors: [{name: room_a, inputs: ['room_a*'], range_variance_m2: %s}]\n"

@@ -146,12 +146,12 @@ def format_model(path: Path, model: GPModel) -> list[str]:
 def _input_lines(model: GPModel) -> list[str]:
     """The model's inputs, one line each: scans, time span, transform, sensors."""
     listing = input_listing(model.growth, model.inputs)
-    if not listing:
-        return ["  inputs: (not recorded)"]
+    if model.growth is None or not listing:  # no records: the paths alone
+        return ["  inputs: " + (", ".join(model.inputs) or "(not recorded)")]
     lines = ["  inputs:"]
     for entry in listing:
         if "scans" not in entry:
-            lines.append(f"    {entry['path']} (no record: model file of an older gpocc)")
+            lines.append(f"    {entry['path']} (not recorded: added by an older gpocc)")
             continue
         span = ("no scans" if entry["start_s"] is None else
                 f"{entry['start_s']:.3f} .. {entry['end_s']:.3f} s")
