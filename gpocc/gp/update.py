@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.growth import Growth, growth_of_older_model, join_calibration
 from gpocc.gp.model import GPModel, build_model, refit_model
+from gpocc.gp.train import load_optimiser
 from gpocc.io.records import InputRecord
 from gpocc.io.scans import ScanBatch
 from gpocc.samples.beams import build_pool, finish_samples, merge_pools
@@ -100,13 +102,19 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
         on_evaluation: progress of the likelihood evaluations (``relearn``).
     """
     old = growth.pool
-    new = build_pool(batches, config, scan_offset=old.n_scans,
-                     sensor_names=old.samples.sensor_names)
-    pool = merge_pools(old, new, config)
-    samples = finish_samples(pool, config)
-    coverage = union_coverage(
-        model.coverage if model.coverage is not None else sample_coverage(model.samples.means),
-        beam_coverage(batches, config))
+    # As in `gpocc train`: the new beams' coverage and the optimiser's import (the
+    # classifier's fit needs it) beside the samples; both release the GIL or wait on I/O.
+    with ThreadPoolExecutor(2, thread_name_prefix="gpocc-samples-helper") as helper:
+        new_coverage = helper.submit(beam_coverage, batches, config)
+        optimiser = helper.submit(load_optimiser)
+        new = build_pool(batches, config, scan_offset=old.n_scans,
+                         sensor_names=old.samples.sensor_names)
+        pool = merge_pools(old, new, config)
+        samples = finish_samples(pool, config)
+        coverage = union_coverage(
+            model.coverage if model.coverage is not None
+            else sample_coverage(model.samples.means), new_coverage.result())
+        optimiser.result()
     calibration = growth.calibration
     training = config.model.training
     if training.classifier_offset == "beams":
