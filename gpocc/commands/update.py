@@ -62,11 +62,11 @@ def update(
         "timings_s": {"read": round(read_s, 3), "samples": 0.0, "learn": round(learn_s, 3)},
         "updates": [*model.training.get("updates", []),
                     {"inputs": [str(p) for p in inputs],
-                     "hyperparameters": "relearned" if relearn else "kept"}]})
+                     "hyperparameters": grown.training["hyperparameters"]}]})
     save_model(grown, out, force=force)
     added = len(grown.samples) - len(model.samples)
     typer.echo(f"added {len(inputs)} input(s), {sum(b.n_scans for b in batches)} scans; "
                f"samples {len(model.samples)} -> {len(grown.samples)} ({added:+d}); "
-               f"hyperparameters {'relearned' if relearn else 'kept'}")
+               f"hyperparameters {grown.training['hyperparameters']}")
     echo_model(grown, out, time.perf_counter() - started)
 

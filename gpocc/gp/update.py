@@ -10,20 +10,27 @@ union, which gives that model exactly. The classifier is always fitted anew on t
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
+
+from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.growth import Growth, growth_of_older_model, join_calibration
+from gpocc.gp.kernels import make_kernel
 from gpocc.gp.model import GPModel, build_model, refit_model
-from gpocc.gp.train import load_optimiser
+from gpocc.gp.train import load_optimiser, make_patches, negative_log_likelihood
 from gpocc.io.records import InputRecord
 from gpocc.io.scans import ScanBatch
+from gpocc.progress import log
 from gpocc.samples.beams import build_pool, finish_samples, merge_pools
 from gpocc.samples.coverage import beam_coverage, sample_coverage, union_coverage
 from gpocc.samples.heldout import CalibrationPoints, calibration_points
+from gpocc.samples.sampleset import SampleSet
 
 #: Config sections an update takes from the model: its samples were built and its
 #: hyperparameters learned with them.
@@ -100,6 +107,9 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
         config: from :func:`update_config`.
         relearn: learn the hyperparameters on the union (else keep the model's).
         on_evaluation: progress of the likelihood evaluations (``relearn``).
+
+    Kept hyperparameters that fit the union worse than the config's initial values
+    (:func:`kept_fit`) are learned again; ``training["hyperparameters"]`` says which.
     """
     old = growth.pool
     # As in `gpocc train`: the new beams' coverage and the optimiser's import (the
@@ -122,6 +132,15 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
             batches, config, training.calibration_every,
             max_position_std_m=training.calibration_max_position_std_m), old.n_scans))
     inputs = model.inputs + tuple(r.path for r in records)
+    how = "relearned" if relearn else "kept"
+    if not relearn:
+        fit = kept_fit(model, samples, config)
+        if fit[0] < fit[1]:
+            log(f"note: the model's hyperparameters explain all the logs worse than the "
+                f"config's initial values do (log marginal likelihood {fit[0]:.1f} < "
+                f"{fit[1]:.1f} on the same patches); learning them again")
+            how = "relearned (the kept ones fitted all logs worse than the initial values)"
+            relearn = True
     if relearn:
         grown = build_model(samples, config, inputs=inputs, on_evaluation=on_evaluation,
                             coverage=coverage, calibration=calibration)
@@ -129,7 +148,33 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
         grown = refit_model(samples, config, model, inputs=inputs, coverage=coverage,
                             calibration=calibration)
     return dataclasses.replace(grown, growth=Growth(pool, growth.records + records,
-                                                    calibration))
+                                                    calibration),
+                               training={**grown.training, "hyperparameters": how})
+
+
+def kept_fit(model: GPModel, samples: SampleSet, config: Config) -> tuple[float, float]:
+    """Log marginal likelihoods (nats) of the model's hyperparameters and of the config's
+    initial values, on the patches that learning on ``samples`` (unscaled) would draw.
+
+    A model learned on a few logs may have found a poor optimum (a kernel far too smooth
+    for the walls); on the union it then explains the data worse than the starting point
+    of learning, which two likelihood evaluations show at a small share of a learning's
+    cost.
+    """
+    if not config.model.input_noise:
+        samples = samples.without_input_noise()
+    model_cfg = config.model
+    patches = make_patches(samples, model_cfg.training, config.seed)
+    initial = make_kernel(model_cfg.kernel, model_cfg.hyperparameters)
+    with single_threaded_blas():
+        values = [
+            -negative_log_likelihood(
+                np.append(kernel.theta, math.log(noise)), kernel, patches,
+                model_cfg.quadrature_level, with_gradient=False, input_scale=scale)[0]
+            for kernel, noise, scale in (
+                (model.kernel, model.noise_variance, model.input_noise_scale),
+                (initial, model_cfg.hyperparameters.noise_variance, 1.0))]
+    return values[0], values[1]
 
 
 def _offset(points: CalibrationPoints, scans: int) -> CalibrationPoints:
