@@ -56,10 +56,9 @@ def update(
             grown = update_model(model, growth, batches, records, cfg, True, advance)
     else:
         grown = update_model(model, growth, batches, records, cfg, False)
-    learn_s = time.perf_counter() - started - read_s
     grown = dataclasses.replace(grown, training={
         **grown.training,
-        "timings_s": {"read": round(read_s, 3), "samples": 0.0, "learn": round(learn_s, 3)},
+        "timings_s": {"read": round(read_s, 3), **grown.training["timings_s"]},
         "updates": [*model.training.get("updates", []),
                     {"inputs": [str(p) for p in inputs],
                      "hyperparameters": grown.training["hyperparameters"]}]})

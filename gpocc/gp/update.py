@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -111,6 +112,7 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
     Kept hyperparameters that fit the union worse than the config's initial values
     (:func:`kept_fit`) are learned again; ``training["hyperparameters"]`` says which.
     """
+    started = time.perf_counter()
     old = growth.pool
     # As in `gpocc train`: the new beams' coverage and the optimiser's import (the
     # classifier's fit needs it) beside the samples; both release the GIL or wait on I/O.
@@ -132,6 +134,7 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
             batches, config, training.calibration_every,
             max_position_std_m=training.calibration_max_position_std_m), old.n_scans))
     inputs = model.inputs + tuple(r.path for r in records)
+    samples_s = time.perf_counter() - started
     how = "relearned" if relearn else "kept"
     if not relearn:
         fit = kept_fit(model, samples, config)
@@ -149,7 +152,11 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
                             calibration=calibration)
     return dataclasses.replace(grown, growth=Growth(pool, growth.records + records,
                                                     calibration),
-                               training={**grown.training, "hyperparameters": how})
+                               training={**grown.training, "hyperparameters": how,
+                                         "timings_s": {
+                                             "samples": round(samples_s, 3),
+                                             "learn": round(time.perf_counter() - started
+                                                            - samples_s, 3)}})
 
 
 def kept_fit(model: GPModel, samples: SampleSet, config: Config) -> tuple[float, float]:
