@@ -2,14 +2,14 @@
 
 Run ``.venv/bin/python bench/update_cost.py [--logs intel.gfs.log ...] [--cuts 0.5 ...]``.
 For each CARMEN log and cut (a share of its laser scans), the log is cut by lines into
-a first part A and a second part B (``<stem>_a.log``, ``<stem>_b.log``), and each part is
-split with ``gpocc split --every 10`` (every 10th scan held out). Then ``gpocc train A``
-(once), and, interleaved ``--repeats`` times, ``gpocc update A.npz B`` and ``gpocc train A
-B``: wall seconds and the commands' CPU seconds (user + system, the process and its
-workers). The last repeat's models are mapped at 0.1 m and scored with ``gpocc evaluate``
-on the held-out points of both parts. Prints one row per (log, cut) and the medians'
-ratio update / train; the issue asks AUC and Brier within 0.002 and a ratio of at most
-0.75. ``--json FILE`` also writes the rows.
+a first part A and a second part B (``<stem>_a.log``, ``<stem>_b.log``), and each part
+is split with ``gpocc split --every 10`` (every 10th scan held out; ``--every`` changes
+it). Then ``gpocc train A`` (once), and, interleaved ``--repeats`` times, ``gpocc update
+A.npz B`` and ``gpocc train A B``: wall seconds and the commands' CPU seconds (user +
+system, the process and its workers). The last repeat's models are mapped at 0.1 m and
+scored with ``gpocc evaluate`` on the held-out points of both parts. Prints one row per
+(log, cut) and the medians' ratio update / train; the issue asks AUC and Brier within
+0.002 and a ratio of at most 0.75. ``--json FILE`` also writes the rows.
 """
 
 from __future__ import annotations
@@ -61,13 +61,14 @@ def score(work: Path, model: Path, truth: Path, name: str) -> dict:
     return json.loads((work / f"eval-{name}" / "results.json").read_text())["maps"][0]
 
 
-def case(work: Path, log: Path, share: float, repeats: int) -> dict:
+def case(work: Path, log: Path, share: float, repeats: int, every: int = 10) -> dict:
     stem = STEMS[log.name]
     a, b = work / f"{stem}_a.log", work / f"{stem}_b.log"
     cut_log(log, share, a, b)
     config = str(ROOT / "configs" / CONFIGS[log.name])
     for part, held in ((a, "heldA"), (b, "heldB")):
-        run("split", str(part), "--every", "10", "--config", config, "--out", str(work / held))
+        run("split", str(part), "--every", str(every), "--config", config,
+            "--out", str(work / held))
     train_a, train_b = work / "heldA" / "train.mcap", work / "heldB" / "train.mcap"
     job = str(work / "heldA" / "train.yaml")
     truth = work / "heldout.csv"
@@ -89,7 +90,7 @@ def case(work: Path, log: Path, share: float, repeats: int) -> dict:
     trained = score(work, work / "AB-train.npz", truth, "train")
     med = {k: (statistics.median(w for w, _ in v), statistics.median(c for _, c in v))
            for k, v in times.items()}
-    return {"log": log.name, "cut": share, "repeats": repeats,
+    return {"log": log.name, "cut": share, "every": every, "repeats": repeats,
             "update_wall_s": med["update"][0], "train_wall_s": med["train"][0],
             "update_cpu_s": med["update"][1], "train_cpu_s": med["train"][1],
             "wall_ratio": med["update"][0] / med["train"][0],
@@ -103,6 +104,8 @@ def main() -> None:
     parser.add_argument("--logs", nargs="*", default=list(CONFIGS), choices=list(CONFIGS))
     parser.add_argument("--cuts", nargs="*", type=float, default=[0.5, 0.4, 0.6])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--every", type=int, default=10,
+                        help="hold out every K-th scan of each part (gpocc split --every)")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--data", type=Path, default=CARMEN,
                         help="folder of the CARMEN logs (default: ../shared/data/carmen)")
@@ -117,7 +120,7 @@ def main() -> None:
             raise SystemExit(f"{log} not found: pass --data with the CARMEN logs' folder")
         for share in args.cuts:
             with tempfile.TemporaryDirectory(prefix="gpocc-update-") as tmp:
-                r = case(Path(tmp), log, share, args.repeats)
+                r = case(Path(tmp), log, share, args.repeats, args.every)
             rows.append(r)
             print(f"| {name} | {share:g} | {r['update_wall_s']:.2f} | {r['train_wall_s']:.2f} "
                   f"| {r['wall_ratio']:.2f} | {r['cpu_ratio']:.2f} | {r['auc_update']:.4f} / "
