@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import os
+import struct
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cache
@@ -208,15 +209,16 @@ def _messages(path: Path) -> Iterator[tuple[str, dict[str, str], str, bytes]]:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
-    try:
-        with open(path, "rb") as fh:
+    with open(path, "rb") as fh:
+        try:
             reader = make_reader(fh)
             for schema, channel, message in reader.iter_messages(log_time_order=True):
                 yield (channel.topic, dict(channel.metadata),
                        schema.name if schema is not None else "", message.data)
-    except (McapError, ValueError, EOFError, KeyError) as exc:
-        raise GpoccError(f"{path}: not a readable MCAP file ({exc}); pass a map.mcap "
-                         f"written by gpocc or another MCAP map") from None
+        # A truncated file makes the reader seek before its start (OSError EINVAL).
+        except (McapError, ValueError, EOFError, KeyError, OSError, struct.error) as exc:
+            raise GpoccError(f"{path}: not a readable MCAP file ({exc}); pass a map.mcap "
+                             f"written by gpocc or another MCAP map") from None
 
 
 def read_map_mcap(path: str | os.PathLike[str], topic: str = MAP_TOPIC
