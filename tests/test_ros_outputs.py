@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from gpocc.gp.classify import classify
 from gpocc.gridspec import GridSpec
 from gpocc.io.rosmap import read_map_mcap
 from gpocc.mapping.folder import MapFolder, folder_metadata, write_metadata
+from gpocc.mapping.mapper import last_scan_stamp
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
@@ -49,7 +51,8 @@ def _layers(spec: GridSpec, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return p, variance, classes
 
 
-def _write_folder(out: Path, spec: GridSpec, seed: int, tile: int = 0, stamp_s: float = 12.25,
+def _write_folder(out: Path, spec: GridSpec, seed: int, tile: int = 0,
+                  stamp_s: float | None = 12.25,
                   max_message_side: int = 8192, config: dict | None = None) -> Path:
     """A map folder of synthetic layers, tiled ``tile`` cells a side when ``tile``."""
     cfg = config_from_dict(config or {})
@@ -375,3 +378,18 @@ def test_cli_map_folders_hold_map_mcap_stamped_with_the_last_scan(tmp_path: Path
     data, meta = nav2_load(out / "map_scale.yaml")
     assert meta["mode"] == "scale"
     np.testing.assert_array_equal(data == -1, expected["/map"] == -1)
+
+
+def test_a_map_of_a_model_without_scan_times_is_stamped_zero_and_says_so(tmp_path: Path
+                                                                          ) -> None:
+    # Model files written before gpocc recorded the scans' time span.
+    old_model = SimpleNamespace(training={"timings_s": {}})
+    assert last_scan_stamp(old_model) is None
+    assert last_scan_stamp(SimpleNamespace(training={"scan_stamps_s": [1.5, 9.75]})) == 9.75
+    folder = _write_folder(tmp_path / "m", SPEC, seed=9, stamp_s=None)
+    with AnyReader([folder / "map.mcap"]) as reader:
+        for conn, timestamp, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            assert timestamp == 0 and (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 0)
+    meta = json.loads((folder / "metadata.json").read_text())["ros"]["map_mcap"]
+    assert meta["stamp_ns"] == 0 and meta["stamp"].startswith("unknown")

@@ -62,7 +62,7 @@ def last_scan_stamp(model: GPModel) -> float | None:
     """The stamp of the model's last training scan, seconds (None: a model file written
     before gpocc recorded it)."""
     span = model.training.get("scan_stamps_s")
-    if isinstance(span, list | tuple) and len(span) == 2:
+    if isinstance(span, list | tuple) and len(span) == 2 and isinstance(span[1], int | float):
         return float(span[1])
     return None
 
