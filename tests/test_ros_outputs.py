@@ -16,6 +16,8 @@ import yaml
 from mcap.reader import make_reader
 from PIL import Image
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import QosDurability, QosHistory, QosReliability
+from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_typestore
 from sklearn.metrics import roc_auc_score
 from typer.testing import CliRunner
@@ -159,6 +161,12 @@ def test_map_mcap_read_by_the_mcap_reader_with_channel_metadata(tmp_path: Path) 
             seen[channel.topic] = (np.asarray(msg.data), channel.metadata)
     for topic in TOPICS:
         np.testing.assert_array_equal(seen[topic][0], expected[topic], err_msg=topic)
+    # MCAP's ros2 profile requires the QoS; a map is offered latched, as Nav2 offers it.
+    for topic in TOPICS:
+        (qos,) = parse_qos(seen[topic][1]["offered_qos_profiles"])
+        assert qos.durability == QosDurability.TRANSIENT_LOCAL
+        assert qos.reliability == QosReliability.RELIABLE
+        assert (qos.history, qos.depth) == (QosHistory.KEEP_LAST, 1)
     scale = float(seen["/map_variance"][1]["variance_scale"])
     assert scale == pytest.approx(expected["scale"], rel=1e-7)
     # The documented inverse gives the variance back within half a level.

@@ -10,6 +10,9 @@ and stamped with the last scan's time:
   ``scale`` (the map's largest variance) is in the channel's metadata
   (``variance_scale``), so ``variance = value / 100 * variance_scale``.
 
+Channels offer a latched QoS (reliable, transient local, depth 1: :func:`map_qos_profiles`),
+so a played-back map reaches subscribers that start later, as a map server's does.
+
 The variance is an OccupancyGrid too (not ``foxglove.Grid``): one message type that
 rosbags, RViz, Nav2 tools and Foxglove all read without a schema package, at a cost of
 101 levels (1 % of the scale).
@@ -117,6 +120,30 @@ def tile_topic(topic: str, row: int, col: int) -> str:
 
 
 @cache
+def map_qos_profiles() -> str:
+    """The channels' ``offered_qos_profiles`` (required by MCAP's ros2 profile): reliable,
+    transient local, keep last 1, as Nav2's map_server offers a map, so ``ros2 bag play``
+    latches it for the subscribers that ask for that (RViz, Nav2's costmaps). Integer
+    enums (rosbag2 metadata version 8) are read by every ROS 2 release since Humble."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+    from rosbags.rosbag2.metadata import dump_qos_v8
+
+    default = QosTime(sec=0, nsec=0)  # unspecified: the middleware's default (infinite)
+    return dump_qos_v8([Qos(
+        history=QosHistory.KEEP_LAST, depth=1, reliability=QosReliability.RELIABLE,
+        durability=QosDurability.TRANSIENT_LOCAL, deadline=default, lifespan=default,
+        liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=default,
+        avoid_ros_namespace_conventions=False)])
+
+
+@cache
 def _typestore() -> Any:
     from rosbags.typesys import Stores, get_typestore
 
@@ -191,8 +218,9 @@ def write_map_mcap(path: str | os.PathLike[str], spec: GridSpec, layers: Sequenc
         for layer in layers:
             for row, col, window in windows:
                 topic = tile_topic(layer.topic, row, col) if tiled else layer.topic
-                channel = writer.register_channel(topic=topic, message_encoding="cdr",
-                                                  schema_id=schema, metadata=layer.metadata)
+                channel = writer.register_channel(
+                    topic=topic, message_encoding="cdr", schema_id=schema,
+                    metadata={**layer.metadata, "offered_qos_profiles": map_qos_profiles()})
                 data = grid_message(window, layer.values(window), stamp_ns)
                 writer.add_message(channel, log_time=stamp_ns, data=data,
                                    publish_time=stamp_ns, sequence=0)
