@@ -6,11 +6,12 @@ A folder holds ``probability.tif``, ``variance.tif`` and ``class.tif`` (or, for 
 several tiles, ``tiles/<layer>/*.tif`` plus a GDAL VRT mosaic per layer), ``map.yaml`` +
 ``map.pgm`` (ROS map_server / Nav2, trinary), ``map_scale.yaml`` + ``map_scale.png`` (Nav2
 scale mode: the probability), ``map.mcap`` (the three layers as ROS 2 OccupancyGrids),
-``preview.png`` and ``metadata.json``. Layers arrive
-tile by tile (:meth:`MapFolder.add`), so no process has to hold a large map; the
-map_server export is always at the map's resolution (assembled from the class tiles); the
-preview is made from the whole map when it is at most ``MAX_PREVIEW_PIXELS`` a side, and
-from a decimated copy (the first cell of every stride x stride group) otherwise.
+``preview.png`` and ``metadata.json``. Layers arrive tile by tile (:meth:`MapFolder.add`),
+so no process has to hold a large map; the map_server exports and ``map.mcap`` are always
+at the map's resolution (assembled from the layer tiles, one tile or message in memory at a
+time; ``map_scale.png`` whole); the preview is made from the whole map when it is at most
+``MAX_PREVIEW_PIXELS`` a side, and from a decimated copy (the first cell of every stride x
+stride group) otherwise.
 """
 
 from __future__ import annotations
@@ -88,17 +89,17 @@ class MapFolder:
                  stamp_s: float | None = None,
                  max_message_side: int = MAX_MESSAGE_SIDE) -> None:
         self.out_dir = out_dir
-        self.stamp_s = stamp_s
-        self.max_message_side = max_message_side
-        self.layer_files: dict[str, list[tuple[Path, GridSpec]]] = {n: [] for n in LAYERS}
-        self.largest_variance = float("nan")
-        #: What ``finish`` wrote for ROS (``metadata.json``'s ``ros``).
-        self.ros_outputs: dict[str, Any] = {}
         self.spec = spec
         self.georef = config.map.georef
         self.max_pgm_pixels = config.map.max_pgm_pixels
         self.bands = {**GP_BANDS, **(bands or {})}
-        self.class_files: list[tuple[Path, GridSpec]] = []
+        # Every written layer raster (tile) and its grid: the exports are made from them.
+        self.layer_files: dict[str, list[tuple[Path, GridSpec]]] = {n: [] for n in LAYERS}
+        self.stamp_s = stamp_s
+        self.max_message_side = max_message_side
+        self.largest_variance = float("nan")
+        #: What ``finish`` wrote for ROS (``metadata.json``'s ``ros``).
+        self.ros_outputs: dict[str, Any] = {}
         self.occupied = config.classify.occupied
         self.free = config.classify.free
         self.tiled = tiled
@@ -139,8 +140,6 @@ class MapFolder:
             write_geotiff(path, array, window, nodata=nodata, georef=self.georef,
                           band=self.bands[name])
             self.layer_files[name].append((path, window))
-            if name == "class":
-                self.class_files.append((path, window))
         stride = self.stride
         r_off, c_off = (-row0) % stride, (-col0) % stride
         pr, pc = (row0 + r_off) // stride, (col0 + c_off) // stride
@@ -161,7 +160,7 @@ class MapFolder:
                           dtype, nodata, self.georef, self.bands[name])
         # map.pgm at full resolution from the class tiles, one tile in memory at a time.
         pgm_tiles = ((window, class_pixels(read_raster(path)[0]))
-                     for path, window in self.class_files)
+                     for path, window in self.layer_files["class"])
         write_map_server_tiles(self.out_dir / "map.yaml", self.spec, pgm_tiles, self.occupied,
                                self.free, self.max_pgm_pixels)
         write_scale_map(self.out_dir / "map_scale.yaml", self.spec,
