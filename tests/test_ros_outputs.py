@@ -401,3 +401,37 @@ def test_a_map_of_a_model_without_scan_times_is_stamped_zero_and_says_so(tmp_pat
             assert timestamp == 0 and (msg.header.stamp.sec, msg.header.stamp.nanosec) == (0, 0)
     meta = json.loads((folder / "metadata.json").read_text())["ros"]["map_mcap"]
     assert meta["stamp_ns"] == 0 and meta["stamp"].startswith("unknown")
+
+
+def test_the_map_reader_takes_the_last_map_of_a_recorded_bag(tmp_path: Path) -> None:
+    """A /map recorded by ROS 2 (here written by rosbags' rosbag2 MCAP writer): the last
+    message counts, its origin and south-first rows as ROS defines them."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    t = TYPESTORE.types
+    width, height, res, x0, y0 = 6, 4, 0.5, -1.0, 2.0
+    final = np.arange(width * height, dtype=np.int8).reshape(height, width) * 4  # 0..92
+    final[0, 0] = -1
+
+    def grid(values: np.ndarray, sec: int):
+        stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=0)
+        origin = t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x=x0, y=y0, z=0.0),
+            orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+        return t["nav_msgs/msg/OccupancyGrid"](
+            header=t["std_msgs/msg/Header"](stamp=stamp, frame_id="map"),
+            info=t["nav_msgs/msg/MapMetaData"](map_load_time=stamp, resolution=res,
+                                               width=width, height=height, origin=origin),
+            data=values.reshape(-1))
+
+    bag = tmp_path / "recorded"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/map", "nav_msgs/msg/OccupancyGrid", typestore=TYPESTORE)
+        for sec, values in ((1, np.zeros_like(final)), (2, final)):
+            writer.write(conn, sec * 10**9, TYPESTORE.serialize_cdr(
+                grid(values, sec), "nav_msgs/msg/OccupancyGrid"))
+    values, spec, _ = read_map_mcap(bag / "recorded.mcap")
+    assert spec == GridSpec(x0, y0, res, width, height)
+    # Data row 0 is the south row: row 0 of the (north-first) result is the last data row.
+    expected = np.where(final < 0, np.nan, final / 100.0)[::-1]
+    np.testing.assert_array_equal(values, expected.astype(np.float32))
