@@ -15,6 +15,7 @@ from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
+from gpocc.io.scans import scan_stamps
 from gpocc.limits import check_seed
 from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
@@ -84,7 +85,9 @@ def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
     learn_s = time.perf_counter() - started - read_s - samples_s
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
-    return dataclasses.replace(model, training={**model.training, "timings_s": timings})
+    # The scans' time span: a map of this model is stamped with the last scan's time.
+    return dataclasses.replace(model, training={**model.training, "timings_s": timings,
+                                                "scan_stamps_s": list(scan_stamps(batches))})
 
 
 def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:

@@ -91,3 +91,15 @@ class ScanBatch:
     @property
     def n_beams(self) -> int:
         return int(self.ranges.shape[1])
+
+
+def scan_stamps(batches: list[ScanBatch]) -> tuple[float | None, float | None]:
+    """(first, last) scan stamp of ``batches``, seconds; (None, None) without scans.
+
+    CARMEN logs whose logger stamps do not increase are read in line order, and their
+    stamps are scan numbers (:mod:`gpocc.io.carmen`).
+    """
+    stamps = [np.asarray(b.stamps, dtype=float) for b in batches if b.n_scans]
+    if not stamps:
+        return None, None
+    return (float(min(s.min() for s in stamps)), float(max(s.max() for s in stamps)))
