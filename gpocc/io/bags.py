@@ -6,7 +6,8 @@ definitions. Scans come from ``sensor_msgs/msg/LaserScan``; poses from
 ``geometry_msgs/msg/PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry`` or
 ``geometry_msgs/msg/PoseStamped`` (no covariance), and TF (``/tf``, ``/tf_static``): see
 :mod:`gpocc.io.laserpose` for how the laser pose and its covariance are chosen. Times are
-header stamps in seconds (a zero header stamp falls back to the bag's record time).
+header stamps in seconds, or the log time for a topic whose header stamps are zero,
+constant or not increasing (:mod:`gpocc.io.stamps`).
 
 LaserScan messages are checked as read: ``angle_min``, ``angle_max`` and
 ``angle_increment`` must be finite and agree with the number of ranges (within two
@@ -178,10 +179,9 @@ def describe_bag(path: str | Path) -> BagContents:
         return _contents(reader, fmt)
 
 
-def _stamp(msg: Any, record_ns: int) -> float:
+def _stamp(msg: Any) -> float:
+    """The header stamp in seconds; 0.0 when it is zero (see :mod:`gpocc.io.stamps`)."""
     stamp = msg.header.stamp
-    if stamp.sec == 0 and stamp.nanosec == 0:
-        return record_ns * 1e-9
     return stamp.sec + stamp.nanosec * 1e-9
 
 
@@ -211,7 +211,8 @@ def _check_scan_fields(path: Path, topic: str, msg: Any, t: float, n: int) -> No
 
 def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int) -> None:
     ranges = np.asarray(msg.ranges, dtype=float)
-    t = _stamp(msg, record_ns)
+    header = _stamp(msg)
+    t = header or record_ns * 1e-9
     _check_scan_fields(path, topic, msg, t, ranges.shape[0])
     geometry = (ranges.shape[0], float(msg.angle_min), float(msg.angle_increment))
     if acc.geometry is None:
@@ -225,7 +226,8 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
             f"{geometry[0]}, or a different angle_min/angle_increment) at "
             f"t={t:.3f} s; split the bag at that time"
         )
-    acc.stamps.append(t)
+    acc.stamps.append(header)
+    acc.log_times.append(record_ns * 1e-9)
     acc.ranges.append(ranges)
 
 

@@ -20,6 +20,7 @@ map frame and carried from the robot body to the laser through the mount's lever
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,13 +30,16 @@ import numpy as np
 from gpocc.config import MountConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.poses import (
+    COVARIANCE_DIGITS,
     PoseSeries,
     check_covariances,
     covariance_at,
     move_covariances,
+    nonfinite_warning,
     rotate_covariances,
 )
 from gpocc.io.scans import Provenance, ScanBatch
+from gpocc.io.stamps import HEADER, Stamps, choose_stamps
 from gpocc.io.tf import Chain, TfBuffer
 from gpocc.io.timeline import blend_poses, brackets
 from gpocc.progress import log
@@ -48,8 +52,9 @@ SKIP_WARNING_SHARE = 0.10
 class ScanTopic:
     """One LaserScan topic's messages, as read (validated in gpocc.io.bags)."""
 
-    stamps: list[float] = field(default_factory=list)
+    stamps: list[float] = field(default_factory=list)  # header stamps, 0.0 when zero
     ranges: list[np.ndarray] = field(default_factory=list)
+    log_times: list[float] = field(default_factory=list)  # empty: time by ``stamps``
     geometry: tuple[int, float, float] | None = None
     range_limits: tuple[float, float] | None = None
     frame_id: str = ""
@@ -140,6 +145,11 @@ def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
     check = check_covariances(series, path, sensor.covariance_sentinel,
                               sensor.repair_pose_covariance, "sensors[]")
     notes = []
+    if check.rounded:
+        notes.append(f"{check.rounded} covariances on {series.topic} PSD only within the "
+                     f"rounding of {COVARIANCE_DIGITS} significant digits: clipped to PSD")
+    if check.nonfinite:
+        log(f"warning: {path}: sensor '{sensor.name}': {nonfinite_warning(series.topic, check)}")
     if check.repaired:
         notes.append(f"{check.repaired} non-PSD covariances on {series.topic} repaired "
                      "(negative eigenvalues set to 0)")
@@ -158,7 +168,7 @@ def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
         if link is not None:
             rot = tf.lookup(link, series.stamps, max_age_s)
             cov = rotate_covariances(cov, np.where(rot.valid, rot.poses[:, 2], 0.0))
-    check = type(check)(cov, check.known, check.unknown_reason, check.repaired)
+    check = dataclasses.replace(check, covariances=cov)
     at = covariance_at(stamps, series.stamps, check, fallback, max_age_s)
     source = f"{series.topic} (held or interpolated up to {age_key}={max_age_s:g} s)"
     unknown = int(np.count_nonzero(~check.known))
@@ -178,13 +188,15 @@ def interpolate_poses(
     poses: np.ndarray,
     stamps: np.ndarray,
     max_gap_s: float,
+    tolerance_s: float = 1e-6,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses at ``stamps``: x, y linear in time, yaw along the shorter arc.
 
-    A stamp is served when it equals a pose stamp, or lies between two poses at most
-    ``max_gap_s`` apart. Returns ``(poses (S, 3), valid (S,) bool)``.
+    A stamp is served when it lies between two poses at most ``max_gap_s`` apart, or
+    within ``tolerance_s`` of a pose (it takes that pose). Returns
+    ``(poses (S, 3), valid (S,) bool)``.
     """
-    at = brackets(pose_stamps, stamps, max_gap_s)
+    at = brackets(pose_stamps, stamps, max_gap_s, tolerance_s)
     return blend_poses(poses, at), at.served
 
 
@@ -202,7 +214,8 @@ def _inverse(a: np.ndarray) -> np.ndarray:
 
 
 def anchored_poses(fixes: PoseSeries, odom: PoseSeries, stamps: np.ndarray, max_gap_s: float,
-                   max_age_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                   max_age_s: float, tolerance_s: float = 1e-6,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Odometry anchored to sparse localisation fixes, as AMCL's ``map -> odom`` TF does.
 
     At each fix ``A_k`` (AMCL publishes only after 0.25 m or 0.2 rad of motion) the
@@ -214,12 +227,12 @@ def anchored_poses(fixes: PoseSeries, odom: PoseSeries, stamps: np.ndarray, max_
         ``(poses (S, 3), valid (S,), stale (S,))``, ``stale`` marking scans too far from a
         fix; None when no fix falls within the odometry.
     """
-    o_fix, ok = interpolate_poses(odom.stamps, odom.poses, fixes.stamps, max_gap_s)
+    o_fix, ok = interpolate_poses(odom.stamps, odom.poses, fixes.stamps, max_gap_s, tolerance_s)
     if not ok.any():
         return None
     t_fix = fixes.stamps[ok]
     correction = _compose(fixes.poses[ok], _inverse(o_fix[ok]))
-    o_scan, valid = interpolate_poses(odom.stamps, odom.poses, stamps, max_gap_s)
+    o_scan, valid = interpolate_poses(odom.stamps, odom.poses, stamps, max_gap_s, tolerance_s)
     i = np.clip(np.searchsorted(t_fix, stamps, side="right") - 1, 0, t_fix.size - 1)
     stale = np.abs(stamps - t_fix[i]) > max_age_s
     return _compose(correction[i], o_scan), valid & ~stale, stale
@@ -237,7 +250,12 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     if not scans.stamps:
         raise GpoccError(f"{path}: topic {scan_topic} has no messages; pick another scan_topic")
     assert scans.geometry is not None and scans.range_limits is not None
-    stamps = np.asarray(scans.stamps)
+    timing = (choose_stamps(np.asarray(scans.stamps), np.asarray(scans.log_times), False)
+              if len(scans.log_times) == len(scans.stamps) else
+              Stamps(np.asarray(scans.stamps, dtype=float), HEADER))
+    if timing.reason:
+        log(f"warning: {path}: {timing.warning(scan_topic)}")
+    stamps = timing.times
     order = np.argsort(stamps, kind="stable")
     stamps = stamps[order]
     ranges = np.stack(scans.ranges)[order]
@@ -299,7 +317,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         fused = None
         if odometry is not None and odometry.stamps.size and odometry.topic != series.topic:
             fused = anchored_poses(series, odometry, stamps, sensor.max_pose_gap_s,
-                                   sensor.max_covariance_age_s)
+                                   sensor.max_covariance_age_s, sensor.stamp_tolerance_s)
         if fused is not None:
             poses, valid, stale = fused
             gap = ~valid & ~stale
@@ -312,9 +330,10 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
             cov_age, age_key = sensor.max_covariance_age_s, "max_covariance_age_s"
         else:
             poses, valid = interpolate_poses(series.stamps, series.poses, stamps,
-                                             sensor.max_pose_gap_s)
+                                             sensor.max_pose_gap_s, sensor.stamp_tolerance_s)
             if not valid.all():
-                skipped = [(f"no pose on {series.topic} within max_pose_gap_s of the scan",
+                skipped = [(f"no pose on {series.topic} within stamp_tolerance_s of the "
+                            "scan, nor two poses around it within max_pose_gap_s",
                             "sensors[].max_pose_gap_s", int(np.count_nonzero(~valid)))]
             pose_source = f"topic {series.topic} ({series.msgtype.rsplit('/', 1)[-1]})"
             # The pose and its covariance come from the same messages: one time bound.
@@ -356,9 +375,16 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         log(f"warning: {path}: sensor '{sensor.name}': {n_skipped} of {stamps.size} scans "
             f"({100 * n_skipped / stamps.size:.0f}%) skipped, mostly ({count}) for {reason}; "
             f"raise {key} if the pose source is just slow")
+    elif n_skipped:  # never a scan lost without a word
+        for reason, key, count in skipped:
+            log(f"note: {path}: sensor '{sensor.name}': {count} of {stamps.size} scans "
+                f"skipped for {reason} (config key {key})")
+    clocks = [timing.describe(scan_topic)] + [
+        p.stamps_from for p in (series, odometry if chain is None else None)
+        if p is not None and p.stamps_from]
     provenance = Provenance(pose_source=pose_source, frame_chain=chain_text,
                             covariance_source=cov.source, skipped=tuple(skipped),
-                            notes=tuple(notes))
+                            notes=tuple(notes), stamps="; ".join(dict.fromkeys(clocks)))
     return ScanBatch(
         sensor=sensor.name,
         source=str(path),
