@@ -19,6 +19,7 @@ field.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import os
@@ -66,12 +67,21 @@ class TopicSummary:
 
 @dataclass(frozen=True)
 class BagContents:
-    """What a bag holds: its format, topics and record-time span (seconds)."""
+    """What a bag holds: its format, topics and record-time span (seconds).
+
+    ``frames``: ``(topic, frame_id, child_frame_id)`` of each pose topic's first message
+    (child empty when the type has none), which pose-source choice needs.
+    """
 
     format: str
     topics: tuple[TopicSummary, ...]
     start_s: float | None
     end_s: float | None
+    frames: tuple[tuple[str, str, str], ...] = ()
+
+    def frame_of(self, topic: str) -> tuple[str, str]:
+        """``(frame_id, child_frame_id)`` of a pose topic, ``("", "")`` when unknown."""
+        return next(((f, c) for t, f, c in self.frames if t == topic), ("", ""))
 
     def topic(self, name: str) -> TopicSummary | None:
         return next((t for t in self.topics if t.name == name), None)
@@ -171,12 +181,27 @@ def _contents(reader: Any, fmt: str) -> BagContents:
     return BagContents(fmt, topics, start, end)
 
 
+def _pose_frames(reader: Any) -> tuple[tuple[str, str, str], ...]:
+    """``(topic, frame_id, child_frame_id)`` from the first message of each pose topic."""
+    out = []
+    for conn in reader.connections:
+        if conn.msgtype not in POSE_TYPES or any(t == conn.topic for t, _, _ in out):
+            continue
+        for c, _, raw in reader.messages(connections=[conn]):
+            msg = reader.deserialize(raw, c.msgtype)
+            out.append((conn.topic, frame_name(msg.header.frame_id),
+                        frame_name(getattr(msg, "child_frame_id", "") or "")))
+            break
+    return tuple(out)
+
+
 def describe_bag(path: str | Path) -> BagContents:
-    """Topics (type, message count) and time span of a bag, without reading its messages."""
+    """Topics (type, message count), time span and pose topics' frames of a bag (the
+    first message of each pose topic is read; no other message)."""
     path = Path(path)
     fmt = bag_format(path) or "mcap"
     with _open_reader(path) as reader:
-        return _contents(reader, fmt)
+        return dataclasses.replace(_contents(reader, fmt), frames=_pose_frames(reader))
 
 
 def _stamp(msg: Any) -> float:

@@ -96,6 +96,35 @@ def find_chain(tf: TfBuffer, sensor: SensorConfig, laser_frame: str) -> tuple[Ch
     return None, "; ".join(why)
 
 
+def in_map_frame(frame: str, sensor: SensorConfig) -> bool:
+    """Whether ``frame`` is the sensor's map frame (as given, or under its namespace)."""
+    ns = namespace(sensor.scan_topic or "")
+    return bool(frame) and frame in _frame_candidates(sensor.map_frame, ns)
+
+
+def mount_chain(tf: TfBuffer, series: PoseSeries, laser_frame: str) -> Chain | None:
+    """The static TF chain from the frame a pose topic gives the pose of to the laser.
+
+    That frame is the pose's ``child_frame_id`` (Odometry) when TF knows it, else the top
+    of the laser's static subtree (``base_footprint`` for ``base_footprint -> base_link
+    -> laser``): AMCL and SLAM poses are the robot base's. None when there is no such
+    chain, or it is not all static (not a mount).
+    """
+    body = series.child_frame_id
+    if not body or body not in tf.frames():
+        body = laser_frame
+        edge = tf.edges.get(body)
+        while edge is not None and edge.static:
+            body = edge.parent
+            edge = tf.edges.get(body)
+    if body == laser_frame:
+        return None
+    chain = tf.chain(body, laser_frame)
+    if chain is None or not chain.steps or not all(e.static for e, _ in chain.steps):
+        return None
+    return chain
+
+
 def _skip_reasons(valid: np.ndarray, missing: np.ndarray) -> list[tuple[str, str, int]]:
     out = []
     for label in sorted({str(m) for m in missing[~valid]}):
@@ -265,6 +294,17 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     chain, why = (find_chain(tf, sensor, scans.frame_id)
                   if tf and sensor.position_from_tf and scans.frame_id else (None, ""))
     notes: list[str] = []
+    mount_tf = None
+    if (tf and sensor.position_from_tf and scans.frame_id and series is not None
+            and (chain is None or why) and in_map_frame(series.frame_id, sensor)):
+        # A map-frame pose topic (AMCL, robot_localization's global Odometry) beats TF
+        # from odom, which drifts; TF still gives the base -> laser mount.
+        mount_tf = mount_chain(tf, series, scans.frame_id)
+        if mount_tf is not None and chain is not None:
+            notes.append(f"TF reaches '{scans.frame_id}' only from '{chain.target}', which "
+                         f"drifts: poses from {series.topic} (frame '{series.frame_id}') "
+                         "with the mount from TF instead")
+            chain, why = None, ""
     skipped: list[tuple[str, str, int]] = []
     chain_text = ""
     if chain is not None:
@@ -341,6 +381,23 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         cov = _covariances(path, sensor, series, stamps, None, None, cov_age, age_key, valid)
         covariances = cov.covariances
         has_cov = bool(cov.from_input[valid].any())
+        if mount_tf is not None:
+            if sensor.mount != MountConfig():
+                raise GpoccError(
+                    f"{path}: sensor '{sensor.name}': TF already gives the laser's mount "
+                    f"({mount_tf.describe()}), and the config sets sensors[].mount too; "
+                    "remove mount from that entry (or set position_from_tf: false)")
+            rel = tf.lookup(mount_tf, stamps, sensor.max_pose_gap_s)
+            laser = _compose(poses, rel.poses)
+            # The base's covariance carried to the laser through the mount's lever arm.
+            covariances = move_covariances(covariances, laser[:, :2] - poses[:, :2])
+            poses = laser
+            if rel.upside_down.any():
+                angles = -angles
+                notes.append(f"laser frame '{scans.frame_id}' is upside down: bearings "
+                             "mirrored")
+            chain_text = mount_tf.describe()
+            pose_source += f" with the mount TF {mount_tf.target} -> {mount_tf.source}"
     notes.extend(cov.notes)
     if series is not None and series.normalised_quaternions:
         notes.append(f"{series.normalised_quaternions} non-unit quaternions on {series.topic} "
