@@ -159,6 +159,6 @@ def detect_sensors(contents: BagContents, path: object) -> list[SensorConfig]:
             cands = pose_candidates(contents, scan)
             pose = done.pose_topic if done else (cands[0] if cands else "POSE_TOPIC")
             entries.append((sensor_name(scan), scan, pose))
-        raise GpoccError(f"{problems[0][1]}; a config for all its lasers: "
-                         f"{_flow_yaml(entries)}")
+        raise GpoccError(f"{problems[0][1]}; set sensors[].pose_topic in a config for "
+                         f"all its lasers: {_flow_yaml(entries)}")
     return sensors

@@ -14,7 +14,7 @@ message is checked as it is read (issue 13, class 4):
   no measured covariance has), or an all-zero block, means "unknown" and the sensor
   config's ``pose_covariance`` is used instead; a NaN or infinite entry means "unknown"
   too, with a warning naming the topic and the count (:func:`nonfinite_warning`);
-* a block that is positive semi-definite *within rounding* (:func:`rounding_tolerance`:
+* a block that is positive semi-definite *within rounding* (:func:`psd_shortfall`:
   recorders store covariances with a few significant digits, and rounding a PSD matrix
   can make its smallest eigenvalue slightly negative) is clipped to PSD and counted;
   beyond that tolerance a negative variance or a block that is not positive
@@ -168,30 +168,47 @@ class PoseCollector:
 COVARIANCE_DIGITS = 2
 
 
-def rounding_tolerance(cov: np.ndarray, digits: int = COVARIANCE_DIGITS) -> np.ndarray:
-    """How far below zero rounding can push the smallest eigenvalue of a stored PSD block.
+def psd_shortfall(cov: np.ndarray, digits: int = COVARIANCE_DIGITS) -> np.ndarray:
+    """How far a stored block is from PSD, in units of what rounding can explain.
 
     A covariance ``C`` (positive semi-definite) stored with ``digits`` significant digits
-    reads back as ``C~ = C + E`` with ``|E_ij| <= u |C_ij|``, ``u = 0.5 * 10**(1 - digits)``
-    (round to nearest) and so ``|E_ij| <= u / (1 - u) |C~_ij|``. Weyl's inequality bounds
-    the eigenvalue shift by ``||E||_2 <= ||E||_F``, hence
+    reads back as ``C~ = C + E`` with ``|E_ij| <= u |C_ij| <= u' |C~_ij|``, where
+    ``u = 0.5 * 10**(1 - digits)`` (round to nearest) and ``u' = u / (1 - u)``. Rounding
+    is relative per entry, so the test is made on the correlation matrix ``R~ = D C~ D``,
+    ``D = diag(C~_ii)**-1/2`` (a congruence: PSD-ness and the relative errors are kept,
+    and metres and radians no longer mix): ``D C D`` is PSD and the perturbation ``D E D``
+    is entrywise at most ``u' |R~|``, so by Weyl's inequality and the monotonicity of the
+    spectral norm on non-negative matrices
 
-        lambda_min(C~) >= -u / (1 - u) * ||C~||_F,
+        lambda_min(R~) >= -u' * lambda_max(|R~|).
 
-    which is between 1 and sqrt(3) times ``u / (1 - u) * lambda_max`` for a 3 x 3 block
-    (5.3% to 9.1% of the largest eigenvalue for 2 digits). A smallest eigenvalue above
-    ``-tolerance`` can be rounding of a valid covariance; below it, no rounding of a PSD
-    matrix gives it. Rounding never makes a variance negative.
+    A smallest eigenvalue below that is no rounding of a PSD matrix. For two variables
+    this allows a correlation up to ``(1 + u') / (1 - u')`` (1.11 for 2 digits), the
+    largest that rounding 2 digits can produce (1.105). Rounding never makes a variance
+    negative, nor a positive one zero.
 
     Args:
         cov: (..., 3, 3) symmetric blocks as stored.
         digits: significant digits kept by the recorder.
 
     Returns:
-        (...) the tolerance, in the units of ``cov``.
+        (...) ``-lambda_min(R~) / (u' lambda_max(|R~|))``: <= 0 PSD, in (0, 1] PSD within
+        rounding, > 1 beyond it (inf: a zero variance with a non-zero covariance).
     """
     u = 0.5 * 10.0 ** (1 - digits)
-    return u / (1.0 - u) * np.sqrt(np.sum(np.square(cov), axis=(-2, -1)))
+    u1 = u / (1.0 - u)
+    cov = np.asarray(cov, dtype=float)
+    d = np.diagonal(cov, axis1=-2, axis2=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(d > 0, 1.0 / np.sqrt(np.where(d > 0, d, 1.0)), 0.0)
+    r = cov * scale[..., :, None] * scale[..., None, :]
+    lam_min = np.linalg.eigvalsh(r)[..., 0]
+    lam_abs = np.linalg.eigvalsh(np.abs(r))[..., -1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(lam_abs > 0, -lam_min / (u1 * np.where(lam_abs > 0, lam_abs, 1.0)), 0.0)
+    # A zero variance whose row is not zero: no rounding gives it.
+    off = np.abs(cov).sum(axis=-1) - np.abs(d)
+    return np.where(((d <= 0) & (off > 0)).any(axis=-1), np.inf, out)
 
 
 def _clip_psd(cov: np.ndarray) -> np.ndarray:
@@ -209,7 +226,7 @@ class CovarianceCheck:
         known: (P,) bool.
         unknown_reason: why some are unknown ("" if none are).
         repaired: how many were not PSD and had negative eigenvalues clipped.
-        rounded: how many were PSD only within rounding (:func:`rounding_tolerance`) and
+        rounded: how many were PSD only within rounding (:func:`psd_shortfall`) and
             were clipped to PSD.
         nonfinite: how many had a NaN or infinite entry (unknown).
     """
@@ -240,7 +257,7 @@ def check_covariances(series: PoseSeries, path: Path, sentinel: float, repair: b
 
     Raises:
         GpoccError: a negative variance, or a covariance not PSD even within rounding
-            (:func:`rounding_tolerance`), unless ``repair``.
+            (:func:`psd_shortfall`), unless ``repair``.
     """
     cov = np.array(series.covariances, dtype=float)
     p = cov.shape[0]
@@ -258,7 +275,7 @@ def check_covariances(series: PoseSeries, path: Path, sentinel: float, repair: b
     eig = np.linalg.eigvalsh(sym)
     diag = np.diagonal(sym, axis1=1, axis2=2)
     below = known & (eig.min(axis=1) < 0)
-    bad = known & ((diag < 0).any(axis=1) | (eig.min(axis=1) < -rounding_tolerance(sym)))
+    bad = below & ((diag < 0).any(axis=1) | (psd_shortfall(sym) > 1.0))
     rounded = below & ~bad
     if rounded.any():
         sym[rounded] = _clip_psd(sym[rounded])
