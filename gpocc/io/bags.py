@@ -266,9 +266,9 @@ def interpolate_poses(
     """Poses and covariances at ``stamps``, interpolated between the bracketing poses.
 
     x and y are linear in time, yaw follows the shorter arc, the covariance is linear.
-    A stamp is served only when it equals a pose stamp, or lies between two poses at
-    most ``max_gap_s`` apart; outside the poses' time range, or inside a longer gap, it
-    is not.
+    A stamp is served only when it lies between two poses at most ``max_gap_s`` apart,
+    or within 1 us of a pose stamp (:func:`gpocc.io.timeline.brackets`); outside the
+    poses' time range, or inside a longer gap, it is not.
 
     Args:
         pose_stamps: (P,) seconds, strictly increasing.

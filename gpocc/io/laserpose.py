@@ -7,6 +7,11 @@ sensor's ``mount`` in the config must stay zero. Without ``map`` the chain start
 ``odom`` with a warning that the map will drift. Without a TF chain, the pose topic's
 poses are interpolated to the scans (the config's ``mount`` then applies).
 
+A pose topic in the map frame (AMCL, SLAM, robot_localization's global Odometry) is the
+robot base's pose: when TF reaches the laser only from ``odom`` (which drifts) or not at
+all, the base pose comes from that topic and the static base -> laser mount from TF
+(:func:`mount_chain`), the covariance carried through the mount's lever arm.
+
 Without TF, a PoseWithCovarianceStamped ``pose_topic`` (AMCL at its motion-triggered
 cadence) anchors the robot's odometry topic in its namespace when there is one
 (:func:`anchored_poses`), so a slow robot keeps its scans.
@@ -44,6 +49,7 @@ from gpocc.io.tf import Chain, TfBuffer
 from gpocc.io.timeline import blend_poses, brackets
 from gpocc.progress import log
 
+_ROUNDED = "PSD only within the rounding"
 #: A sensor losing more than this share of its scans gets a warning.
 SKIP_WARNING_SHARE = 0.10
 
@@ -175,8 +181,8 @@ def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
                               sensor.repair_pose_covariance, "sensors[]")
     notes = []
     if check.rounded:
-        notes.append(f"{check.rounded} covariances on {series.topic} PSD only within the "
-                     f"rounding of {COVARIANCE_DIGITS} significant digits: clipped to PSD")
+        notes.append(f"{check.rounded} covariances on {series.topic} {_ROUNDED} of "
+                     f"{COVARIANCE_DIGITS} significant digits: clipped to PSD")
     if check.nonfinite:
         log(f"warning: {path}: sensor '{sensor.name}': {nonfinite_warning(series.topic, check)}")
     if check.repaired:
@@ -426,6 +432,8 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         )
     n_skipped = int(np.count_nonzero(~valid))
     for note in notes:
+        if _ROUNDED in note:
+            continue  # rounding is no fault of the log: counted in `gpocc info` only
         log(f"note: {path}: sensor '{sensor.name}': {note}")
     if n_skipped > SKIP_WARNING_SHARE * stamps.size:
         reason, key, count = max(skipped, key=lambda r: r[2])
