@@ -418,22 +418,26 @@ def _full_disk(*args, **kwargs):
     raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # a write() names no file
 
 
-@pytest.mark.parametrize("target", ["os.pwrite", "os.replace", "numpy.savez_compressed"])
+@pytest.mark.parametrize("target,command", [("os.pwrite", "grid"), ("os.replace", "grid"),
+                                            ("numpy.savez_compressed", "train"),
+                                            ("os.replace", "split")])
 def test_a_full_disk_is_one_line_naming_the_path_and_leaves_nothing(
-        tmp_path: Path, small_bag: Path, monkeypatch, target: str) -> None:
+        tmp_path: Path, small_bag: Path, monkeypatch, target: str, command: str) -> None:
     import numpy
 
     module, name = target.split(".")
     monkeypatch.setattr({"os": os, "numpy": numpy}[module], name, _full_disk)
     out = tmp_path / "out"
     out.mkdir()
-    if name == "savez_compressed":  # the model file's own write
-        argv = ["train", str(small_bag), "--out", str(out / "model.npz")]
-    else:  # the claim's pid (pwrite), or a file of the folder (replace)
-        argv = ["grid", str(small_bag), "--resolution", "0.2", "--out", str(out / "grid")]
+    argv = {  # the model file's own write; the claim's pid (pwrite) or a file of the
+              # folder (replace); the bag written by split
+        "train": ["train", str(small_bag), "--out", str(out / "model.npz")],
+        "grid": ["grid", str(small_bag), "--resolution", "0.2", "--out", str(out / "grid")],
+        "split": ["split", str(small_bag), "--every", "3", "--out", str(out / "split")],
+    }[command]
     result = runner.invoke(app, argv)
-    line = one_error_line(result, str(out))
-    assert "no space left on device" in line
+    line = one_error_line(result, argv[-1])
+    assert "no space left on device" in line and ".gpocc-tmp" not in line
     assert list(out.iterdir()) == []  # no claim, no temporary, no partial output
 
 

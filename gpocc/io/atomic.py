@@ -396,6 +396,11 @@ def _claimed_temporary(path: str | os.PathLike[str], force: bool, folder: bool
             _install(tmp, target, force)
         except OSError as exc:
             raise _write_error(target, exc) from None
+        except GpoccError as exc:
+            # A writer's error names the file it wrote: the user knows the output.
+            if str(tmp) not in str(exc):
+                raise
+            raise GpoccError(str(exc).replace(str(tmp), str(target))) from None
         finally:
             if folder:
                 shutil.rmtree(tmp, ignore_errors=True)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import functools
 import math
 import os
@@ -577,5 +578,8 @@ def write_bag(
     except GpoccError:
         raise
     except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise GpoccError(f"{path}: cannot write the bag: no space left on device; free "
+                             "some space there, or write it elsewhere") from None
         raise GpoccError(f"{path}: cannot write the bag ({_one_line(exc)}); check the folder "
                          "exists and is writable") from None
