@@ -252,7 +252,8 @@ def test_broken_scan_stamps_fall_back_to_log_time_with_one_warning(tmp_path: Pat
     assert "stamps: /scan: log (receive) time" in info(path)
 
 
-def _slam_bag(tmp_path: Path, early_scans: int = 0) -> tuple[Robot, Path]:
+def _slam_bag(tmp_path: Path, early_scans: int = 0,
+              zero_pose_stamps: bool = False) -> tuple[Robot, Path]:
     """A scan matcher's pose per scan (PoseWithCovarianceStamped in map, stamped with the
     scan's acquisition time) at 3 Hz, longer gaps than max_pose_gap_s; scans with zero
     header stamps, logged 5 ms late; the laser mount only in /tf_static."""
@@ -267,6 +268,8 @@ def _slam_bag(tmp_path: Path, early_scans: int = 0) -> tuple[Robot, Path]:
     for tk, p in zip(t, robot.route.base(t), strict=True):
         bag.pose_cov("/slam_toolbox/pose", T0 + tk, "map", (p[0], p[1], 0.0), quat(yaw=p[2]),
                      cov6(0.004, 0.003, 0.001))
+        if zero_pose_stamps:
+            bag.messages[-1][3].header.stamp.sec = bag.messages[-1][3].header.stamp.nanosec = 0
     return robot, bag.write(tmp_path / "slam")
 
 
@@ -282,6 +285,19 @@ def test_scans_take_the_pose_within_the_stamp_tolerance(tmp_path: Path, capsys) 
                                          stamp_tolerance_s=0.0),))
     with pytest.raises(GpoccError, match="none of the .* scans on /scan"):
         read_inputs([path], exact)
+
+
+def test_zero_pose_stamps_fall_back_to_log_time_with_one_warning(tmp_path: Path,
+                                                               capsys) -> None:
+    robot, path = _slam_bag(tmp_path, zero_pose_stamps=True)
+    [batch] = read_inputs([path], Config())
+    n = robot.scans["/scan"][0].size
+    err = capsys.readouterr().err
+    assert err.count(f"topic /slam_toolbox/pose: {n} of {n} header stamps are zero") == 1
+    assert batch.provenance.stamps == (
+        f"/scan: log (receive) time ({n} of {n} header stamps are zero); "
+        f"/slam_toolbox/pose: log (receive) time ({n} of {n} header stamps are zero)")
+    assert_like_clean_twin(batch, robot)
 
 
 def test_no_scan_is_dropped_without_a_count_reason_and_key(tmp_path: Path, capsys) -> None:
@@ -339,6 +355,42 @@ def test_odometry_in_the_map_frame_is_the_pose_source_with_the_tf_mount(
     out = info(path)
     assert f"pose from topic {ns}{topic} (Odometry) with the mount TF" in out
     assert f"frame chain: {prefix}base_footprint -> {prefix}base_link (static)" in out
+
+
+def test_pose_topics_pair_by_type_frame_and_known_names() -> None:
+    from gpocc.io.autodetect import pose_candidates
+    from gpocc.io.bags import BagContents, TopicSummary
+
+    odom, amcl = "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseWithCovarianceStamped"
+    scan = "sensor_msgs/msg/LaserScan"
+
+    def bag(*topics: tuple[str, str, str, str]) -> BagContents:
+        return BagContents("mcap", tuple(TopicSummary(n, t, 1) for n, t, _, _ in topics),
+                           0.0, 1.0, tuple((n, f, c) for n, t, f, c in topics if f))
+
+    # robot_localization: the global EKF (map) wins over the local one (odom).
+    one = bag(("/scan", scan, "", ""), ("/odometry/filtered", odom, "odom", "base_link"),
+              ("/odometry/global", odom, "map", "base_link"))
+    assert pose_candidates(one, "/scan") == ["/odometry/global"]
+    # Any name, in the map frame; the odom-frame Odometry alone stays a candidate.
+    any_name = bag(("/scan", scan, "", ""), ("/odometry/filtered", odom, "odom", "base_link"),
+                   ("/ekf/fused", odom, "map", "base_link"))
+    assert pose_candidates(any_name, "/scan") == ["/ekf/fused"]
+    assert pose_candidates(bag(("/scan", scan, "", ""),
+                               ("/odometry/filtered", odom, "odom", "base_link")),
+                           "/scan") == ["/odometry/filtered"]
+    # Namespaced robots: each pairs with its own, by known name or by the frame it moves;
+    # robot1's fused pose under its namespace is not robot2's.
+    two = bag(("/robot1/scan", scan, "", ""), ("/robot2/scan", scan, "", ""),
+              ("/robot1/odometry/global", odom, "map", "base_link"),
+              ("/robot1/ekf/fused", odom, "map", "base_link"),
+              ("/fused2", odom, "map", "robot2/base_link"))
+    assert pose_candidates(two, "/robot1/scan") == ["/robot1/ekf/fused",
+                                                    "/robot1/odometry/global"]
+    assert pose_candidates(two, "/robot2/scan") == ["/fused2"]
+    slam = bag(("/robot1/scan", scan, "", ""), ("/robot1/slam_toolbox/pose", amcl, "", ""),
+               ("/slam_toolbox/pose", amcl, "", ""))
+    assert pose_candidates(slam, "/robot1/scan") == ["/robot1/slam_toolbox/pose"]
 
 
 def test_two_map_pose_sources_without_tf_name_both(tmp_path: Path) -> None:

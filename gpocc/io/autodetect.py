@@ -9,8 +9,10 @@ share its pose. The usual multi-level names count as one name: ``/odometry/filte
 namespace (``/robot1/odometry/global`` in ``robot1``). A ``nav_msgs/Odometry`` whose
 ``header.frame_id`` is ``map`` is a map pose source whatever its topic name: it belongs to
 the namespace of the frame it moves (``child_frame_id``: ``robot1/base_link`` ->
-``robot1``). Within a namespace the best source wins: a map pose (PoseWithCovarianceStamped
-from AMCL or SLAM, Odometry in ``map``) over Odometry in another frame over PoseStamped.
+``robot1``), else to the nearest namespace of its topic that holds lasers
+(``/robot1/ekf/fused`` -> ``robot1``), else to the root (``/ekf/fused``). Within a
+namespace the best source wins: a map pose (PoseWithCovarianceStamped from AMCL or SLAM,
+Odometry in ``map``) over Odometry in another frame over PoseStamped.
 With TF reaching the laser from ``map`` the pose topic supplies only the covariance, so a
 tie is settled by name (``amcl_pose`` first, then alphabetically) and said in ``gpocc
 info``; without TF a tie is an error that names the candidates and prints a
@@ -47,16 +49,28 @@ def _is_map(frame: str) -> bool:
 
 def pose_namespace(contents: BagContents, topic: str, msgtype: str) -> str:
     """The namespace a pose topic serves (see the module docs)."""
+    name = topic.strip("/")
+    by_name = namespace(topic)
+    for known in KNOWN_NAMES:
+        if name == known or name.endswith("/" + known):
+            by_name = name[: -len(known)].rstrip("/")
+            break
     frame, child = contents.frame_of(topic)
     if msgtype == _ODOMETRY and _is_map(frame):
-        return child.rpartition("/")[0]
-    name = topic.strip("/")
-    for known in KNOWN_NAMES:
-        if name == known:
-            return ""
-        if name.endswith("/" + known):
-            return name[: -len(known) - 1]
-    return namespace(topic)
+        # A map pose of the frame it moves: that frame's namespace, else the nearest
+        # enclosing namespace of the topic that holds lasers (/robot1/ekf/fused ->
+        # robot1), else the root (/ekf/fused).
+        by_frame = child.rpartition("/")[0]
+        if by_frame:
+            return by_frame
+        scans = [namespace(t.name) for t in contents.topics if t.msgtype == SCAN_TYPE]
+        parts = by_name.split("/") if by_name else []
+        for k in range(len(parts), 0, -1):
+            prefix = "/".join(parts[:k])
+            if any(ns == prefix or ns.startswith(prefix + "/") for ns in scans):
+                return prefix
+        return ""
+    return by_name
 
 
 def _rank(contents: BagContents, topic: str, msgtype: str) -> int:
