@@ -32,6 +32,7 @@ class Provenance:
         covariance_source: e.g. ``/amcl_pose (held up to 30 s)`` or ``config``.
         skipped: (reason, config key, count) of dropped scans.
         notes: counted repairs and fallbacks.
+        stamps: which clock times each topic used (``/scan: header stamps; ...``).
     """
 
     pose_source: str
@@ -39,6 +40,7 @@ class Provenance:
     covariance_source: str = ""
     skipped: tuple[tuple[str, str, int], ...] = ()
     notes: tuple[str, ...] = field(default=())
+    stamps: str = ""
 
 
 @dataclass(frozen=True)

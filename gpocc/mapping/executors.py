@@ -130,6 +130,16 @@ def _in_order(chunks: list[list[Anchor]], results: Iterator[list[AnchorResult]],
             on_done(len(chunk))
 
 
+class SchedulerUnreachable(GpoccError):
+    """No Dask scheduler answers at ``address``; ``cause`` is Dask's reason, one line."""
+
+    def __init__(self, address: str, cause: str) -> None:
+        super().__init__(f"cannot reach the Dask scheduler at {address} ({cause}); check "
+                         "the address and that the scheduler is running")
+        self.address = address
+        self.cause = cause
+
+
 @contextlib.contextmanager
 def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = None,
                     anchors: int | None = None) -> Iterator[AnchorExecutor]:
@@ -147,9 +157,7 @@ def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = No
         try:
             client = Client(scheduler, timeout="10s")
         except (OSError, TimeoutError, ValueError) as exc:  # ValueError: a malformed address
-            raise GpoccError(
-                f"cannot reach the Dask scheduler at {scheduler} ({exc}); check the address"
-            ) from None
+            raise SchedulerUnreachable(scheduler, " ".join(str(exc).split())) from None
         try:
             yield AnchorExecutor(model, client=client,
                                  model_future=client.scatter(model, broadcast=True))
