@@ -41,7 +41,8 @@ Workers = Annotated[int | None, typer.Option(
     "--workers", help="Local processes for the map's local problems (default and most: the "
     "cores this process may use).")]
 Scheduler = Annotated[str | None, typer.Option(
-    "--scheduler", help="Dask scheduler address tcp://HOST:PORT.")]
+    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute the "
+    "local problems (output identical to a local run).")]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
 
