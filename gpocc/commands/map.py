@@ -19,16 +19,15 @@ from gpocc.commands.options import (
     Workers,
     check_at_least,
     check_resolution,
+    scheduler_errors,
 )
 from gpocc.config import Config
-from gpocc.errors import GpoccError
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.blocks import block_cells, plan_blocks
-from gpocc.mapping.executors import SchedulerUnreachable
 from gpocc.mapping.folder import write_metadata
 from gpocc.mapping.mapper import MapSummary, default_spec, make_map, map_metadata
 from gpocc.parallel import default_workers
@@ -142,15 +141,9 @@ def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
     total = len(plan_blocks(spec, cells))
     log(f"mapping {spec.width} x {spec.height} cells at {spec.resolution} m in {total} "
         f"blocks ({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
-    with progress_bar(total, "blocks") as advance:
-        try:
-            summary = make_map(model, spec, folder, n_workers, scheduler, advance,
-                               while_writing=while_writing)
-        except SchedulerUnreachable as exc:
-            raise GpoccError(
-                f"--scheduler {exc.address}: cannot reach a Dask scheduler there "
-                f"({exc.cause}); check the address (tcp://HOST:PORT) and that the scheduler "
-                "is running, or leave --scheduler out to map on this machine") from None
+    with scheduler_errors(), progress_bar(total, "blocks") as advance:
+        summary = make_map(model, spec, folder, n_workers, scheduler, advance,
+                           while_writing=while_writing)
     write_metadata(folder, map_metadata(model_name, model, summary,
                                         workers=n_workers, scheduler=scheduler))
     return summary

@@ -17,7 +17,6 @@ from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 
 from gpocc.blas import single_threaded_blas
-from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
 from gpocc.mapping.blocks import (
@@ -27,7 +26,7 @@ from gpocc.mapping.blocks import (
     anchor_problems,
     predict_anchor,
 )
-from gpocc.parallel import watched, worker_pool
+from gpocc.parallel import dask_client, watched, worker_pool
 
 _worker_state: dict[str, object] = {}
 
@@ -130,16 +129,6 @@ def _in_order(chunks: list[list[Anchor]], results: Iterator[list[AnchorResult]],
             on_done(len(chunk))
 
 
-class SchedulerUnreachable(GpoccError):
-    """No Dask scheduler answers at ``address``; ``cause`` is Dask's reason, one line."""
-
-    def __init__(self, address: str, cause: str) -> None:
-        super().__init__(f"cannot reach the Dask scheduler at {address} ({cause}); check "
-                         "the address and that the scheduler is running")
-        self.address = address
-        self.cause = cause
-
-
 @contextlib.contextmanager
 def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = None,
                     anchors: int | None = None) -> Iterator[AnchorExecutor]:
@@ -152,17 +141,9 @@ def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = No
     if anchors is not None:
         workers = min(workers, -(-anchors // ANCHORS_PER_CHUNK))
     if scheduler:
-        from distributed import Client
-
-        try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError, ValueError) as exc:  # ValueError: a malformed address
-            raise SchedulerUnreachable(scheduler, " ".join(str(exc).split())) from None
-        try:
+        with dask_client(scheduler) as client:
             yield AnchorExecutor(model, client=client,
                                  model_future=client.scatter(model, broadcast=True))
-        finally:
-            client.close()
         return
     if workers <= 1:
         yield AnchorExecutor(model)
