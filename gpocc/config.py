@@ -497,10 +497,11 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'classify' needs 0 < free <= occupied < 1, got {c.free}, {c.occupied}"
         )
-    if config.model.kernel not in ("nn", "se"):
-        raise GpoccError(
-            f"{source}: key 'model.kernel' must be 'nn' or 'se', got {config.model.kernel!r}"
-        )
+    from gpocc.gp.kernels import KERNELS, kernel_names_text  # it imports this module
+
+    if config.model.kernel not in KERNELS:
+        raise GpoccError(f"{source}: key 'model.kernel' must be {kernel_names_text()}, "
+                         f"got {config.model.kernel!r}")
     if config.map.epsg is not None:
         raise GpoccError(
             f"{source}: key 'map.epsg' is retired: a CRS code without the map frame's origin "
