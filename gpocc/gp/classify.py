@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
+from gpocc.constants import FREE, NO_DATA, OCCUPIED, UNSURE
 from gpocc.gp.expected import expected_kernel_cross
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import (
@@ -60,7 +61,6 @@ from gpocc.samples.sampleset import SampleSet, has_both_labels
 #: Ways to hold labels out when fitting the classifier (see the module docstring).
 HOLDOUTS = ("scan", "sample")
 
-OCCUPIED, FREE, UNSURE, NO_DATA = 1, 0, 2, 255
 
 
 #: Most held-out points predicted per block for the beam offset (Freiburg's busiest blocks hold
@@ -123,7 +123,8 @@ def _negative_log_probability(params: np.ndarray, mean: np.ndarray, variance: np
 
 
 def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProblem,
-                       level: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       level: int, backend: str = "auto",
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Latent predictions at each sample of ``patch`` from the patch's other scans.
 
     Sample ``i`` of scan ``s`` is treated as a query at its mean (exact, like a map
@@ -138,10 +139,11 @@ def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProble
     """
     s = patch.samples
     m = len(s)
-    chol = factor_training_covariance(kernel, noise_variance, s, level)
+    chol = factor_training_covariance(kernel, noise_variance, s, level, backend)
     inverse = cholesky_solve(chol, np.eye(m))
     alpha = inverse @ s.labels
-    cross = expected_kernel_cross(kernel, s.means, s.means, s.covariances, level)
+    cross = expected_kernel_cross(kernel, s.means, s.means, s.covariances, level,
+                                  backend=backend)
     prior = kernel.diag(s.means)
     mean, variance = np.zeros(m), np.zeros(m)
     mask = np.zeros(m, dtype=bool)
@@ -163,18 +165,20 @@ def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProble
 
 
 def holdout_predictions(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
-                        level: int, holdout: str = "sample",
+                        level: int, holdout: str = "sample", backend: str = "auto",
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Held-out latent means, variances and labels (concatenated over ``patches``)."""
+    """Held-out latent means, variances and labels (concatenated over ``patches``);
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`), as everywhere here."""
     if holdout not in HOLDOUTS:
         raise ValueError(f"holdout must be one of {HOLDOUTS}, got {holdout!r}")
     means, variances, labels = [], [], []
     for patch in patches:
         if holdout == "scan":
-            mu, var, mask = leave_one_scan_out(kernel, noise_variance, patch, level)
+            mu, var, mask = leave_one_scan_out(kernel, noise_variance, patch, level, backend)
             mu, var, y = mu[mask], var[mask], patch.samples.labels[mask]
         else:
-            chol = factor_training_covariance(kernel, noise_variance, patch.samples, level)
+            chol = factor_training_covariance(kernel, noise_variance, patch.samples, level,
+                                              backend)
             mu, var = leave_one_out(chol, patch.samples.labels)
             y = patch.samples.labels
         means.append(mu)
@@ -203,7 +207,7 @@ def fit_platt(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray) -> Pla
 def beam_holdout_predictions(
     kernel: Kernel, noise_variance: float, samples: SampleSet, calibration: CalibrationPoints,
     level: int, neighbours: int, block_size_m: float, max_blocks: int,
-    rng: np.random.Generator,
+    rng: np.random.Generator, backend: str = "auto",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Latent predictions at held-out beam points from the samples of the other scans.
 
@@ -231,7 +235,8 @@ def beam_holdout_predictions(
         if rows.size > POINTS_PER_BLOCK:  # a block many scans crossed: a random share
             rows = np.sort(rng.choice(rows, POINTS_PER_BLOCK, replace=False))
         problem = index.problem((blocks[b] + 0.5) * block_size_m, neighbours)
-        pred = predict_local(kernel, noise_variance, problem, calibration.points[rows], level)
+        pred = predict_local(kernel, noise_variance, problem, calibration.points[rows], level,
+                             backend)
         means.append(pred.mean)
         variances.append(pred.variance)
         labels.append(calibration.labels[rows])
@@ -251,9 +256,10 @@ def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
 
 
 def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
-                   level: int, holdout: str = "sample") -> PlattClassifier:
+                   level: int, holdout: str = "sample", backend: str = "auto",
+                   ) -> PlattClassifier:
     """Fit the classifier on held-out predictions over ``patches`` (``holdout``: scan or sample)."""
-    mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout)
+    mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout, backend)
     return fit_platt(mu, var, y)
 
 

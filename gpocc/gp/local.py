@@ -15,6 +15,7 @@ from scipy.linalg.blas import dtrsm
 from scipy.linalg.lapack import dpotrf, dpotrs
 from scipy.spatial import cKDTree
 
+from gpocc.constants import JITTER
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import (
     expected_kernel_cross,
@@ -23,10 +24,6 @@ from gpocc.gp.expected import (
 )
 from gpocc.gp.kernels import Kernel
 from gpocc.samples.sampleset import SampleSet
-
-# Added to the diagonal on top of the label-noise variance; keeps Cholesky stable when two
-# samples are (numerically) the same point.
-_JITTER = 1e-8
 
 
 @dataclass(frozen=True)
@@ -140,11 +137,12 @@ def try_cholesky(matrix: np.ndarray, jitter: bool = True) -> np.ndarray | None:
 
 def training_covariance(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
-    correlated: bool = True
+    correlated: bool = True, backend: str = "auto",
 ) -> np.ndarray:
     """(M, M) covariance of the training labels: expected kernel plus label noise.
 
     ``correlated=False`` treats every pair as independent (no 4-D same-scan rule).
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`), as in every function here.
     """
     k = expected_kernel_matrix(
         kernel,
@@ -153,13 +151,15 @@ def training_covariance(
         level,
         scan_ids=samples.scan_ids if correlated else None,
         pose_factors=samples.pose_factors if correlated else None,
+        backend=backend,
     )
-    k[np.diag_indices_from(k)] += noise_variance + _JITTER
+    k[np.diag_indices_from(k)] += noise_variance + JITTER
     return k
 
 
 def factor_training_covariance(
-    kernel: Kernel, noise_variance: float, samples: SampleSet, level: int
+    kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
+    backend: str = "auto",
 ) -> np.ndarray:
     """Lower Cholesky factor of the label covariance of ``samples``.
 
@@ -169,11 +169,11 @@ def factor_training_covariance(
     level is low. If even jitter cannot save it, the problem falls back to independent
     inputs, which is exactly positive definite.
     """
-    chol = try_cholesky(training_covariance(kernel, noise_variance, samples, level))
+    chol = try_cholesky(training_covariance(kernel, noise_variance, samples, level,
+                                            backend=backend))
     if chol is None:
-        chol = try_cholesky(
-            training_covariance(kernel, noise_variance, samples, level, correlated=False)
-        )
+        chol = try_cholesky(training_covariance(kernel, noise_variance, samples, level,
+                                                correlated=False, backend=backend))
     if chol is None:
         raise GpoccError(
             "the training covariance of a local problem is not positive definite; raise "
@@ -184,7 +184,7 @@ def factor_training_covariance(
 
 def predict_local(
     kernel: Kernel, noise_variance: float, problem: LocalProblem, queries: np.ndarray,
-    level: int
+    level: int, backend: str = "auto",
 ) -> Prediction:
     """GP predictive mean and variance at (Q, 2) map-frame queries from one local problem."""
     local_queries = np.asarray(queries, dtype=float) - problem.centre
@@ -194,16 +194,17 @@ def predict_local(
         return Prediction(mean=np.zeros(len(local_queries)), variance=prior, prior_variance=prior)
     system = expected_local_system(
         kernel, samples.means, samples.covariances, local_queries, level,
-        noise_variance + _JITTER, scan_ids=samples.scan_ids, pose_factors=samples.pose_factors)
+        noise_variance + JITTER, scan_ids=samples.scan_ids, pose_factors=samples.pose_factors,
+        backend=backend)
     chol = None
     if system is not None:
         k, k_cross, prior = system
         chol = try_cholesky(k)
     if chol is None:  # no compiled path, or the fallbacks of factor_training_covariance
-        chol = factor_training_covariance(kernel, noise_variance, samples, level)
+        chol = factor_training_covariance(kernel, noise_variance, samples, level, backend)
     if system is None:
         k_cross = expected_kernel_cross(
-            kernel, local_queries, samples.means, samples.covariances, level
+            kernel, local_queries, samples.means, samples.covariances, level, backend=backend
         )
         prior = kernel.diag(local_queries)
     alpha = cholesky_solve(chol, samples.labels)
@@ -216,10 +217,10 @@ def predict_local(
 
 
 def predict_full(kernel: Kernel, noise_variance: float, samples: SampleSet, queries: np.ndarray,
-                 level: int) -> Prediction:
+                 level: int, backend: str = "auto") -> Prediction:
     """The exact (non-local) GP prediction from every sample; the oracle for small problems."""
     problem = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(len(samples)))
-    return predict_local(kernel, noise_variance, problem, queries, level)
+    return predict_local(kernel, noise_variance, problem, queries, level, backend)
 
 
 def leave_one_out(chol: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

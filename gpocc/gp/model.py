@@ -112,6 +112,7 @@ def build_model(
         result: TrainingResult = learn_hyperparameters(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
+            backend=model_cfg.backend,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale)
@@ -144,13 +145,15 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
     patches = make_patches(samples, training, config.seed + 1)
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
-                                model_cfg.quadrature_level, training.classifier_holdout)
+                                model_cfg.quadrature_level, training.classifier_holdout,
+                                model_cfg.backend)
     if training.classifier_offset != "beams" or calibration is None or not calibration.usable:
         return classifier, "holdout", 0
     mean, variance, labels = beam_holdout_predictions(
         result.kernel, result.noise_variance, samples, calibration,
         model_cfg.quadrature_level, model_cfg.neighbours, model_cfg.block_size_m,
-        training.calibration_blocks, np.random.default_rng(config.seed + 2))
+        training.calibration_blocks, np.random.default_rng(config.seed + 2),
+        model_cfg.backend)
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0
     return (fit_offset(mean, variance, labels, classifier.extra_variance), "beams",

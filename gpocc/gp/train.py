@@ -22,6 +22,7 @@ from multiprocessing.pool import Pool
 import numpy as np
 
 from gpocc.config import TrainingConfig
+from gpocc.constants import JITTER
 from gpocc.errors import GpoccError
 from gpocc.gp.expected import (
     expected_kernel_matrix,
@@ -34,7 +35,6 @@ from gpocc.gp.local import LocalProblem, NeighbourIndex, cholesky_solve, try_cho
 from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
-_JITTER = 1e-8
 _LOG_2PI = math.log(2.0 * math.pi)
 #: Value of hyperparameters whose training covariance is not positive definite.
 _REJECTED = 1e10
@@ -105,7 +105,7 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
 
 def _patch_negative_log_likelihood(
     kernel: Kernel, noise: float, patch: LocalProblem, *, level: int, with_gradient: bool,
-    input_scale: float = 1.0, scale_gradient: bool = False,
+    input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
 ) -> tuple[float, np.ndarray | None] | None:
     """One patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
     in log g); None if K is not a covariance."""
@@ -114,14 +114,14 @@ def _patch_negative_log_likelihood(
         cov, dcov = expected_kernel_matrix(
             kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
             pose_factors=s.pose_factors, with_gradient=True, input_scale=input_scale,
-            with_scale_gradient=scale_gradient,
+            with_scale_gradient=scale_gradient, backend=backend,
         )
     else:
         cov = expected_kernel_matrix(
             kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, input_scale=input_scale,
+            pose_factors=s.pose_factors, input_scale=input_scale, backend=backend,
         )
-    cov[np.diag_indices_from(cov)] += noise + _JITTER
+    cov[np.diag_indices_from(cov)] += noise + JITTER
     chol = try_cholesky(cov, jitter=False)
     if chol is None:
         return None
@@ -194,7 +194,7 @@ def resident_patch_pool(patches: list[LocalProblem], workers: int, level: int):
 def negative_log_likelihood(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
     with_gradient: bool = True, executor: Executor | Pool | ResidentPatches | None = None,
-    input_scale: float = 1.0, scale_gradient: bool = False,
+    input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
 
@@ -206,11 +206,12 @@ def negative_log_likelihood(
     the result does not depend on it.
     ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1);
     ``scale_gradient`` (with gradients): the gradient gains d/dlog g.
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`).
     """
     # Partials of module-level functions, so that worker processes can receive them.
     arguments = (kernel.with_theta(params[:-1]), math.exp(params[-1]))
     options = {"level": level, "with_gradient": with_gradient, "input_scale": input_scale,
-               "scale_gradient": scale_gradient and with_gradient}
+               "scale_gradient": scale_gradient and with_gradient, "backend": backend}
     # One patch per task: patches differ in cost (3-12 ms), and Pool.map's default chunks of
     # two left one worker idle (gradient evaluations about 9% slower on 2 workers).
     if isinstance(executor, ResidentPatches):
@@ -241,6 +242,7 @@ def negative_log_likelihood(
 def negative_log_likelihood_with_scale(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
     with_gradient: bool = True, executor: Executor | Pool | ResidentPatches | None = None,
+    backend: str = "auto",
 ) -> tuple[float, np.ndarray]:
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
@@ -257,9 +259,9 @@ def negative_log_likelihood_with_scale(
         return negative_log_likelihood(params[:-1], kernel, patches, level,
                                        with_gradient=gradient, executor=executor,
                                        input_scale=math.exp(log_scale),
-                                       scale_gradient=scale_gradient)
+                                       scale_gradient=scale_gradient, backend=backend)
 
-    if with_gradient and supports_scale_gradient(kernel):
+    if with_gradient and supports_scale_gradient(kernel, backend):
         return at(log_g, True, scale_gradient=True)
     value, grad = at(log_g, with_gradient)
     if not with_gradient or value >= _REJECTED:
@@ -280,13 +282,14 @@ def learn_hyperparameters(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
-    workers: int | None = None,
+    workers: int | None = None, backend: str = "auto",
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
-    concurrently; the result does not depend on their number.
+    concurrently; the result does not depend on their number. ``backend``:
+    ``model.backend`` (:mod:`gpocc.gp.backends`).
     """
     patches = make_patches(samples, config, seed)
     # g only matters (and is only learned) when some input has a covariance.
@@ -301,7 +304,8 @@ def learn_hyperparameters(
         def negative_log_likelihood_counted(
             params: np.ndarray, *args: object, with_gradient: bool = True
         ) -> tuple[float, np.ndarray]:
-            result = objective(params, *args, with_gradient=with_gradient, executor=pool)
+            result = objective(params, *args, with_gradient=with_gradient, executor=pool,
+                               backend=backend)
             if on_evaluation is not None:
                 on_evaluation(1)
             return result

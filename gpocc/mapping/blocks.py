@@ -197,7 +197,8 @@ def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice
     queries = np.column_stack(window.cell_centres_at(*np.nonzero(wanted)))
     if problem is None:
         problem = anchor_problems(model, index, lattice, [anchor])[0]
-    pred = predict_local(model.kernel, model.noise_variance, problem, queries, model.level)
+    pred = predict_local(model.kernel, model.noise_variance, problem, queries, model.level,
+                         model.config.model.backend)
     layers = []
     for values in (pred.mean, pred.variance, pred.prior_variance):
         layer = np.zeros(shape)

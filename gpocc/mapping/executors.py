@@ -78,7 +78,8 @@ def warm_up(model: GPModel) -> None:
     index = _index_for(model)
     centre = model.samples.means[0]
     problem = index.problem(centre, model.config.model.neighbours)
-    predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level)
+    predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level,
+                  model.config.model.backend)
 
 
 def _compute_in_worker(lattice: AnchorLattice, chunk: list[Anchor]) -> list[AnchorResult]:
