@@ -353,7 +353,7 @@ def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarra
 def _check_scan_inputs(n: int, scan_ids: np.ndarray, pose_factors: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """``scan_ids`` (n,) as an array and ``pose_factors`` (n, 2, 3) as float64, or a
-    ValueError naming their shapes."""
+    ValueError naming their shapes or non-finite pose factors."""
     scan_ids = np.asarray(scan_ids)
     pose_factors = np.asarray(pose_factors, dtype=np.float64)
     if scan_ids.shape != (n,) or pose_factors.shape != (n, 2, 3):
@@ -361,7 +361,19 @@ def _check_scan_inputs(n: int, scan_ids: np.ndarray, pose_factors: np.ndarray
             f"scan_ids must have shape ({n},) and pose_factors ({n}, 2, 3), got "
             f"{scan_ids.shape} and {pose_factors.shape}"
         )
+    if not np.isfinite(pose_factors).all():
+        raise ValueError("pose_factors must be finite (found NaN or inf)")
     return scan_ids, pose_factors
+
+
+def _check_queries(queries: np.ndarray) -> np.ndarray:
+    """``queries`` (Q, 2) as finite float64, or a ValueError."""
+    queries = np.asarray(queries, dtype=np.float64)
+    if queries.ndim != 2 or queries.shape[1] != 2:
+        raise ValueError(f"queries must have shape (Q, 2), got {queries.shape}")
+    if not np.isfinite(queries).all():
+        raise ValueError("queries must be finite (found NaN or inf)")
+    return queries
 
 
 def same_scan_pairs(
@@ -536,9 +548,7 @@ def expected_kernel_cross(
         (Q, N), or ((Q, N), (P, Q, N)) with the gradient w.r.t. ``kernel.theta``.
     """
     means, covariances = _check_inputs(means, covariances)
-    queries = np.asarray(queries, dtype=np.float64)
-    if queries.ndim != 2 or queries.shape[1] != 2:
-        raise ValueError(f"queries must have shape (Q, 2), got {queries.shape}")
+    queries = _check_queries(queries)
     # The training matrix of the same problem has just expanded these points.
     backend = backends.get(backend)
     ex = _cached_expansion(means, covariances, level, backend)

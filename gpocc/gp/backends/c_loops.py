@@ -17,6 +17,7 @@ from gpocc.gp.expected import (
     POSE_SHARE_MIN,
     ZERO_VARIANCE_M2,
     _check_inputs,
+    _check_queries,
     _check_scan_inputs,
     _Expansion,
     _nparams,
@@ -123,7 +124,7 @@ class NeuralNetworkLoops(Quadrature):
             scan_ids, pose_factors = _check_scan_inputs(n, scan_ids, pose_factors)
         else:
             scan_ids, pose_factors = np.zeros(n, dtype=np.int64), np.zeros((n, 2, 3))
-        queries = np.asarray(queries, dtype=np.float64)
+        queries = _check_queries(queries)
         k = np.empty((n, n))
         cross = np.empty((queries.shape[0], n))
         prior = np.empty(queries.shape[0])
