@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from multiprocessing.pool import Pool
@@ -22,20 +22,15 @@ from multiprocessing.pool import Pool
 import numpy as np
 
 from gpocc.config import TrainingConfig
-from gpocc.constants import JITTER
 from gpocc.errors import GpoccError
-from gpocc.gp.expected import (
-    expected_kernel_matrix,
-    same_scan_pairs,
-    supports_scale_gradient,
-)
+from gpocc.gp import backends
+from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel
-from gpocc.gp.local import LocalProblem, NeighbourIndex, cholesky_solve, try_cholesky
+from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
-_LOG_2PI = math.log(2.0 * math.pi)
 #: Value of hyperparameters whose training covariance is not positive definite.
 _REJECTED = 1e10
 
@@ -104,40 +99,24 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
 
 
 def _patch_negative_log_likelihood(
-    kernel: Kernel, noise: float, patch: LocalProblem, *, level: int, with_gradient: bool,
-    input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
+    kernel: Kernel, noise: float, patch: LocalProblem, **options
 ) -> tuple[float, np.ndarray | None] | None:
-    """One patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
-    in log g); None if K is not a covariance."""
-    s = patch.samples
-    if with_gradient:
-        cov, dcov = expected_kernel_matrix(
-            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, with_gradient=True, input_scale=input_scale,
-            with_scale_gradient=scale_gradient, backend=backend,
-        )
-    else:
-        cov = expected_kernel_matrix(
-            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, input_scale=input_scale, backend=backend,
-        )
-    cov[np.diag_indices_from(cov)] += noise + JITTER
-    chol = try_cholesky(cov, jitter=False)
-    if chol is None:
-        return None
-    alpha = cholesky_solve(chol, s.labels)
-    value = 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
-    if not with_gradient:
-        return float(value), None
-    inner = cholesky_solve(chol, np.eye(len(s))) - np.outer(alpha, alpha)
-    nkernel = len(kernel.theta)
-    grad = np.empty(nkernel + (2 if scale_gradient else 1))
-    # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
-    grad[:nkernel] = 0.5 * np.einsum("ij,pij->p", inner, dcov[:nkernel])
-    grad[nkernel] = 0.5 * noise * np.trace(inner)
-    if scale_gradient:
-        grad[nkernel + 1] = 0.5 * np.einsum("ij,ij->", inner, dcov[nkernel])
-    return float(value), grad
+    """One patch's -LML and its gradient (:func:`_patch_negative_log_likelihoods`)."""
+    return next(_patch_negative_log_likelihoods(kernel, noise, [patch], **options))
+
+
+def _patch_negative_log_likelihoods(
+    kernel: Kernel, noise: float, patches: list[LocalProblem], *, level: int,
+    with_gradient: bool, input_scale: float = 1.0, scale_gradient: bool = False,
+    backend: str = "auto",
+) -> Iterator[tuple[float, np.ndarray | None] | None]:
+    """Each patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
+    in log g), or None where K is not a covariance, in patch order: one batch for the
+    backend (``KernelLoops.patch_likelihoods``)."""
+    chosen = backends.get(backend)
+    return chosen.loops(kernel).patch_likelihoods(
+        kernel, noise, [p.samples for p in patches], level, with_gradient=with_gradient,
+        input_scale=input_scale, scale_gradient=scale_gradient, backend=chosen)
 
 
 # The patches of a training worker process, installed once when its pool starts
@@ -227,7 +206,7 @@ def negative_log_likelihood(
     else:
         one = functools.partial(_patch_negative_log_likelihood, *arguments, **options)
         terms = (list(executor.map(one, patches, chunksize=1)) if executor is not None
-                 else map(one, patches))
+                 else _patch_negative_log_likelihoods(*arguments, patches, **options))
     value = 0.0
     grad = np.zeros(len(params) + (1 if scale_gradient else 0))
     for term in terms:

@@ -25,7 +25,7 @@ from gpocc.mapping.blocks import (
     AnchorLattice,
     AnchorResult,
     anchor_problems,
-    predict_anchor,
+    predict_anchors,
 )
 from gpocc.parallel import watched, worker_pool
 
@@ -55,9 +55,8 @@ def compute_chunk(model: GPModel, lattice: AnchorLattice,
     # (it walks the loaded libraries), a fifth of an anchor, so they skip it.
     limit = nullcontext() if _worker_state.get("single_threaded") else single_threaded_blas()
     with limit:
-        problems = anchor_problems(model, index, lattice, chunk)
-        return [predict_anchor(model, index, lattice, anchor, problem)
-                for anchor, problem in zip(chunk, problems, strict=True)]
+        return predict_anchors(model, lattice, chunk,
+                               anchor_problems(model, index, lattice, chunk))
 
 
 def _init_worker(model: GPModel) -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -24,6 +25,7 @@ import numpy as np
 if TYPE_CHECKING:
     from gpocc.gp.expected import _Expansion
     from gpocc.gp.kernels import Kernel
+    from gpocc.samples.sampleset import SampleSet
 
 #: backend name -> its module (``auto`` is not a module: the first of ``compiled``,
 #: ``numpy`` that loads).
@@ -38,7 +40,8 @@ _AUTO_ORDER = ("compiled", "numpy")
 
 
 class KernelLoops(Protocol):
-    """The expected kernels of one local problem for the kernels a backend serves.
+    """The expected kernels of local problems for the kernels a backend serves, one at a
+    time and in batches (a map's chunk of anchors, a learner's patches).
 
     Inputs are the problem's expansion (:class:`gpocc.gp.expected._Expansion`: every
     point's quadrature nodes and weights), its means (N, 2) metres, and preallocated
@@ -77,6 +80,22 @@ class KernelLoops(Protocol):
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """K + diagonal I, Kx and k(q, q) of one prediction in one pass, or None where
         the loops have no such pass (the caller makes the separate calls)."""
+        ...
+
+    def local_systems(self, kernel: Kernel, batch: Sequence[tuple[SampleSet, np.ndarray]],
+                      level: int, diagonal: float
+                      ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """:meth:`local_system` of a batch of local problems (samples with means centred,
+        and their centred (Q, 2) queries): a map's chunk of anchors."""
+        ...
+
+    def patch_likelihoods(self, kernel: Kernel, noise: float, patches: Sequence[SampleSet],
+                          level: int, *, with_gradient: bool, input_scale: float,
+                          scale_gradient: bool, backend: Backend
+                          ) -> Iterable[tuple[float, np.ndarray | None] | None]:
+        """Each training patch's -LML and its gradient in ``[kernel.theta..., log noise
+        (, log g)]`` (:func:`gpocc.gp.local.negative_log_likelihood`), or None where K is
+        not a covariance; in patch order, and a consumer may stop at the first None."""
         ...
 
 

@@ -9,6 +9,9 @@ quadrature applied to ``kernel.gradient`` (nodes never depend on the hyperparame
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from gpocc.gp.expected import (
@@ -22,6 +25,11 @@ from gpocc.gp.expected import (
     gauss_hermite,
 )
 from gpocc.gp.kernels import Kernel
+from gpocc.gp.local import negative_log_likelihood
+from gpocc.samples.sampleset import SampleSet
+
+if TYPE_CHECKING:
+    from gpocc.gp.backends import Backend
 
 
 class Quadrature:
@@ -102,6 +110,25 @@ class Quadrature:
                      scan_ids: np.ndarray | None, pose_factors: np.ndarray | None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         return None
+
+    # Batches: one problem after another here; a backend that gains from doing many at
+    # once (a GPU) overrides these.
+
+    def local_systems(self, kernel: Kernel, batch: Sequence[tuple[SampleSet, np.ndarray]],
+                      level: int, diagonal: float
+                      ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        return [self.local_system(kernel, s.means, s.covariances, queries, level, diagonal,
+                                  s.scan_ids, s.pose_factors) for s, queries in batch]
+
+    def patch_likelihoods(self, kernel: Kernel, noise: float, patches: Sequence[SampleSet],
+                          level: int, *, with_gradient: bool, input_scale: float,
+                          scale_gradient: bool, backend: Backend
+                          ) -> Iterator[tuple[float, np.ndarray | None] | None]:
+        # Lazily: the learner stops at the first patch whose K is not a covariance.
+        return (negative_log_likelihood(kernel, noise, s, level, with_gradient=with_gradient,
+                                        input_scale=input_scale,
+                                        scale_gradient=scale_gradient, backend=backend)
+                for s in patches)
 
 
 QUADRATURE = Quadrature()
