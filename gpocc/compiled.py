@@ -1,10 +1,13 @@
 """The compiled loops of ``gpocc/_kernels.c``, loaded with ctypes.
 
 ``pip install`` (``make install``) builds them as the extension ``gpocc._kernels``. ctypes
-releases the GIL for every call, so threads run them in parallel. Each wrapper checks
-what C cannot: dtypes, C order, shapes, and that output arrays are writable float64 in C
-order. Loading the library takes about a millisecond; numba, which they replace, cost
-0.5-0.9 s of every process's start (docs/benchmarks.md, session 14).
+releases the GIL for every call, so threads run them in parallel. Each loop is declared
+once, as a C prototype in :data:`DECLARATIONS` (a test checks it against the C file);
+the ctypes signature and a keyword-argument binding (:class:`_Function`) that checks
+every array's dtype, C order, writability and finiteness are made from it, and each
+wrapper below checks the shapes C indexes with. Loading the library takes about a
+millisecond; numba, which they replace, cost 0.5-0.9 s of every process's start
+(docs/benchmarks.md).
 """
 
 from __future__ import annotations
