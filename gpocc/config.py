@@ -227,6 +227,9 @@ class ModelConfig:
     1 blends bilinearly across whole blocks, so every cell is predicted by four local
     problems; smaller values predict a block's central (1 - o)^2 by its own problem
     alone, so each cell costs (1 + o)^2 problems on average instead of four.
+    ``backend``: where the expected kernels are computed (:mod:`gpocc.gp.backends`):
+    ``compiled`` (C loops for the kernels they serve, numpy for the others), ``numpy``
+    (the reference; slower) or ``auto`` (compiled where built).
     """
 
     kernel: str = "nn"
@@ -235,6 +238,7 @@ class ModelConfig:
     neighbours: int = 128
     block_size_m: float = 1.0
     blend_overlap: float = 1.0
+    backend: str = "auto"
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
 
@@ -500,10 +504,15 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'classify' needs 0 < free <= occupied < 1, got {c.free}, {c.occupied}"
         )
-    if config.model.kernel not in ("nn", "se"):
-        raise GpoccError(
-            f"{source}: key 'model.kernel' must be 'nn' or 'se', got {config.model.kernel!r}"
-        )
+    from gpocc.gp import backends  # gp.kernels imports this module: here, not on top
+    from gpocc.gp.kernels import KERNELS, kernel_names_text
+
+    if config.model.kernel not in KERNELS:
+        raise GpoccError(f"{source}: key 'model.kernel' must be {kernel_names_text()}, "
+                         f"got {config.model.kernel!r}")
+    if config.model.backend not in backends.NAMES:
+        raise GpoccError(f"{source}: key 'model.backend' must be one of "
+                         f"{', '.join(backends.NAMES)}, got {config.model.backend!r}")
     if config.map.epsg is not None:
         raise GpoccError(
             f"{source}: key 'map.epsg' is retired: a CRS code without the map frame's origin "

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpocc.constants import RESULTS_FILE
 from gpocc.errors import GpoccError
 from gpocc.evaluation.calibration import CALIBRATION_BINS, LOG_LOSS_CLIP
 from gpocc.evaluation.roc import RocResult, evaluate_scores
@@ -168,5 +169,5 @@ def write_outputs(
                 for r, p in zip(results, paths, strict=True)
             ],
         }
-        (tmp / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (tmp / RESULTS_FILE).write_text(json.dumps(summary, indent=2) + "\n")
         (tmp / "results.md").write_text(results_markdown(results, truth, n_occupied, n_free))

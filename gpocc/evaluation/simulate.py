@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gpocc.baselines.grid import ray_cells
+from gpocc.constants import NO_DATA
 from gpocc.errors import GpoccError
 from gpocc.evaluation.families import FAMILIES, family_seed
 from gpocc.evaluation.world import World, make_world
@@ -334,7 +335,7 @@ def region_truth(labels: np.ndarray, spec: GridSpec, quiet: tuple[RobotRun, ...]
         visited, hit = observed_cells(spec, run)
         seen |= visited | hit
     out = labels.copy()
-    out[seen] = 255
+    out[seen] = NO_DATA
     return out
 
 
@@ -436,7 +437,7 @@ def truth_raster(
         visited |= v
         hit |= h
     occupied = hit | (outline_cells(spec, world) & visited)
-    labels = np.full(spec.shape, 255, dtype=np.uint8)
+    labels = np.full(spec.shape, NO_DATA, dtype=np.uint8)
     labels[visited] = 0
     labels[occupied] = 1
     return labels, spec

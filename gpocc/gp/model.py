@@ -118,7 +118,7 @@ def build_model(
         result: TrainingResult = learn_hyperparameters(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
-            client=client,
+            backend=model_cfg.backend, client=client,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale)
@@ -154,13 +154,14 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     patches = make_patches(samples, training, config.seed + 1)
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
                                 model_cfg.quadrature_level, training.classifier_holdout,
-                                map_fn)
+                                model_cfg.backend, map_fn)
     if training.classifier_offset != "beams" or calibration is None or not calibration.usable:
         return classifier, "holdout", 0
     mean, variance, labels = beam_holdout_predictions(
         result.kernel, result.noise_variance, samples, calibration,
         model_cfg.quadrature_level, model_cfg.neighbours, model_cfg.block_size_m,
-        training.calibration_blocks, np.random.default_rng(config.seed + 2), map_fn)
+        training.calibration_blocks, np.random.default_rng(config.seed + 2),
+        model_cfg.backend, map_fn)
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0
     return (fit_offset(mean, variance, labels, classifier.extra_variance), "beams",

@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from multiprocessing.pool import Pool
@@ -24,19 +24,14 @@ import numpy as np
 
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
-from gpocc.gp.expected import (
-    expected_kernel_matrix,
-    same_scan_pairs,
-    supports_scale_gradient,
-)
+from gpocc.gp import backends
+from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel
-from gpocc.gp.local import LocalProblem, NeighbourIndex, cholesky_solve, try_cholesky
+from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
-_JITTER = 1e-8
-_LOG_2PI = math.log(2.0 * math.pi)
 #: Value of hyperparameters whose training covariance is not positive definite.
 _REJECTED = 1e10
 
@@ -105,40 +100,24 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
 
 
 def _patch_negative_log_likelihood(
-    kernel: Kernel, noise: float, patch: LocalProblem, *, level: int, with_gradient: bool,
-    input_scale: float = 1.0, scale_gradient: bool = False,
+    kernel: Kernel, noise: float, patch: LocalProblem, **options
 ) -> tuple[float, np.ndarray | None] | None:
-    """One patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
-    in log g); None if K is not a covariance."""
-    s = patch.samples
-    if with_gradient:
-        cov, dcov = expected_kernel_matrix(
-            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, with_gradient=True, input_scale=input_scale,
-            with_scale_gradient=scale_gradient,
-        )
-    else:
-        cov = expected_kernel_matrix(
-            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, input_scale=input_scale,
-        )
-    cov[np.diag_indices_from(cov)] += noise + _JITTER
-    chol = try_cholesky(cov, jitter=False)
-    if chol is None:
-        return None
-    alpha = cholesky_solve(chol, s.labels)
-    value = 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
-    if not with_gradient:
-        return float(value), None
-    inner = cholesky_solve(chol, np.eye(len(s))) - np.outer(alpha, alpha)
-    nkernel = len(kernel.theta)
-    grad = np.empty(nkernel + (2 if scale_gradient else 1))
-    # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
-    grad[:nkernel] = 0.5 * np.einsum("ij,pij->p", inner, dcov[:nkernel])
-    grad[nkernel] = 0.5 * noise * np.trace(inner)
-    if scale_gradient:
-        grad[nkernel + 1] = 0.5 * np.einsum("ij,ij->", inner, dcov[nkernel])
-    return float(value), grad
+    """One patch's -LML and its gradient (:func:`_patch_negative_log_likelihoods`)."""
+    return next(_patch_negative_log_likelihoods(kernel, noise, [patch], **options))
+
+
+def _patch_negative_log_likelihoods(
+    kernel: Kernel, noise: float, patches: list[LocalProblem], *, level: int,
+    with_gradient: bool, input_scale: float = 1.0, scale_gradient: bool = False,
+    backend: str = "auto",
+) -> Iterator[tuple[float, np.ndarray | None] | None]:
+    """Each patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
+    in log g), or None where K is not a covariance, in patch order: one batch for the
+    backend (``KernelLoops.patch_likelihoods``)."""
+    chosen = backends.get(backend)
+    return chosen.loops(kernel).patch_likelihoods(
+        kernel, noise, [p.samples for p in patches], level, with_gradient=with_gradient,
+        input_scale=input_scale, scale_gradient=scale_gradient, backend=chosen)
 
 
 # The patches of a training worker process, installed once when its pool starts
@@ -225,7 +204,7 @@ def negative_log_likelihood(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
     with_gradient: bool = True,
     executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
-    input_scale: float = 1.0, scale_gradient: bool = False,
+    input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
 
@@ -238,11 +217,12 @@ def negative_log_likelihood(
     the result does not depend on it.
     ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1);
     ``scale_gradient`` (with gradients): the gradient gains d/dlog g.
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`).
     """
     # Partials of module-level functions, so that worker processes can receive them.
     arguments = (kernel.with_theta(params[:-1]), math.exp(params[-1]))
     options = {"level": level, "with_gradient": with_gradient, "input_scale": input_scale,
-               "scale_gradient": scale_gradient and with_gradient}
+               "scale_gradient": scale_gradient and with_gradient, "backend": backend}
     # One patch per task: patches differ in cost (3-12 ms), and Pool.map's default chunks of
     # two left one worker idle (gradient evaluations about 9% slower on 2 workers).
     if isinstance(executor, ResidentPatches | ClusterPatches):
@@ -264,7 +244,7 @@ def negative_log_likelihood(
     else:
         one = functools.partial(_patch_negative_log_likelihood, *arguments, **options)
         terms = (list(executor.map(one, patches, chunksize=1)) if executor is not None
-                 else map(one, patches))
+                 else _patch_negative_log_likelihoods(*arguments, patches, **options))
     value = 0.0
     grad = np.zeros(len(params) + (1 if scale_gradient else 0))
     for term in terms:
@@ -280,6 +260,7 @@ def negative_log_likelihood_with_scale(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
     with_gradient: bool = True,
     executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
+    backend: str = "auto",
 ) -> tuple[float, np.ndarray]:
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
@@ -296,9 +277,9 @@ def negative_log_likelihood_with_scale(
         return negative_log_likelihood(params[:-1], kernel, patches, level,
                                        with_gradient=gradient, executor=executor,
                                        input_scale=math.exp(log_scale),
-                                       scale_gradient=scale_gradient)
+                                       scale_gradient=scale_gradient, backend=backend)
 
-    if with_gradient and supports_scale_gradient(kernel):
+    if with_gradient and supports_scale_gradient(kernel, backend):
         return at(log_g, True, scale_gradient=True)
     value, grad = at(log_g, with_gradient)
     if not with_gradient or value >= _REJECTED:
@@ -319,7 +300,7 @@ def learn_hyperparameters(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
-    workers: int | None = None, client: Any = None,
+    workers: int | None = None, backend: str = "auto", client: Any = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
@@ -327,7 +308,8 @@ def learn_hyperparameters(
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
     concurrently, or the workers of the Dask cluster of ``client`` (a
     ``distributed.Client``, :func:`gpocc.parallel.dask_client`); the result does not
-    depend on which, nor on their number.
+    depend on which, nor on their number. ``backend``: ``model.backend``
+    (:mod:`gpocc.gp.backends`).
     """
     patches = make_patches(samples, config, seed)
     # g only matters (and is only learned) when some input has a covariance.
@@ -347,7 +329,8 @@ def learn_hyperparameters(
         def negative_log_likelihood_counted(
             params: np.ndarray, *args: object, with_gradient: bool = True
         ) -> tuple[float, np.ndarray]:
-            result = objective(params, *args, with_gradient=with_gradient, executor=pool)
+            result = objective(params, *args, with_gradient=with_gradient, executor=pool,
+                               backend=backend)
             if on_evaluation is not None:
                 on_evaluation(1)
             return result

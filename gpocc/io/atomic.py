@@ -33,13 +33,12 @@ import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from gpocc.constants import FOLDER_MARKERS
 from gpocc.errors import GpoccError
 
 _CLAIM = ".gpocc-claim"
 _TMP = ".gpocc-tmp-"
 _OLD = ".gpocc-old-"
-#: Folder outputs are recognised by one of these JSON files (see is_gpocc_output).
-_FOLDER_MARKERS = ("metadata.json", "simulation.json", "results.json")
 _SPLIT_HEADER = "# Written by gpocc split"
 
 # Claims this process holds: absolute target -> (claim file, open descriptor).
@@ -187,7 +186,7 @@ def _is_gpocc_folder(path: Path) -> bool:
         return False
     if not entries:
         return True  # nothing of the user's to lose
-    for name in _FOLDER_MARKERS:
+    for name in FOLDER_MARKERS:  # a folder output holds one (see is_gpocc_output)
         try:
             meta = json.loads((path / name).read_text())
         except (OSError, ValueError):

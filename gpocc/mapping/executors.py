@@ -24,7 +24,7 @@ from gpocc.mapping.blocks import (
     AnchorLattice,
     AnchorResult,
     anchor_problems,
-    predict_anchor,
+    predict_anchors,
 )
 from gpocc.parallel import dask_client, watched, worker_pool
 
@@ -54,9 +54,8 @@ def compute_chunk(model: GPModel, lattice: AnchorLattice,
     # (it walks the loaded libraries), a fifth of an anchor, so they skip it.
     limit = nullcontext() if _worker_state.get("single_threaded") else single_threaded_blas()
     with limit:
-        problems = anchor_problems(model, index, lattice, chunk)
-        return [predict_anchor(model, index, lattice, anchor, problem)
-                for anchor, problem in zip(chunk, problems, strict=True)]
+        return predict_anchors(model, lattice, chunk,
+                               anchor_problems(model, index, lattice, chunk))
 
 
 def _init_worker(model: GPModel) -> None:
@@ -77,7 +76,8 @@ def warm_up(model: GPModel) -> None:
     index = _index_for(model)
     centre = model.samples.means[0]
     problem = index.problem(centre, model.config.model.neighbours)
-    predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level)
+    predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level,
+                  model.config.model.backend)
 
 
 def _compute_in_worker(lattice: AnchorLattice, chunk: list[Anchor]) -> list[AnchorResult]:
