@@ -11,6 +11,7 @@ import typer
 
 from gpocc.commands.options import ConfigFile, Force, InputNoise, Inputs, Seed, Switch
 from gpocc.config import Config, load_config
+from gpocc.gp.bounds import values_on_bounds
 from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
@@ -82,6 +83,8 @@ def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
                             on_evaluation=advance, coverage=coverage,
                             calibration=calibration)
     learn_s = time.perf_counter() - started - read_s - samples_s
+    for on_bound in values_on_bounds(model):
+        log(f"warning: {on_bound.message()}: the fit stopped at the bound, not at an optimum")
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
     return dataclasses.replace(model, training={**model.training, "timings_s": timings})
