@@ -401,6 +401,7 @@ def page(run: dict) -> str:
     """docs/results.md from a run's summary (:func:`main` writes it as JSON too)."""
     cases, st = run["cases"], run["stamp"]
     quick = run["quick"]
+    work = run["work"].replace(str(ROOT) + "/", "")
     lines = [
         "# Accuracy results",
         "",
@@ -426,7 +427,7 @@ def page(run: dict) -> str:
         "'.[bench]'`, pyoctomap); without it they are left out"
         + (" (left out in this run)." if "octomap" not in _methods(cases) else "."),
         "Every gpocc command the run made is listed at the end of this page (paths under "
-        f"`{run['work']}`); the steps that are not gpocc commands (the real logs' perturbed "
+        f"`{work}`); the steps that are not gpocc commands (the real logs' perturbed "
         "poses, the noisy-only truth, the OctoMap rows, the loop-closure figure) are library "
         "calls in bench/experiment.py, bench/octomap_map.py and bench/loop_closure.py.",
         "",
