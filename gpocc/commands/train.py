@@ -21,6 +21,7 @@ from gpocc.commands.options import (
     scheduler_errors,
 )
 from gpocc.config import Config, load_config
+from gpocc.gp.bounds import values_on_bounds
 from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
@@ -98,6 +99,8 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
                             on_evaluation=advance, coverage=coverage,
                             calibration=calibration, client=client)
     learn_s = time.perf_counter() - started - read_s - samples_s
+    for on_bound in values_on_bounds(model):
+        log(f"warning: {on_bound.message()}: the fit stopped at the bound, not at an optimum")
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
     # The scans' time span: a map of this model is stamped with the last scan's time.

@@ -346,6 +346,25 @@ def load_optimiser() -> None:
     import scipy.optimize  # noqa: F401
 
 
+def search_bounds(theta: np.ndarray, noise_variance: float, config: TrainingConfig,
+                  learn_scale: bool) -> list[tuple[float, float]]:
+    """The optimiser's box in its parameters (all natural logs): the kernel's ``theta``
+    and the label-noise variance each within ``log_bounds_width`` of their initial
+    values, the noise kept at or above ``min_noise_variance`` (its box at least one unit
+    wide), then log g in ``[min_input_noise_scale, max_input_noise_scale]`` when
+    ``learn_scale``. :mod:`gpocc.gp.bounds` checks learned values against the same box."""
+    width = config.log_bounds_width
+    x0 = [*np.asarray(theta, dtype=float), math.log(noise_variance)]
+    bounds = [(v - width, v + width) for v in x0]
+    floor = math.log(config.min_noise_variance)
+    lo, hi = bounds[-1]
+    bounds[-1] = (max(lo, floor), max(hi, floor + 1.0))
+    if learn_scale:
+        bounds.append((math.log(config.min_input_noise_scale),
+                       math.log(config.max_input_noise_scale)))
+    return bounds
+
+
 def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem], level: int,
               config: TrainingConfig, seed: int,
               negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
@@ -363,13 +382,7 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     if not config.learn:
         return TrainingResult(kernel, noise_variance, -initial, -initial, evaluations,
                               (len(patches), len(patches[0].samples)))
-    width = config.log_bounds_width
-    bounds = [(v - width, v + width) for v in x0]
-    floor = math.log(config.min_noise_variance)
-    bounds[noise_at] = (max(bounds[noise_at][0], floor), max(bounds[noise_at][1], floor + 1.0))
-    if learn_scale:
-        bounds[-1] = (math.log(config.min_input_noise_scale),
-                      math.log(config.max_input_noise_scale))
+    bounds = search_bounds(kernel.theta, noise_variance, config, learn_scale)
     start = min(max(x0[noise_at], bounds[noise_at][0]), bounds[noise_at][1])
 
     def value_only(p: np.ndarray) -> float:
