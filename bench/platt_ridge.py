@@ -20,7 +20,6 @@ from scipy.optimize import minimize
 from scipy.special import log_ndtr
 
 from gpocc.blas import single_threaded_blas
-from gpocc.gp import expected
 from gpocc.gp.classify import (
     PlattClassifier,
     fit_platt,
@@ -50,10 +49,9 @@ def main() -> None:
     fits, predictions = {}, {}
     with single_threaded_blas():
         for fused in (False, True):
-            expected.USE_FUSED = fused
             predictions[fused] = holdout_predictions(
                 model.kernel, model.noise_variance, patches, cfg.model.quadrature_level,
-                cfg.model.training.classifier_holdout)
+                cfg.model.training.classifier_holdout, "compiled" if fused else "numpy")
             fits[("(a, b)", fused)] = fit_ab(*predictions[fused])
             fits[("(c, s)", fused)] = fit_platt(*predictions[fused])
     mu, var, y = predictions[True]

@@ -16,6 +16,7 @@ from gpocc.gp.update import model_growth, update_config, update_model
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.io.records import check_new_inputs, content_hash, input_records
+from gpocc.io.scans import scan_stamps
 from gpocc.progress import log, progress_bar
 
 
@@ -59,6 +60,7 @@ def update(
     grown = dataclasses.replace(grown, training={
         **grown.training,
         "timings_s": {"read": round(read_s, 3), **grown.training["timings_s"]},
+        "scan_stamps_s": _span(model.training.get("scan_stamps_s"), scan_stamps(batches)),
         "updates": [*model.training.get("updates", []),
                     {"inputs": [str(p) for p in inputs],
                      "hyperparameters": grown.training["hyperparameters"]}]})
@@ -69,3 +71,14 @@ def update(
                f"hyperparameters {grown.training['hyperparameters']}")
     echo_model(grown, out, time.perf_counter() - started)
 
+
+
+def _span(old: object, new: tuple[float | None, float | None]) -> list[float | None]:
+    """The (first, last) scan stamps of the model's scans and the new ones'; the new
+    ones' alone when the model did not record its own."""
+    if not (isinstance(old, list) and len(old) == 2
+            and all(isinstance(v, int | float) for v in old)):
+        return list(new)
+    if new[0] is None or new[1] is None:
+        return [float(old[0]), float(old[1])]
+    return [min(float(old[0]), new[0]), max(float(old[1]), new[1])]

@@ -177,7 +177,8 @@ def kept_fit(model: GPModel, samples: SampleSet, config: Config) -> tuple[float,
         values = [
             -negative_log_likelihood(
                 np.append(kernel.theta, math.log(noise)), kernel, patches,
-                model_cfg.quadrature_level, with_gradient=False, input_scale=scale)[0]
+                model_cfg.quadrature_level, with_gradient=False, input_scale=scale,
+                backend=model_cfg.backend)[0]
             for kernel, noise, scale in (
                 (model.kernel, model.noise_variance, model.input_noise_scale),
                 (initial, model_cfg.hyperparameters.noise_variance, 1.0))]
