@@ -53,12 +53,16 @@ def cut_log(log: Path, share: float, first: Path, second: Path) -> None:
     second.write_text("".join(lines[at:]))
 
 
-def score(work: Path, model: Path, truth: Path, name: str) -> dict:
+def score(work: Path, model: Path, truth: Path, name: str) -> dict[str, dict]:
+    """AUC and Brier of the model's map at 0.1 m per evaluation protocol (held-out hits
+    with free points along beams, with near-wall free points, and all points)."""
     run("map", str(model), "--resolution", "0.1", "--workers", "2",
         "--out", str(work / f"map-{name}"))
     run("evaluate", str(work / f"map-{name}"), "--ground-truth", str(truth),
         "--out", str(work / f"eval-{name}"))
-    return json.loads((work / f"eval-{name}" / "results.json").read_text())["maps"][0]
+    results = json.loads((work / f"eval-{name}" / "results.json").read_text())
+    return {p["name"]: {"auc": p["maps"][0]["auc"], "brier": p["maps"][0]["brier"]}
+            for p in results.get("protocols", [{"name": "all", "maps": results["maps"]}])}
 
 
 def case(work: Path, log: Path, share: float, repeats: int, every: int = 10) -> dict:
@@ -95,8 +99,10 @@ def case(work: Path, log: Path, share: float, repeats: int, every: int = 10) -> 
             "update_cpu_s": med["update"][1], "train_cpu_s": med["train"][1],
             "wall_ratio": med["update"][0] / med["train"][0],
             "cpu_ratio": med["update"][1] / med["train"][1],
-            "auc_update": updated["auc"], "auc_train": trained["auc"],
-            "brier_update": updated["brier"], "brier_train": trained["brier"]}
+            "scores": {name: {"auc_update": updated[name]["auc"],
+                              "auc_train": trained[name]["auc"],
+                              "brier_update": updated[name]["brier"],
+                              "brier_train": trained[name]["brier"]} for name in updated}}
 
 
 def main() -> None:
@@ -111,9 +117,9 @@ def main() -> None:
                         help="folder of the CARMEN logs (default: ../shared/data/carmen)")
     args = parser.parse_args()
     rows = []
-    print("| log | cut | update wall s | train A B wall s | wall ratio | CPU ratio | "
-          "AUC update / train | Brier update / train |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| log | cut | every | update wall s | train A B wall s | wall ratio | CPU ratio | "
+          "protocol | AUC update / train | Brier update / train |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.logs:
         log = args.data / name
         if not log.is_file():
@@ -122,12 +128,15 @@ def main() -> None:
             with tempfile.TemporaryDirectory(prefix="gpocc-update-") as tmp:
                 r = case(Path(tmp), log, share, args.repeats, args.every)
             rows.append(r)
-            print(f"| {name} | {share:g} | {r['update_wall_s']:.2f} | {r['train_wall_s']:.2f} "
-                  f"| {r['wall_ratio']:.2f} | {r['cpu_ratio']:.2f} | {r['auc_update']:.4f} / "
-                  f"{r['auc_train']:.4f} | {r['brier_update']:.4f} / {r['brier_train']:.4f} |",
-                  flush=True)
-    worst_auc = max(abs(r["auc_update"] - r["auc_train"]) for r in rows)
-    worst_brier = max(abs(r["brier_update"] - r["brier_train"]) for r in rows)
+            for i, (protocol, s) in enumerate(r["scores"].items()):
+                head = (f"| {name} | {share:g} | {args.every} | {r['update_wall_s']:.2f} | "
+                        f"{r['train_wall_s']:.2f} | {r['wall_ratio']:.2f} | "
+                        f"{r['cpu_ratio']:.2f} |" if i == 0 else "| | | | | | | |")
+                print(f"{head} {protocol} | {s['auc_update']:.4f} / {s['auc_train']:.4f} | "
+                      f"{s['brier_update']:.4f} / {s['brier_train']:.4f} |", flush=True)
+    scores = [s for r in rows for s in r["scores"].values()]
+    worst_auc = max(abs(s["auc_update"] - s["auc_train"]) for s in scores)
+    worst_brier = max(abs(s["brier_update"] - s["brier_train"]) for s in scores)
     print(f"\nlargest |AUC difference| {worst_auc:.4f}, |Brier difference| {worst_brier:.4f} "
           f"(target: at most 0.002); largest wall ratio "
           f"{max(r['wall_ratio'] for r in rows):.2f} (target: at most 0.75)")
