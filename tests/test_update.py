@@ -359,3 +359,24 @@ def test_kept_hyperparameters_worse_than_the_initial_values_are_learned_again(lo
     gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "k.npz"))
     kept = load_model(tmp_path / "k.npz")
     assert kept.kernel == model.kernel and kept.training["hyperparameters"] == "kept"
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda meta, arrays: meta["growth"].update(n_scans=3), "n_scans is 3"),
+    (lambda meta, arrays: arrays.pop("vote_counts"), "lacks the arrays ['vote_counts']"),
+    (lambda meta, arrays: arrays.update(vote_counts=-arrays["vote_counts"]), "label votes"),
+    (lambda meta, arrays: meta["growth"]["inputs"].append({"scans": 1}), "has no path"),
+    (lambda meta, arrays: meta.pop("growth"), "growth arrays without their record"),
+])
+def test_a_damaged_update_state_is_one_error_line(logs, tmp_path, edit, words):
+    train_a(logs, tmp_path)
+    arrays, meta = read_model_file(tmp_path / "a.npz")
+    arrays.pop("metadata")
+    edit(meta, arrays)
+    write_model_file(tmp_path / "bad.npz", arrays, meta)
+    result = runner.invoke(app, ["update", str(tmp_path / "bad.npz"), str(logs["b"]),
+                                 "--out", str(tmp_path / "new.npz")])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and "re-create it" in lines[0], lines
+    assert not (tmp_path / "new.npz").exists()
