@@ -380,3 +380,19 @@ def test_a_damaged_update_state_is_one_error_line(logs, tmp_path, edit, words):
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and words in lines[0] and "re-create it" in lines[0], lines
     assert not (tmp_path / "new.npz").exists()
+
+
+def test_calibration_points_of_beams_offsets_join(logs, tmp_path):
+    """``classifier_offset: beams``: the held-out scans of every log calibrate the
+    refitted classifier, numbered like the samples' scans."""
+    (tmp_path / "beams.yaml").write_text(CONFIG.replace(
+        "  training: {", "  training: {classifier_offset: beams, calibration_every: 3, "))
+    gpocc("train", str(logs["a"]), "--config", str(tmp_path / "beams.yaml"),
+          "--out", str(tmp_path / "a.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "ab.npz"))
+    a, ab = load_model(tmp_path / "a.npz"), load_model(tmp_path / "ab.npz")
+    held = np.unique(ab.growth.calibration.scan_ids)
+    # Every 3rd scan of each log (index % 3 == 2): A's 14 scans, then B's 10 after them.
+    np.testing.assert_array_equal(held, [2, 5, 8, 11, 14 + 2, 14 + 5, 14 + 8])
+    assert len(ab.growth.calibration.points) > len(a.growth.calibration.points)
+    assert ab.training["classifier_offset"] == "beams"
