@@ -396,3 +396,18 @@ def test_calibration_points_of_beams_offsets_join(logs, tmp_path):
     np.testing.assert_array_equal(held, [2, 5, 8, 11, 14 + 2, 14 + 5, 14 + 8])
     assert len(ab.growth.calibration.points) > len(a.growth.calibration.points)
     assert ab.training["classifier_offset"] == "beams"
+
+
+def test_split_of_a_moved_recording_writes_poses_in_the_job_frame(tmp_path):
+    frame = TransformConfig(x_m=2.0, y_m=-1.5, yaw_deg=35.0)
+    other = write_log(tmp_path / "room_o.log", 12, door_closed=True, frame=frame)
+    (tmp_path / "job.yaml").write_text(
+        "inputs: [{path: '*', transform: {x_m: 2.0, y_m: -1.5, yaw_deg: 35.0}}]\n")
+    gpocc("split", str(other), "--every", "4", "--config", str(tmp_path / "job.yaml"),
+          "--out", str(tmp_path / "held"))
+    cfg = load_config(tmp_path / "held" / "train.yaml")
+    assert cfg.inputs == ()
+    moved, = read_inputs([tmp_path / "held" / "train.mcap"], cfg)
+    world, = read_inputs([write_log(tmp_path / "room_w.log", 12, door_closed=True)], Config())
+    kept = np.flatnonzero(np.arange(12) % 4 != 3)
+    np.testing.assert_allclose(moved.poses[:, :2], world.poses[kept, :2], atol=1e-5)
