@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import cg, spsolve
 from scipy.special import expit
 
 from gpocc.config import BHMConfig, Config
@@ -54,6 +54,10 @@ CHUNK_POINTS = 2_000_000
 
 #: Training points or map cells whose features are built in one step.
 FEATURE_CHUNK = 100_000
+
+#: Relative residual and iteration cap of the conjugate gradients of the coupled E-step.
+CG_RTOL = 1e-7
+CG_MAXITER = 10_000
 
 #: Cell indices of counted training points stay below this (keys must fit in int64).
 _MAX_CELL_INDEX = 2**29
@@ -290,15 +294,17 @@ def jj_lambda(xi: np.ndarray) -> np.ndarray:
 
 
 def e_step(phi: sp.csr_matrix, phi2: sp.csr_matrix, labels: np.ndarray, weights: np.ndarray,
-           xi: np.ndarray, prior_precision: float, coupled: bool = True
-           ) -> tuple[np.ndarray, np.ndarray]:
+           xi: np.ndarray, prior_precision: float, coupled: bool = True,
+           start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The factorised posterior (means (M+1,), variances (M+1,)) for fixed ``xi`` (N,).
 
     With ``A = p0 I + 2 Phi^T diag(c lambda(xi)) Phi`` and ``b = Phi^T (c y / 2)`` (point
     weights ``c``, labels ``y = +-1``, so ``y / 2 = t - 1/2`` for ``t`` in {0, 1}), the
     bound is ``-m^T A m / 2 + b^T m - sum_d A_dd s_d / 2 + sum_d log(s_d) / 2`` plus
     terms free of ``q``; its maximiser over factorised Gaussians has ``s_d = 1 / A_dd``
-    and ``A m = b`` (``coupled``: solved with a sparse LU). Not ``coupled``: the paper's
+    and ``A m = b`` (``coupled``: conjugate gradients preconditioned by ``diag(A)``, from
+    ``start``, to a relative residual of ``CG_RTOL``; a sparse LU if that fails). Not
+    ``coupled``: the paper's
     diagonal shortcut ``m_d = b_d / A_dd``, which treats every weight as if it alone
     explained its points; exact when no two features overlap, overconfident when they
     do. ``phi2`` is ``phi`` squared elementwise.
@@ -308,9 +314,13 @@ def e_step(phi: sp.csr_matrix, phi2: sp.csr_matrix, labels: np.ndarray, weights:
     b = phi.T @ (weights * labels * 0.5)
     if not coupled:
         return b / diag, 1.0 / diag
-    a = (phi.T @ sp.diags(2.0 * cl) @ phi).tocsc()
-    a = a + prior_precision * sp.identity(a.shape[0], format="csc")
-    return np.asarray(spsolve(a, b), dtype=float), 1.0 / diag
+    a = phi.T.tocsr().multiply(2.0 * cl) @ phi
+    a = (a + prior_precision * sp.identity(a.shape[0], format="csr")).tocsr()
+    mean, info = cg(a, b, x0=start, rtol=CG_RTOL, maxiter=CG_MAXITER,
+                    M=sp.diags(1.0 / diag))
+    if info != 0:
+        mean = spsolve(a.tocsc(), b)
+    return np.asarray(mean, dtype=float), 1.0 / diag
 
 
 def m_step(phi: sp.csr_matrix, phi2: sp.csr_matrix, mean: np.ndarray,
@@ -353,7 +363,8 @@ def variational_em(phi: sp.csr_matrix, labels: np.ndarray, weights: np.ndarray,
     xi = m_step(phi, phi2, mean, variance)
     bounds = []
     for it in range(iterations):
-        mean, variance = e_step(phi, phi2, labels, weights, xi, prior_precision, coupled)
+        mean, variance = e_step(phi, phi2, labels, weights, xi, prior_precision, coupled,
+                                start=mean)
         bounds.append(evidence_bound(phi, phi2, labels, weights, mean, variance, xi,
                                      prior_precision))
         if it < iterations - 1:
