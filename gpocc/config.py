@@ -322,10 +322,13 @@ class BHMConfig:
     The weights' prior is N(0, 1 / prior_precision) each; ``em_iterations`` EM passes of
     the variational (Jaakkola-Jordan) update; ``mean_update``: ``coupled`` (the
     factorised posterior's exact means, default) or ``diagonal`` (the paper's per-weight
-    shortcut, overconfident where features overlap: held-out AUC 0.52 on Intel). Defaults
-    were tuned lightly on one held-out real log only (Intel, every 10th scan held out):
-    0.25 m and gamma 25 gave AUC 0.994, Brier 0.034 at the held-out points, against
-    0.981 and 0.065 at 0.5 m and gamma 6; 10 EM passes against 3 gained 0.004 in AUC.
+    shortcut, overconfident where features overlap: held-out AUC 0.50 on Intel). Defaults
+    were tuned lightly on one held-out real log only (Intel, every 10th scan held out,
+    predicted at the held-out points): 0.25 m and gamma 25 gave AUC 0.994, Brier 0.034,
+    against 0.981 and 0.065 at 0.5 m and gamma 6; 10 EM passes against 3 gained 0.004
+    in AUC, 20 another 0.0004. Prior precision 0.01 had the higher evidence bound and
+    scored better at the points (AUC 0.995, Brier 0.031) but worse on the 0.1 m map
+    `gpocc evaluate` reads (Brier 0.051 against 0.047) and fitted twice as slowly.
     """
 
     inducing_spacing_m: float = 0.25

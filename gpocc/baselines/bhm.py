@@ -56,7 +56,7 @@ CHUNK_POINTS = 2_000_000
 FEATURE_CHUNK = 100_000
 
 #: Relative residual and iteration cap of the conjugate gradients of the coupled E-step.
-CG_RTOL = 1e-7
+CG_RTOL = 1e-5
 CG_MAXITER = 10_000
 
 #: Cell indices of counted training points stay below this (keys must fit in int64).
