@@ -595,7 +595,7 @@ def _validate(config: Config, source: str) -> Config:
 
 
 #: Most inducing points one training point or map cell may see (features are local).
-_MAX_BHM_NEIGHBOURS = 4096
+_MAX_BHM_NEIGHBOURS = 441
 
 
 def _validate_bhm(b: BHMConfig, source: str) -> None:

@@ -55,6 +55,10 @@ CHUNK_POINTS = 2_000_000
 #: Training points or map cells whose features are built in one step.
 FEATURE_CHUNK = 100_000
 
+#: (point, candidate inducing point) pairs examined in one step (bounds temporaries to
+#: about 30 MB each).
+FEATURE_PAIRS = 4_000_000
+
 #: Relative residual and iteration cap of the conjugate gradients of the coupled E-step.
 CG_RTOL = 1e-5
 CG_MAXITER = 10_000
@@ -261,8 +265,9 @@ def features(points: np.ndarray, grid: InducingGrid, gamma: float) -> sp.csr_mat
     oi, oj = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1))
     oi, oj = oi.ravel(), oj.ravel()
     blocks = []
-    for lo in range(0, max(len(pts), 1), FEATURE_CHUNK):
-        p = pts[lo:lo + FEATURE_CHUNK]
+    step = max(1, min(FEATURE_CHUNK, FEATURE_PAIRS // oi.size))
+    for lo in range(0, max(len(pts), 1), step):
+        p = pts[lo:lo + step]
         ci = np.rint((p[:, 0] - grid.x0) / grid.spacing).astype(np.int64)
         cj = np.rint((p[:, 1] - grid.y0) / grid.spacing).astype(np.int64)
         i = ci[:, None] + oi[None, :]
