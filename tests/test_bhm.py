@@ -328,3 +328,18 @@ def test_the_paper_diagonal_update_is_exact_for_disjoint_features():
     np.testing.assert_allclose(a.mean, b.mean, rtol=10 * bhm.CG_RTOL)
     np.testing.assert_allclose(a.bounds, b.bounds, rtol=1e-8)
     assert list(itertools.accumulate(b.bounds, max)) == pytest.approx(list(b.bounds))
+
+
+def test_bhm_command_is_deterministic(tmp_path: Path):
+    rasterio = pytest.importorskip("rasterio")
+    bag = _write_room_bag(tmp_path)
+    layers = []
+    for name in ("a", "b"):
+        result = CliRunner().invoke(app, ["bhm", str(bag), "--resolution", "0.2", "--out",
+                                          str(tmp_path / name)])
+        assert result.exit_code == 0, result.output
+        with rasterio.open(tmp_path / name / "probability.tif") as p, \
+                rasterio.open(tmp_path / name / "variance.tif") as v:
+            layers.append((p.read(1), v.read(1)))
+    for first, second in zip(*layers, strict=True):
+        np.testing.assert_array_equal(first, second)
