@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 from gpocc.baselines import bhm
 from gpocc.cli import app
 from gpocc.config import BHMConfig, Config, SamplesConfig, SensorConfig
+from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 
 ROOM = (-3.02, -2.47, 3.13, 2.58)  # x_min, y_min, x_max, y_max metres
@@ -115,7 +116,7 @@ def test_em_raises_a_lower_bound_of_the_exact_evidence_with_overlapping_features
     weights = np.ones(40)
     p0 = 0.5
     post = bhm.variational_em(phi, labels, weights, p0, 15)
-    log_z, mean, _ = exact_posterior(phi.toarray(), labels, weights, p0, 12.0, 121)
+    log_z, mean, _ = exact_posterior(phi.toarray(), labels, weights, p0, 10.0, 61)
     assert np.all(post.bounds <= log_z)
     assert np.all(np.diff(post.bounds) >= -1e-7)  # EM never lowers the bound
     assert post.bounds[-1] - post.bounds[0] > 1e-3  # and EM did move it
@@ -343,3 +344,20 @@ def test_bhm_command_is_deterministic(tmp_path: Path):
             layers.append((p.read(1), v.read(1)))
     for first, second in zip(*layers, strict=True):
         np.testing.assert_array_equal(first, second)
+
+
+def test_bhm_command_bad_input_is_one_line(tmp_path: Path):
+    bad = tmp_path / "broken.mcap"
+    bad.write_bytes(b"\x00not a bag" * 10)
+    result = CliRunner().invoke(app, ["bhm", str(bad), "--out", str(tmp_path / "b")])
+    assert result.exit_code == 2
+    lines = [ln for ln in result.stderr.splitlines() if ln.startswith("gpocc bhm: error")]
+    assert len(lines) == 1 and "broken.mcap" in lines[0]
+    assert "Traceback" not in result.output and not (tmp_path / "b").exists()
+
+
+def test_no_usable_beam_is_an_error():
+    batch = room_batch(3, n_scans=2, n_beams=10)
+    batch = dataclasses.replace(batch, ranges=np.full_like(batch.ranges, np.nan))
+    with pytest.raises(GpoccError, match="no usable beam"):
+        bhm.training_points([batch], Config())
