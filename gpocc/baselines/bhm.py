@@ -44,6 +44,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import cg, spsolve
 from scipy.special import expit
 
+from gpocc.blas import single_threaded_blas
 from gpocc.config import BHMConfig, Config
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
@@ -387,8 +388,11 @@ def fit_bhm(points: TrainingPoints, cfg: BHMConfig) -> BHMModel:
         raise GpoccError("no training points to fit the Bayesian Hilbert map to")
     grid = inducing_grid(points.points, cfg.inducing_spacing_m, cfg.gamma)
     phi = features(points.points, grid, cfg.gamma)
-    posterior = variational_em(phi, points.labels, points.weights, cfg.prior_precision,
-                               cfg.em_iterations, cfg.mean_update == "coupled")
+    # The conjugate gradients' vectors hold one entry per weight (tens of thousands):
+    # BLAS threads only wake and wait there (on Intel, 4 of 7 s with them; gpocc.blas).
+    with single_threaded_blas():
+        posterior = variational_em(phi, points.labels, points.weights, cfg.prior_precision,
+                                   cfg.em_iterations, cfg.mean_update == "coupled")
     return BHMModel(grid=grid, gamma=cfg.gamma, posterior=posterior, n_points=len(points),
                     n_raw=int(round(points.weights.sum())))
 
