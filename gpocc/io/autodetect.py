@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
-from gpocc.io.bags import SCAN_TYPE, TF_POSE, BagContents, tf_topics_for
+from gpocc.io.bags import SCAN_TYPES, TF_POSE, BagContents, tf_topics_for
 from gpocc.io.laserpose import namespace
 from gpocc.io.poses import POSE_TYPES
 
@@ -99,11 +99,12 @@ def detect_sensors(contents: BagContents, path: object) -> list[SensorConfig]:
         GpoccError: no LaserScan topic, or a laser whose pose source cannot be chosen;
             the message ends with a ``sensors:`` line for every laser, ready to paste.
     """
-    scans = [t.name for t in contents.topics if t.msgtype == SCAN_TYPE]
+    scans = [t.name for t in contents.topics if t.msgtype in SCAN_TYPES]
     if not scans:
         raise GpoccError(
             f"{path}: cannot choose the LaserScan topic (found: none; all topics: "
-            f"{contents.listing()}); record a sensor_msgs/LaserScan topic")
+            f"{contents.listing()}); record a sensor_msgs/LaserScan or PointCloud2 topic, "
+            "or set sensors[].scan_topic")
     sensors, problems = [], []
     for scan in scans:
         try:

@@ -1,0 +1,168 @@
+"""``sensor_msgs/msg/PointCloud2`` messages as numpy arrays, without per-point Python loops.
+
+A cloud's bytes are viewed through a numpy structured dtype built from the message's
+own field list (name, offset, datatype), its ``point_step`` (padding between points),
+``row_step`` (padding at the end of a row of an organised cloud) and ``is_bigendian``:
+``x``, ``y``, ``z`` as float32 or float64 at any offset, and the optional ``ring``,
+per-point time (``t``, ``time``, ``timestamp``, ``time_offset``) and ``intensity``.
+
+Points whose ``x``, ``y`` or ``z`` is not finite, or which are exactly at the sensor
+origin (drivers such as Ouster's and Velodyne's organised output write zeros for "no
+return"), are no returns: they are dropped here and never become obstacles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gpocc.errors import GpoccError
+
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+
+#: sensor_msgs/PointField datatype codes -> numpy kinds.
+POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+#: Names drivers use for the per-point time field (Ouster ``t``, Velodyne ``time``,
+#: Hesai ``timestamp``, Livox ``time_offset`` / ``offset_time``).
+TIME_FIELDS = ("t", "time", "timestamp", "time_offset", "offset_time")
+RING_FIELDS = ("ring", "channel", "line", "laser_id")
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """The returns of one PointCloud2 message.
+
+    Attributes:
+        xyz: (N, 3) float64 metres in the message's frame, returns only.
+        ring: (N,) int64 laser ring of each return, or None without a ring field.
+        time: (N,) float64 per-point time field as recorded (driver units), or None.
+        intensity: (N,) float64, or None.
+        n_points: points in the message, returns and no-returns (``height * width``).
+        height, width: the message's layout (``height > 1``: organised, one row per ring).
+        fields: the message's field names, in order.
+    """
+
+    xyz: np.ndarray
+    ring: np.ndarray | None
+    time: np.ndarray | None
+    intensity: np.ndarray | None
+    n_points: int
+    height: int
+    width: int
+    fields: tuple[str, ...]
+
+    @property
+    def organised(self) -> bool:
+        return self.height > 1
+
+
+def _field_dtype(datatype: int, count: int, endian: str, where: str, name: str) -> np.dtype:
+    kind = POINTFIELD_TYPES.get(int(datatype))
+    if kind is None:
+        raise GpoccError(f"{where}: field {name} has datatype {datatype}, not a "
+                         "sensor_msgs/PointField type (1..8); fix the driver")
+    base = np.dtype(endian + kind)
+    return base if count <= 1 else np.dtype((base, (int(count),)))
+
+
+def decode_cloud(msg: Any, where: str) -> Cloud:
+    """The returns of one PointCloud2 message (see the module docs).
+
+    Args:
+        msg: a deserialised ``sensor_msgs/msg/PointCloud2``.
+        where: ``file: topic T at t=...`` for error messages.
+
+    Raises:
+        GpoccError: no ``x``/``y``/``z`` field or a non-float one, fields beyond
+            ``point_step``, or fewer bytes than the layout needs; naming the field.
+    """
+    height, width = int(msg.height), int(msg.width)
+    step, row_step = int(msg.point_step), int(msg.row_step)
+    endian = ">" if msg.is_bigendian else "<"
+    fields = {f.name: f for f in msg.fields}
+    names = tuple(f.name for f in msg.fields)
+    for axis in ("x", "y", "z"):
+        f = fields.get(axis)
+        if f is None:
+            raise GpoccError(f"{where}: the cloud has no field {axis} (fields: "
+                             f"{', '.join(names) or 'none'}); it is not an x, y, z point "
+                             "cloud: pick another scan_topic")
+        if int(f.datatype) not in (7, 8):
+            raise GpoccError(f"{where}: field {axis} has datatype {f.datatype}, not FLOAT32 (7) "
+                             "or FLOAT64 (8); fix the driver's output")
+    wanted = ["x", "y", "z"]
+    wanted += [n for n in RING_FIELDS if n in fields][:1]
+    wanted += [n for n in TIME_FIELDS if n in fields][:1]
+    wanted += [n for n in ("intensity",) if n in fields]
+    formats, offsets = [], []
+    for name in wanted:
+        f = fields[name]
+        dt = _field_dtype(f.datatype, int(f.count), endian, where, name)
+        if int(f.offset) < 0 or int(f.offset) + dt.itemsize > step:
+            raise GpoccError(f"{where}: field {name} at offset {f.offset} ({dt.itemsize} bytes) "
+                             f"does not fit in point_step={step}; fix the driver's output")
+        formats.append(dt)
+        offsets.append(int(f.offset))
+    dtype = np.dtype({"names": wanted, "formats": formats, "offsets": offsets,
+                      "itemsize": step})
+    data = np.asarray(msg.data, dtype=np.uint8)
+    n = height * width
+    if height > 1 and row_step < width * step:
+        raise GpoccError(f"{where}: row_step={row_step} is less than width * point_step = "
+                         f"{width * step}; fix the driver's output")
+    rows = row_step if height > 1 else width * step
+    need = (height - 1) * rows + width * step if n else 0
+    if data.size < need:
+        raise GpoccError(f"{where}: the cloud holds {data.size} bytes, its layout "
+                         f"({height} x {width} points of {step} bytes, row_step {row_step}) "
+                         f"needs {need}; the message is cut off: drop it or re-record")
+    if n == 0:
+        empty = np.zeros((0, 3))
+        return Cloud(empty, None, None, None, 0, height, width, names)
+    points = np.ndarray((height, width), dtype=dtype, buffer=data.data,
+                        strides=(rows, step)).reshape(-1)
+    xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    keep = np.isfinite(xyz).all(axis=1) & (xyz != 0.0).any(axis=1)
+    ring_name = next((r for r in RING_FIELDS if r in wanted), None)
+    time_name = next((r for r in TIME_FIELDS if r in wanted), None)
+
+    def column(name: str | None, kind: type) -> np.ndarray | None:
+        if name is None:
+            return None
+        values = points[name]
+        if values.ndim > 1:
+            values = values[:, 0]
+        return values[keep].astype(kind)
+
+    ring = column(ring_name, np.int64)
+    if ring is None and height > 1:
+        ring = np.repeat(np.arange(height), width)[keep]  # organised: one row per ring
+    return Cloud(xyz[keep], ring, column(time_name, np.float64),
+                 column("intensity" if "intensity" in wanted else None, np.float64),
+                 n, height, width, names)
+
+
+def ring_count(cloud: Cloud) -> int | None:
+    """The number of rings: rows of an organised cloud, distinct ``ring`` values, or None."""
+    if cloud.organised:
+        return cloud.height
+    if cloud.ring is not None and cloud.ring.size:
+        return int(np.unique(cloud.ring).size)
+    return None
+
+
+def horizontal_bins(cloud: Cloud) -> int | None:
+    """Bins of a full turn at the lidar's horizontal resolution, from the cloud's layout.
+
+    An organised cloud has one column per firing (``width``); an unorganised one with a
+    ``ring`` field has as many firings per turn as its fullest ring has returns (no-returns
+    dropped by the driver make this a lower bound). None when neither tells.
+    """
+    if cloud.organised:
+        return cloud.width
+    if cloud.ring is not None and cloud.ring.size:
+        _, counts = np.unique(cloud.ring, return_counts=True)
+        return int(counts.max())
+    return None
