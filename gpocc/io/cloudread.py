@@ -40,7 +40,7 @@ from gpocc.errors import GpoccError
 from gpocc.io.cloudscan import height_histogram, project, to_base
 from gpocc.io.laserpose import ScanTopic, find_chain
 from gpocc.io.pointcloud import Cloud, decode_cloud, horizontal_bins, ring_count
-from gpocc.io.tf import Chain, Edge, TfBuffer, frame_name
+from gpocc.io.tf import Chain, Edge, TfBuffer, frame_name, quat_multiply, yaw_of
 
 CLOUD_RANGE_MIN_M = 0.3
 CLOUD_RANGE_MAX_M = 100.0
@@ -52,7 +52,7 @@ MIN_BINS, MAX_BINS = 36, 4096
 #: Share of bins with a return (any height) above which a cloud is a full turn.
 FULL_TURN_SHARE = 0.9
 #: Heights above the floor (m) of the ``gpocc info`` histogram's bin edges.
-HISTOGRAM_EDGES = np.round(np.arange(-0.5, 3.01, 0.25), 2)
+HISTOGRAM_EDGES = np.array([-0.5, -0.1, 0.1, 0.3, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0])
 
 
 def plane_frame(frame: str) -> str:
@@ -93,6 +93,7 @@ class CloudCollector:
     stats: CloudStats = field(default_factory=CloudStats)
     base: str = ""
     inner: Chain | None = None
+    outer: Chain | None = None
     bins: int = 0
     bins_source: str = ""
     origins: list[np.ndarray] = field(default_factory=list)
@@ -142,6 +143,7 @@ class CloudCollector:
                 f"{where}: no TF chain from sensors[].base_frame '{base}' to the cloud's frame "
                 f"'{frame}'; set base_frame to a frame TF connects to it")
         self.base, self.inner, self.scans.frame_id = base, inner, plane_frame(frame)
+        self.outer, _ = find_chain(tf, sensor, base)
         res = sensor.horizontal_resolution_deg
         if res is not None:
             self.bins, self.bins_source = int(round(360.0 / res)), "sensors[]." \
@@ -183,8 +185,10 @@ class CloudCollector:
             self.unposed += 1
             return
         points = to_base(cloud.xyz, trans[0], quat[0])
-        ranges = project(points, trans[0], self.band_base, self.bins, self.range_min)
-        heard = self._bins_with_returns(points, trans[0])
+        flat = trans[0] * np.array([1.0, 1.0, 0.0])
+        level = self._levelled(points, flat, t)
+        ranges = project(level, flat, self.band_base, self.bins, self.range_min)
+        heard = self._bins_with_returns(level, flat)
         if np.count_nonzero(heard) < FULL_TURN_SHARE * self.bins:
             ranges[~heard & np.isinf(ranges)] = np.nan
         self.scans.stamps.append(t)
@@ -203,6 +207,24 @@ class CloudCollector:
         if rings:
             st.rings.add(rings)
         st.has_time = st.has_time or cloud.time is not None
+
+    def _levelled(self, points: np.ndarray, flat: np.ndarray, t: float) -> np.ndarray:
+        """(N, 3) points with x, y in the gravity-levelled base frame (the base's roll and
+        pitch in the map frame undone, its yaw kept) about the lidar's ground point
+        ``flat``, z still the height above the base's ground plane. A base tilted on a
+        ramp sees vertical walls at their true horizontal distance."""
+        if self.outer is None or self.tf is None:
+            return points
+        _, q, ok, _ = self.tf.transforms(self.outer, np.array([t]), self.sensor.max_pose_gap_s)
+        if not ok[0]:
+            return points
+        half = 0.5 * float(yaw_of(q[0]))
+        tilt = quat_multiply(np.array([0.0, 0.0, -math.sin(half), math.cos(half)]), q[0])
+        if abs(tilt[3]) > 1.0 - 1e-12:
+            return points
+        moved = to_base(points - flat, np.zeros(3), tilt) + flat
+        moved[:, 2] = points[:, 2]
+        return moved
 
     def _bins_with_returns(self, points: np.ndarray, origin: np.ndarray) -> np.ndarray:
         """(bins,) bool: a return at any height fell in the bin."""
