@@ -231,3 +231,18 @@ class LidarRun:
         for t, pose in zip(self.cloud_t, base_path(self.cloud_t), strict=True):
             pts = scan_cloud(self.world, self.lidar, pose, rng)
             add_cloud(bag, topic, frame, T0 + t, pack_cloud(pts, self.layout))
+
+
+def add_planar_laser(bag: BagWriter, run: LidarRun, beams: int = 900,
+                     topic: str = "/scan", frame: str = "laser") -> None:
+    """The same run seen by a level 360-degree laser where the lidar is (same noise)."""
+    rng = np.random.default_rng(run.seed + 1)
+    angles = np.linspace(-math.pi, math.pi, beams, endpoint=False)
+    level = Lidar(rings=1, columns=beams, fov_deg=(0.0, 0.0), xyz=run.lidar.xyz,
+                  max_range=run.lidar.max_range, range_sd=run.lidar.range_sd)
+    bag.tf("/tf_static", T0, [tf_item("base_footprint", frame, level.xyz, level.rotation)])
+    for t, pose in zip(run.cloud_t, base_path(run.cloud_t), strict=True):
+        pts = scan_cloud(run.world, level, pose, rng)[0]
+        r = np.linalg.norm(pts, axis=1)
+        bag.scan(topic, frame, T0 + t, angles, np.where(np.isfinite(r), r, np.inf),
+                 level.max_range)
