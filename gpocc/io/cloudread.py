@@ -37,7 +37,7 @@ import numpy as np
 
 from gpocc.config import MountConfig, SensorConfig
 from gpocc.errors import GpoccError
-from gpocc.io.cloudscan import height_histogram, project, to_base
+from gpocc.io.cloudscan import height_histogram, rotation_matrix, scan_from_cloud
 from gpocc.io.laserpose import ScanTopic, find_chain
 from gpocc.io.pointcloud import Cloud, decode_cloud, horizontal_bins, ring_count
 from gpocc.io.tf import Chain, Edge, TfBuffer, frame_name, quat_multiply, yaw_of
@@ -67,7 +67,7 @@ class CloudStats:
     points: list[int] = field(default_factory=list)
     returns: int = 0
     kept: int = 0
-    rings: set[int] = field(default_factory=set)
+    rings: int | None = None
     fields: tuple[str, ...] = ()
     layout: str = ""
     histogram: np.ndarray = field(default_factory=lambda: np.zeros(HISTOGRAM_EDGES.size + 1,
@@ -184,11 +184,9 @@ class CloudCollector:
         if not ok[0]:
             self.unposed += 1
             return
-        points = to_base(cloud.xyz, trans[0], quat[0])
-        flat = trans[0] * np.array([1.0, 1.0, 0.0])
-        level = self._levelled(points, flat, t)
-        ranges = project(level, flat, self.band_base, self.bins, self.range_min)
-        heard = self._bins_with_returns(level, flat)
+        level = self._level(t)
+        ranges, heard, z = scan_from_cloud(cloud.xyz, rotation_matrix(quat[0]), trans[0], level,
+                                           self.band_base, self.bins, self.range_min)
         if np.count_nonzero(heard) < FULL_TURN_SHARE * self.bins:
             ranges[~heard & np.isinf(ranges)] = np.nan
         self.scans.stamps.append(t)
@@ -197,42 +195,29 @@ class CloudCollector:
         st = self.stats
         st.clouds += 1
         st.points.append(cloud.n_points)
-        st.returns += points.shape[0]
+        st.returns += z.size
         low, high = self.band_base
-        z = points[:, 2]
         st.kept += int(np.count_nonzero((z >= low) & (z <= high)))
         st.histogram += height_histogram(z + self.sensor.base_height_m, HISTOGRAM_EDGES)
         st.hit_bins += int(np.count_nonzero(np.isfinite(ranges)))
-        rings = ring_count(cloud)
-        if rings:
-            st.rings.add(rings)
+        if st.clouds == 1:
+            st.rings = ring_count(cloud)
         st.has_time = st.has_time or cloud.time is not None
 
-    def _levelled(self, points: np.ndarray, flat: np.ndarray, t: float) -> np.ndarray:
-        """(N, 3) points with x, y in the gravity-levelled base frame (the base's roll and
-        pitch in the map frame undone, its yaw kept) about the lidar's ground point
-        ``flat``, z still the height above the base's ground plane. A base tilted on a
-        ramp sees vertical walls at their true horizontal distance."""
+    def _level(self, t: float) -> np.ndarray | None:
+        """(3, 3) the rotation undoing the base's roll and pitch in the map frame at ``t``
+        (its yaw kept), or None for a level base or without TF to the map: a base tilted
+        on a ramp then sees vertical walls at their true horizontal distance."""
         if self.outer is None or self.tf is None:
-            return points
+            return None
         _, q, ok, _ = self.tf.transforms(self.outer, np.array([t]), self.sensor.max_pose_gap_s)
         if not ok[0]:
-            return points
+            return None
         half = 0.5 * float(yaw_of(q[0]))
         tilt = quat_multiply(np.array([0.0, 0.0, -math.sin(half), math.cos(half)]), q[0])
         if abs(tilt[3]) > 1.0 - 1e-12:
-            return points
-        moved = to_base(points - flat, np.zeros(3), tilt) + flat
-        moved[:, 2] = points[:, 2]
-        return moved
-
-    def _bins_with_returns(self, points: np.ndarray, origin: np.ndarray) -> np.ndarray:
-        """(bins,) bool: a return at any height fell in the bin."""
-        bearing = np.arctan2(points[:, 1] - origin[1], points[:, 0] - origin[0])
-        index = np.floor((bearing + math.pi) * self.bins / (2 * math.pi)).astype(np.int64)
-        heard = np.zeros(self.bins, bool)
-        heard[index % self.bins] = True
-        return heard
+            return None
+        return rotation_matrix(tilt)
 
     def plane_edge(self) -> Edge:
         """The TF edge base -> ``<lidar>:plane``: static when the lidar's mount is."""
@@ -288,7 +273,7 @@ class CloudCollector:
         st = self.stats
         pts = np.asarray(st.points)
         low, high = self.sensor.height_band_m
-        rings = "/".join(str(r) for r in sorted(st.rings)) or "unknown (no ring field)"
+        rings = st.rings or "unknown (no ring field)"
         lines = [
             f"point cloud {self.topic}: {st.clouds} clouds, {pts.mean():.0f} points per message "
             f"({pts.min()}..{pts.max()}), {100 * st.returns / max(pts.sum(), 1):.0f}% returns, "
@@ -302,7 +287,7 @@ class CloudCollector:
         edges = HISTOGRAM_EDGES
         labels = ([f"< {edges[0]:g}"]
                   + [f"{a:g}..{b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
-                  + [f"> {edges[-1]:g}"])
+                  + [f">= {edges[-1]:g}"])
         for label, count in zip(labels, st.histogram, strict=True):
             share = count / total
             lines.append(f"    {label:>12}  {100 * share:5.1f}%  {'#' * int(round(40 * share))}")

@@ -35,6 +35,16 @@ def bin_angles(bins: int) -> np.ndarray:
     return -math.pi + (np.arange(bins) + 0.5) * inc
 
 
+def rotation_matrix(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
 def to_base(xyz: np.ndarray, translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
     """(N, 3) points moved by the transform base <- lidar (translation (3,), unit
     quaternion (x, y, z, w) (4,)), metres."""
@@ -57,23 +67,86 @@ def project(points: np.ndarray, origin: np.ndarray, band: tuple[float, float], b
     Returns:
         (bins,) ranges, metres, ``+inf`` for bins without an obstacle return.
     """
-    z = points[:, 2]
-    keep = (z >= band[0]) & (z <= band[1])
-    dx = points[keep, 0] - float(origin[0])
-    dy = points[keep, 1] - float(origin[1])
-    dist = np.hypot(dx, dy)
+    return bin_returns(points[:, 0], points[:, 1], points[:, 2], origin, band, bins,
+                       range_min)[0]
+
+
+#: Returns outside the band are binned one in this many, only to tell which bins the
+#: lidar looked into (:func:`bin_returns`); a bin holds several rings' returns.
+HEARD_STRIDE = 4
+
+
+def _bin_index(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
+    index = ((np.arctan2(dy, dx) + math.pi) * (bins / (2.0 * math.pi))).astype(np.intp)
+    index[index >= bins] -= bins  # arctan2 rounding up to pi
+    return index
+
+
+def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
+                band: tuple[float, float], bins: int,
+                range_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ranges (bins,) as :func:`project`, and (bins,) bool: the lidar looked into the bin
+    (a return in the band, or one in :data:`HEARD_STRIDE` of the floor and ceiling
+    returns, fell in it). ``x``, ``y`` (N,) horizontal positions, ``z`` (N,) heights,
+    metres."""
+    dx = x - x.dtype.type(origin[0])
+    dy = y - y.dtype.type(origin[1])
+    in_band = (z >= band[0]) & (z <= band[1])
+    bx, by = dx[in_band], dy[in_band]
+    index = _bin_index(bx, by, bins)
+    dist = np.hypot(bx, by)
     near = dist >= range_min
-    dx, dy, dist = dx[near], dy[near], dist[near]
-    scale = bins / (2.0 * math.pi)
-    index = np.floor((np.arctan2(dy, dx) + math.pi) * scale).astype(np.int64) % bins
     ranges = np.full(bins, np.inf)
-    np.minimum.at(ranges, index, dist)
-    return ranges
+    np.minimum.at(ranges, index[near], dist[near].astype(np.float64))
+    heard = np.zeros(bins, bool)
+    heard[index] = True
+    out = ~in_band
+    heard[_bin_index(dx[out][::HEARD_STRIDE], dy[out][::HEARD_STRIDE], bins)] = True
+    return ranges, heard
+
+
+def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                    level: np.ndarray | None, band: tuple[float, float], bins: int,
+                    range_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`bin_returns` of a cloud in the lidar frame, in one matrix product.
+
+    The points go into the base frame (``p_base = rotation @ p + translation``); their
+    height is ``p_base[2]``; their horizontal position is levelled about the lidar's
+    ground point ``g = (t_x, t_y, 0)``: ``level @ (p_base - g) + g`` (``level`` (3, 3)
+    undoes the base's roll and pitch; None: the base is level).
+
+    Args:
+        xyz: (N, 3) returns in the lidar frame, metres (float32 or float64).
+        rotation: (3, 3) base <- lidar. translation: (3,) metres.
+
+    Returns:
+        ``(ranges (bins,), heard (bins,), heights (N,))``.
+    """
+    rotation = np.asarray(rotation, float)
+    translation = np.asarray(translation, float)
+    ground = translation * np.array([1.0, 1.0, 0.0])
+    m = rotation if level is None else np.asarray(level, float) @ rotation
+    off = translation - ground if level is None else level @ (translation - ground)
+    # Three multiply-adds per output row: numpy's matmul with an inner size of 3 is
+    # several times slower than this.
+    kind = xyz.dtype.type
+    x, y, zz = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+
+    def row(r: np.ndarray, shift: float) -> np.ndarray:
+        out = x * kind(r[0])
+        out += y * kind(r[1])
+        out += zz * kind(r[2])
+        out += kind(shift)
+        return out
+
+    shift = off + ground
+    z = row(rotation[2], translation[2])
+    ranges, heard = bin_returns(row(m[0], shift[0]), row(m[1], shift[1]), z, ground, band,
+                                bins, range_min)
+    return ranges, heard, z
 
 
 def height_histogram(z: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Counts of heights ``z`` (N,) in the bins ``edges`` (K + 1,), the outer bins open:
-    (K + 2,) = [below edges[0], the K bins, above edges[-1]]."""
-    inner = np.histogram(z, bins=edges)[0]
-    return np.concatenate([[np.count_nonzero(z < edges[0])], inner,
-                           [np.count_nonzero(z > edges[-1])]])
+    """Counts of heights ``z`` (N,) in the bins ``edges`` (K + 1,, increasing), the outer
+    bins open: (K + 2,) = [below edges[0], the K bins, at or above edges[-1]]."""
+    return np.bincount(np.searchsorted(edges, z, side="right"), minlength=edges.size + 1)
