@@ -128,9 +128,11 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
     # float32 clouds stay float32 (millimetres at a kilometre): the projection's matrix
     # product and arctan2 run twice as fast on them.
     kind = np.float64 if 8 in (int(fields[a].datatype) for a in "xyz") else np.float32
-    xyz = np.empty((n, 3), kind)
-    for k, axis in enumerate("xyz"):
-        xyz[:, k] = points[axis]
+    xyz = _xyz_view(data, fields, n, step, rows, width, endian)
+    if xyz is None:
+        xyz = np.empty((n, 3), kind)
+        for k, axis in enumerate("xyz"):
+            xyz[:, k] = points[axis]
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     keep = np.isfinite(x) & np.isfinite(y) & np.isfinite(z) & ((x != 0) | (y != 0) | (z != 0))
     ring_name = next((r for r in RING_FIELDS if r in wanted), None)
@@ -148,6 +150,21 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
     return Cloud(xyz[keep], ring, column(time_name),
                  column("intensity" if "intensity" in wanted else None), n, height, width,
                  names)
+
+
+def _xyz_view(data: np.ndarray, fields: dict, n: int, step: int, rows: int, width: int,
+              endian: str) -> np.ndarray | None:
+    """(n, 3) a strided view of x, y, z when they are consecutive native floats of one
+    type in rows without padding (the common driver layout), else None."""
+    types = {int(fields[a].datatype) for a in "xyz"}
+    size = 4 if types == {7} else 8 if types == {8} else 0
+    x = int(fields["x"].offset)
+    if (not size or endian != "<" or np.little_endian is False or step % size or x % size
+            or int(fields["y"].offset) != x + size or int(fields["z"].offset) != x + 2 * size
+            or rows != width * step):
+        return None
+    flat = data[: n * step].view(np.float32 if size == 4 else np.float64)
+    return flat.reshape(n, step // size)[:, x // size: x // size + 3]
 
 
 def ring_count(cloud: Cloud) -> int | None:
