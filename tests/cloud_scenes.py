@@ -96,6 +96,7 @@ class Lidar:
     rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
     max_range: float = 30.0
     range_sd: float = 0.0
+    azimuth_deg: tuple[float, float] = (-180.0, 180.0)
 
     @property
     def rotation(self) -> Rotation:
@@ -104,7 +105,7 @@ class Lidar:
     def directions(self) -> np.ndarray:
         """(rings, columns, 3) unit rays in the lidar frame."""
         el = np.radians(np.linspace(*self.fov_deg, self.rings))[:, None]
-        az = np.linspace(-math.pi, math.pi, self.columns, endpoint=False)[None, :]
+        az = np.radians(np.linspace(*self.azimuth_deg, self.columns, endpoint=False))[None, :]
         return np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
                                             np.sin(el)), axis=-1)
 
@@ -219,15 +220,22 @@ class LidarRun:
     seed: int = 0
 
     def write(self, bag: BagWriter, topic: str = "/velodyne_points",
-              frame: str = "velodyne") -> None:
+              frame: str = "velodyne", base: str = "base_footprint", base_height: float = 0.0,
+              amcl: bool = False) -> None:
+        """TF map -> ``base`` (``base_height`` above the floor) at 30 Hz, or with ``amcl``
+        a PoseWithCovarianceStamped /amcl_pose instead; the lidar's mount on /tf_static."""
         rng = np.random.default_rng(self.seed)
         for t in np.arange(0.0, 20.6, 1 / 30):
             x, y, yaw = base_path(np.array([t]))[0]
             rot = base_rotation(yaw, self.world.slope)
-            bag.tf("/tf", T0 + t, [tf_item("map", "base_footprint",
-                                           (x, y, float(self.world.floor_z(x))), rot)])
-        bag.tf("/tf_static", T0, [tf_item("base_footprint", frame, self.lidar.xyz,
-                                          self.lidar.rotation)])
+            xyz = (x, y, float(self.world.floor_z(x)) + base_height)
+            if amcl:
+                c = np.diag([0.004, 0.003, 1e-6, 1e-6, 1e-6, 0.001])
+                bag.pose_cov("/amcl_pose", T0 + t, "map", xyz, tuple(rot.as_quat()), c)
+            else:
+                bag.tf("/tf", T0 + t, [tf_item("map", base, xyz, rot)])
+        mount = np.asarray(self.lidar.xyz) - np.array([0.0, 0.0, base_height])
+        bag.tf("/tf_static", T0, [tf_item(base, frame, mount, self.lidar.rotation)])
         for t, pose in zip(self.cloud_t, base_path(self.cloud_t), strict=True):
             pts = scan_cloud(self.world, self.lidar, pose, rng)
             add_cloud(bag, topic, frame, T0 + t, pack_cloud(pts, self.layout))

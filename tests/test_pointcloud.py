@@ -30,11 +30,12 @@ from rosbag_scenes import T0, BagWriter
 from typer.testing import CliRunner
 
 from gpocc.cli import app
-from gpocc.config import Config
+from gpocc.config import Config, config_from_dict
 from gpocc.errors import GpoccError
 from gpocc.io.cloudscan import bin_angles, project
 from gpocc.io.inputs import read_inputs
 from gpocc.io.pointcloud import decode_cloud
+from gpocc.samples.beam import laser_poses, mount_vector
 
 # --------------------------------------------------------------------------- decoding
 
@@ -247,3 +248,66 @@ def test_info_shows_the_cloud_and_a_missing_tf_names_topic_and_fix(tmp_path):
     assert result.exit_code != 0
     assert "topic /velodyne_points" in result.output and "/tf_static" in result.output
     assert "Traceback" not in result.output
+
+
+def test_base_frame_above_the_floor_with_base_height_gives_the_same_scans(tmp_path):
+    run = LidarRun(room(), Lidar(rpy=(0.0, 0.1, 0.0)), cloud_t=0.31 + np.arange(3) * 5.0)
+    [ref] = read_inputs([write_run(tmp_path / "ref", run)], Config())
+    bag = BagWriter("mcap")
+    run.write(bag, base="base_link", base_height=0.3)
+    (tmp_path / "up").mkdir()
+    path = bag.write(tmp_path / "up" / "run.mcap")
+    config = config_from_dict({"sensors": [{"name": "lidar", "scan_topic": "/velodyne_points",
+                                            "base_height_m": 0.3}]})
+    [batch] = read_inputs([path], config)
+    np.testing.assert_allclose(batch.ranges, ref.ranges, atol=1e-5)
+    kept = [line for line in batch.provenance.sensor_lines if "keeps" in line]
+    assert kept == [line for line in ref.provenance.sensor_lines if "keeps" in line]
+    # Without it the band starts 0.3 m higher: low obstacles' returns are lost.
+    [high] = read_inputs([path], Config())
+    assert not np.allclose(np.nan_to_num(high.ranges, posinf=99), np.nan_to_num(
+        ref.ranges, posinf=99), atol=1e-5)
+
+
+def test_horizontal_resolution_key_bins_coarser(tmp_path):
+    path = write_run(tmp_path, LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31])))
+    [fine] = read_inputs([path], Config())
+    config = config_from_dict({"sensors": [{"name": "lidar", "scan_topic": "/velodyne_points",
+                                            "horizontal_resolution_deg": 0.8}]})
+    [coarse] = read_inputs([path], config)
+    assert coarse.n_beams == 450
+    # An 0.8-degree bin is two 0.4-degree bins: its hit is the nearer of theirs.
+    np.testing.assert_allclose(coarse.ranges, fine.ranges.reshape(2, 450, 2).min(axis=2))
+    # Its bearing noise carries the wider bin's quantisation: (0.8 deg)^2 / 12.
+    assert coarse.sensor_config.bearing_variance_deg2 == pytest.approx(0.01 + 0.64 / 12)
+
+
+def test_pose_topic_and_static_mount_pose_the_scans_like_tf(tmp_path):
+    run = LidarRun(room(), Lidar(), cloud_t=0.31 + np.arange(4) * 4.0)
+    [ref] = read_inputs([write_run(tmp_path / "ref", run)], Config())
+    bag = BagWriter("mcap")
+    run.write(bag, amcl=True)
+    (tmp_path / "amcl").mkdir()
+    [batch] = read_inputs([bag.write(tmp_path / "amcl" / "run.mcap")], Config())
+    assert batch.provenance.pose_source.startswith("topic /amcl_pose")
+    assert batch.sensor_config.mount.x_m == pytest.approx(0.15)
+    np.testing.assert_allclose(batch.ranges, ref.ranges, atol=1e-5)
+    lidar = laser_poses(batch.poses, mount_vector(batch.sensor_config))
+    np.testing.assert_allclose(lidar[:, :2], ref.poses[:, :2], atol=1e-3)
+    assert batch.has_pose_covariance
+
+
+def test_a_narrow_field_of_view_leaves_unseen_bearings_unknown(tmp_path):
+    # A 70-degree solid-state lidar: bins it never looked into are not cleared as free.
+    lidar = Lidar(columns=350, azimuth_deg=(-35.0, 35.0), max_range=6.0)
+    run = LidarRun(room(), lidar, cloud_t=np.array([0.31, 5.31]))
+    [batch] = read_inputs([write_run(tmp_path, run)], Config())
+    front = np.abs(batch.angles) < math.radians(34)
+    back = np.abs(batch.angles) > math.radians(36)
+    assert np.isnan(batch.ranges[:, back]).all()
+    assert not np.isnan(batch.ranges[:, front]).any()
+
+
+def test_height_band_must_be_ordered():
+    with pytest.raises(GpoccError, match=r"height_band_m.*min < max"):
+        config_from_dict({"sensors": [{"name": "l", "height_band_m": [2.0, 0.1]}]})
