@@ -22,6 +22,7 @@ from cloud_scenes import (
     Layout,
     Lidar,
     LidarRun,
+    add_planar_laser,
     base_path,
     rect,
     room,
@@ -311,3 +312,13 @@ def test_a_narrow_field_of_view_leaves_unseen_bearings_unknown(tmp_path):
 def test_height_band_must_be_ordered():
     with pytest.raises(GpoccError, match=r"height_band_m.*min < max"):
         config_from_dict({"sensors": [{"name": "l", "height_band_m": [2.0, 0.1]}]})
+
+
+def test_without_config_a_laser_beside_a_cloud_is_the_sensor(tmp_path):
+    # A depth camera's cloud beside a planar laser is not mapped unless named.
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
+    bag = BagWriter("mcap")
+    run.write(bag)
+    add_planar_laser(bag, run, beams=360)
+    [batch] = read_inputs([bag.write(tmp_path / "both.mcap")], Config())
+    assert batch.sensor == "scan" and batch.n_beams == 360

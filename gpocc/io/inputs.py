@@ -23,7 +23,7 @@ from pathlib import Path
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import autodetect, bags, carmen
-from gpocc.io.bags import SCAN_TYPES, BagContents, TopicSummary
+from gpocc.io.bags import BagContents, TopicSummary
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
 
@@ -121,7 +121,7 @@ def _matches(sensor: SensorConfig, path: Path) -> bool:
 
 
 def _scan_topics(summary: InputSummary) -> list[str]:
-    return [t.name for t in summary.topics if t.msgtype in SCAN_TYPES]
+    return autodetect.scan_topics(summary.topics)
 
 
 def _only(path: Path, summary: InputSummary, names: list[str], what: str,
