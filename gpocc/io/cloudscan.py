@@ -83,12 +83,13 @@ def _bin_index(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
 
 
 def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
-                band: tuple[float, float], bins: int,
-                range_min: float) -> tuple[np.ndarray, np.ndarray]:
+                band: tuple[float, float], bins: int, range_min: float,
+                enough: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Ranges (bins,) as :func:`project`, and (bins,) bool: the lidar looked into the bin
     (a return in the band, or one in :data:`HEARD_STRIDE` of the floor and ceiling
     returns, fell in it). ``x``, ``y`` (N,) horizontal positions, ``z`` (N,) heights,
-    metres."""
+    metres. When the band's returns alone reach ``enough`` of the bins, the floor and
+    ceiling returns are not binned (the caller needs no more)."""
     dx = x - x.dtype.type(origin[0])
     dy = y - y.dtype.type(origin[1])
     in_band = (z >= band[0]) & (z <= band[1])
@@ -100,6 +101,8 @@ def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
     np.minimum.at(ranges, index[near], dist[near].astype(np.float64))
     heard = np.zeros(bins, bool)
     heard[index] = True
+    if np.count_nonzero(heard) >= enough * bins:
+        return ranges, heard
     out = ~in_band
     heard[_bin_index(dx[out][::HEARD_STRIDE], dy[out][::HEARD_STRIDE], bins)] = True
     return ranges, heard
@@ -107,7 +110,8 @@ def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
 
 def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                     level: np.ndarray | None, band: tuple[float, float], bins: int,
-                    range_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    range_min: float,
+                    enough: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`bin_returns` of a cloud in the lidar frame, in one matrix product.
 
     The points go into the base frame (``p_base = rotation @ p + translation``); their
@@ -142,7 +146,7 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
     shift = off + ground
     z = row(rotation[2], translation[2])
     ranges, heard = bin_returns(row(m[0], shift[0]), row(m[1], shift[1]), z, ground, band,
-                                bins, range_min)
+                                bins, range_min, enough)
     return ranges, heard, z
 
 
