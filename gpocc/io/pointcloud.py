@@ -37,27 +37,56 @@ class Cloud:
     Attributes:
         xyz: (N, 3) metres in the message's frame, returns only; float32 unless a
             coordinate is float64.
-        ring: (N,) laser ring of each return (the field's type; an organised cloud's row
-            without a ring field), or None.
-        time: (N,) per-point time field as recorded (its type and units), or None.
-        intensity: (N,), or None.
         n_points: points in the message, returns and no-returns (``height * width``).
         height, width: the message's layout (``height > 1``: organised, one row per ring).
         fields: the message's field names, in order.
+        columns: the message's points (structured, all of them) and which are returns,
+            from which :attr:`ring`, :attr:`time` and :attr:`intensity` are read when
+            asked for (the projection needs none of them).
     """
 
     xyz: np.ndarray
-    ring: np.ndarray | None
-    time: np.ndarray | None
-    intensity: np.ndarray | None
     n_points: int
     height: int
     width: int
     fields: tuple[str, ...]
+    columns: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def organised(self) -> bool:
         return self.height > 1
+
+    def _column(self, names: tuple[str, ...]) -> np.ndarray | None:
+        if self.columns is None:
+            return None
+        points, keep = self.columns
+        name = next((n for n in names if n in (points.dtype.names or ())), None)
+        if name is None:
+            return None
+        values = points[name]
+        return (values[:, 0] if values.ndim > 1 else values)[keep]
+
+    @property
+    def ring(self) -> np.ndarray | None:
+        """(N,) laser ring of each return (the field's type; an organised cloud's row
+        without a ring field), or None."""
+        ring = self._column(RING_FIELDS)
+        if ring is None and self.organised and self.columns is not None:
+            ring = np.repeat(np.arange(self.height), self.width)[self.columns[1]]
+        return ring
+
+    @property
+    def time(self) -> np.ndarray | None:
+        """(N,) per-point time field as recorded (its type and units), or None."""
+        return self._column(TIME_FIELDS)
+
+    @property
+    def has_time(self) -> bool:
+        return any(n in self.fields for n in TIME_FIELDS)
+
+    @property
+    def intensity(self) -> np.ndarray | None:
+        return self._column(("intensity",))
 
 
 def _field_dtype(datatype: int, count: int, endian: str, where: str, name: str) -> np.dtype:
@@ -122,7 +151,7 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
                          f"needs {need}; the message is cut off: drop it or re-record")
     if n == 0:
         empty = np.zeros((0, 3))
-        return Cloud(empty, None, None, None, 0, height, width, names)
+        return Cloud(empty, 0, height, width, names)
     points = np.ndarray((height, width), dtype=dtype, buffer=data.data,
                         strides=(rows, step)).reshape(-1)
     # float32 clouds stay float32 (millimetres at a kilometre): the projection's matrix
@@ -135,21 +164,7 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
             xyz[:, k] = points[axis]
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     keep = np.isfinite(x) & np.isfinite(y) & np.isfinite(z) & ((x != 0) | (y != 0) | (z != 0))
-    ring_name = next((r for r in RING_FIELDS if r in wanted), None)
-    time_name = next((r for r in TIME_FIELDS if r in wanted), None)
-
-    def column(name: str | None) -> np.ndarray | None:
-        if name is None:
-            return None
-        values = points[name]
-        return (values[:, 0] if values.ndim > 1 else values)[keep]
-
-    ring = column(ring_name)
-    if ring is None and height > 1:
-        ring = np.repeat(np.arange(height), width)[keep]  # organised: one row per ring
-    return Cloud(xyz[keep], ring, column(time_name),
-                 column("intensity" if "intensity" in wanted else None), n, height, width,
-                 names)
+    return Cloud(xyz[keep], n, height, width, names, (points, keep))
 
 
 def _xyz_view(data: np.ndarray, fields: dict, n: int, step: int, rows: int, width: int,
