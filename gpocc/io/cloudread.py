@@ -185,9 +185,9 @@ class CloudCollector:
             self.unposed += 1
             return
         level = self._level(t)
-        ranges, heard, z = scan_from_cloud(cloud.xyz, rotation_matrix(quat[0]), trans[0], level,
-                                           self.band_base, self.bins, self.range_min,
-                                           FULL_TURN_SHARE)
+        ranges, heard, z = scan_from_cloud(cloud.points, rotation_matrix(quat[0]), trans[0],
+                                           level, self.band_base, self.bins, self.range_min,
+                                           FULL_TURN_SHARE, cloud.returns)
         if np.count_nonzero(heard) < FULL_TURN_SHARE * self.bins:
             ranges[~heard & np.isinf(ranges)] = np.nan
         self.scans.stamps.append(t)

@@ -84,15 +84,19 @@ def _bin_index(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
 
 def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
                 band: tuple[float, float], bins: int, range_min: float,
-                enough: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                enough: float = 1.0,
+                valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Ranges (bins,) as :func:`project`, and (bins,) bool: the lidar looked into the bin
     (a return in the band, or one in :data:`HEARD_STRIDE` of the floor and ceiling
     returns, fell in it). ``x``, ``y`` (N,) horizontal positions, ``z`` (N,) heights,
-    metres. When the band's returns alone reach ``enough`` of the bins, the floor and
-    ceiling returns are not binned (the caller needs no more)."""
+    metres; ``valid`` (N,) bool, the points to use (None: all). When the band's returns
+    alone reach ``enough`` of the bins, the floor and ceiling returns are not binned (the
+    caller needs no more)."""
     dx = x - x.dtype.type(origin[0])
     dy = y - y.dtype.type(origin[1])
     in_band = (z >= band[0]) & (z <= band[1])
+    if valid is not None:
+        in_band &= valid
     bx, by = dx[in_band], dy[in_band]
     index = _bin_index(bx, by, bins)
     dist = np.hypot(bx, by)
@@ -103,15 +107,16 @@ def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
     heard[index] = True
     if np.count_nonzero(heard) >= enough * bins:
         return ranges, heard
-    out = ~in_band
+    out = ~in_band if valid is None else ~in_band & valid
     heard[_bin_index(dx[out][::HEARD_STRIDE], dy[out][::HEARD_STRIDE], bins)] = True
     return ranges, heard
 
 
 def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                     level: np.ndarray | None, band: tuple[float, float], bins: int,
-                    range_min: float,
-                    enough: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    range_min: float, enough: float = 1.0,
+                    valid: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`bin_returns` of a cloud in the lidar frame, in one matrix product.
 
     The points go into the base frame (``p_base = rotation @ p + translation``); their
@@ -120,11 +125,12 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
     undoes the base's roll and pitch; None: the base is level).
 
     Args:
-        xyz: (N, 3) returns in the lidar frame, metres (float32 or float64).
+        xyz: (N, 3) points in the lidar frame, metres (float32 or float64; any strides).
         rotation: (3, 3) base <- lidar. translation: (3,) metres.
+        valid: (N,) bool, the returns among the points (None: all are).
 
     Returns:
-        ``(ranges (bins,), heard (bins,), heights (N,))``.
+        ``(ranges (bins,), heard (bins,), heights (N',))``, heights of the valid points.
     """
     rotation = np.asarray(rotation, float)
     translation = np.asarray(translation, float)
@@ -145,9 +151,10 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
 
     shift = off + ground
     z = row(rotation[2], translation[2])
-    ranges, heard = bin_returns(row(m[0], shift[0]), row(m[1], shift[1]), z, ground, band,
-                                bins, range_min, enough)
-    return ranges, heard, z
+    with np.errstate(invalid="ignore"):  # NaN points, masked out by valid
+        ranges, heard = bin_returns(row(m[0], shift[0]), row(m[1], shift[1]), z, ground,
+                                    band, bins, range_min, enough, valid)
+    return ranges, heard, (z if valid is None else z[valid])
 
 
 def height_histogram(z: np.ndarray, edges: np.ndarray) -> np.ndarray:

@@ -35,8 +35,10 @@ class Cloud:
     """The returns of one PointCloud2 message.
 
     Attributes:
-        xyz: (N, 3) metres in the message's frame, returns only; float32 unless a
-            coordinate is float64.
+        points: (P, 3) every point of the message, metres in its frame (a view into the
+            message's bytes where the layout allows); float32 unless a coordinate is
+            float64. P = ``n_points``.
+        returns: (P,) bool, the points that are returns (finite, not all zero).
         n_points: points in the message, returns and no-returns (``height * width``).
         height, width: the message's layout (``height > 1``: organised, one row per ring).
         fields: the message's field names, in order.
@@ -45,7 +47,8 @@ class Cloud:
             asked for (the projection needs none of them).
     """
 
-    xyz: np.ndarray
+    points: np.ndarray
+    returns: np.ndarray
     n_points: int
     height: int
     width: int
@@ -55,6 +58,11 @@ class Cloud:
     @property
     def organised(self) -> bool:
         return self.height > 1
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """(N, 3) the returns only (a copy)."""
+        return self.points[self.returns]
 
     def _column(self, names: tuple[str, ...]) -> np.ndarray | None:
         if self.columns is None:
@@ -151,7 +159,7 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
                          f"needs {need}; the message is cut off: drop it or re-record")
     if n == 0:
         empty = np.zeros((0, 3))
-        return Cloud(empty, 0, height, width, names)
+        return Cloud(empty, np.zeros(0, bool), 0, height, width, names)
     points = np.ndarray((height, width), dtype=dtype, buffer=data.data,
                         strides=(rows, step)).reshape(-1)
     # float32 clouds stay float32 (millimetres at a kilometre): the projection's matrix
@@ -163,8 +171,13 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
         for k, axis in enumerate("xyz"):
             xyz[:, k] = points[axis]
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    keep = np.isfinite(x) & np.isfinite(y) & np.isfinite(z) & ((x != 0) | (y != 0) | (z != 0))
-    return Cloud(xyz[keep], n, height, width, names, (points, keep))
+    # Not copied out: the projection reads the view under this mask (one pass fewer).
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond 1e19 m is no return
+        square = x * x
+        square += y * y
+        square += z * z
+    keep = np.isfinite(square) & (square > 0)
+    return Cloud(xyz, keep, n, height, width, names, (points, keep))
 
 
 def _xyz_view(data: np.ndarray, fields: dict, n: int, step: int, rows: int, width: int,
