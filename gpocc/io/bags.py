@@ -357,8 +357,9 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
         pose_names = [s.pose_topic for s in sensors if s.pose_topic != TF_POSE]
         pose_names += [t for t in odom_for.values() if t is not None]
         pose_acc = {t: PoseCollector(path, t, contents.topic(t).msgtype) for t in pose_names}
-        tf_for = {s.name: tf_topics_for(contents, s.scan_topic) if s.position_from_tf else []
-                  for s in sensors}
+        # A cloud needs TF for the lidar's mount even when its position comes from a topic.
+        tf_for = {s.name: tf_topics_for(contents, s.scan_topic)
+                  if s.position_from_tf or s.scan_topic in clouds else [] for s in sensors}
         tf_acc = {t: TfCollector(path) for names in tf_for.values() for t in names}
         wanted = [c for c in reader.connections
                   if c.topic in scan_acc or c.topic in pose_acc or c.topic in tf_acc]

@@ -264,7 +264,7 @@ class CloudCollector:
             changes["range_variance_m2"] = CLOUD_RANGE_VARIANCE_M2
         if sensor.bearing_variance_deg2 == defaults.bearing_variance_deg2:
             changes["bearing_variance_deg2"] = CLOUD_BEARING_VARIANCE_DEG2 + inc_deg**2 / 12
-        chain, _ = find_chain(tf, sensor, self.scans.frame_id)
+        chain = find_chain(tf, sensor, self.scans.frame_id)[0] if sensor.position_from_tf else None
         if chain is None and sensor.mount == MountConfig():
             # Poses from a pose topic give the base: the projected lidar is mounted on it.
             x, y, _ = edge.translations[0]
