@@ -31,7 +31,7 @@ from rosbag_scenes import T0, BagWriter
 from typer.testing import CliRunner
 
 from gpocc.cli import app
-from gpocc.config import Config, config_from_dict
+from gpocc.config import Config, config_from_dict, load_config
 from gpocc.errors import GpoccError
 from gpocc.io.cloudscan import bin_angles, project
 from gpocc.io.inputs import read_inputs
@@ -322,3 +322,26 @@ def test_without_config_a_laser_beside_a_cloud_is_the_sensor(tmp_path):
     add_planar_laser(bag, run, beams=360)
     [batch] = read_inputs([bag.write(tmp_path / "both.mcap")], Config())
     assert batch.sensor == "scan" and batch.n_beams == 360
+
+
+def test_configs_lidar_3d_spells_out_the_defaults(tmp_path):
+    path = write_run(tmp_path, LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31])))
+    [auto] = read_inputs([path], Config())
+    config = load_config(Path(__file__).resolve().parents[1] / "configs" / "lidar_3d.yaml")
+    [named] = read_inputs([path], config)
+    for field in ("ranges", "poses", "pose_covariances", "angles"):
+        np.testing.assert_array_equal(getattr(named, field), getattr(auto, field))
+    for key in ("range_variance_m2", "bearing_variance_deg2", "range_min_m", "range_max_m",
+                "height_band_m", "no_return_free_m"):
+        assert getattr(named.sensor_config, key) == getattr(auto.sensor_config, key), key
+
+
+def test_a_cloud_changing_its_frame_is_one_error_naming_the_topic(tmp_path):
+    bag = BagWriter("mcap")
+    LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 1.31])).write(bag)
+    last = bag.messages[-1][3]
+    last.header.frame_id = "other"
+    (tmp_path / "b").mkdir()
+    result = CliRunner().invoke(app, ["info", str(bag.write(tmp_path / "b" / "run.mcap"))])
+    assert result.exit_code != 0 and "Traceback" not in result.output
+    assert "topic /velodyne_points" in result.output and "frame_id changes" in result.output
