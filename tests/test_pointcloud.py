@@ -345,3 +345,16 @@ def test_a_cloud_changing_its_frame_is_one_error_naming_the_topic(tmp_path):
     result = CliRunner().invoke(app, ["info", str(bag.write(tmp_path / "b" / "run.mcap"))])
     assert result.exit_code != 0 and "Traceback" not in result.output
     assert "topic /velodyne_points" in result.output and "frame_id changes" in result.output
+
+
+def test_info_names_base_height_when_the_floor_is_below_the_base_frame(tmp_path):
+    bag = BagWriter("mcap")
+    LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31])).write(bag, base="base_link",
+                                                                    base_height=0.3)
+    (tmp_path / "b").mkdir()
+    [batch] = read_inputs([bag.write(tmp_path / "b" / "run.mcap")], Config())
+    hint = [line for line in batch.provenance.sensor_lines if "base_height_m" in line]
+    assert len(hint) == 1 and "base_height_m: 0.30" in hint[0], hint
+    path = write_run(tmp_path / "a", LidarRun(room(), Lidar(), cloud_t=np.array([0.31])))
+    [ok] = read_inputs([path], Config())
+    assert not [line for line in ok.provenance.sensor_lines if "base_height_m" in line]

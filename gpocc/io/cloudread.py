@@ -51,6 +51,10 @@ DEFAULT_RESOLUTION_DEG = 0.4
 MIN_BINS, MAX_BINS = 36, 4096
 #: Share of bins with a return (any height) above which a cloud is a full turn.
 FULL_TURN_SHARE = 0.9
+#: Base-frame heights (m) of the fine histogram that finds the floor's peak.
+FLOOR_EDGES = np.round(np.arange(-3.01, 0.51, 0.02), 2)  # centres on even centimetres
+#: The floor's peak must hold this share of the returns to be named in ``gpocc info``.
+FLOOR_SHARE = 0.05
 #: Heights above the floor (m) of the ``gpocc info`` histogram's bin edges.
 HISTOGRAM_EDGES = np.array([-0.5, -0.1, 0.1, 0.3, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0])
 
@@ -73,6 +77,7 @@ class CloudStats:
     histogram: np.ndarray = field(default_factory=lambda: np.zeros(HISTOGRAM_EDGES.size + 1,
                                                                    np.int64))
     hit_bins: int = 0
+    fine: np.ndarray = field(default_factory=lambda: np.zeros(FLOOR_EDGES.size + 1, np.int64))
     has_time: bool = False
 
 
@@ -201,6 +206,7 @@ class CloudCollector:
         st.kept += int(np.count_nonzero((z >= low) & (z <= high)))
         # One return in four is plenty for a histogram of percent-level shares.
         st.histogram += height_histogram(z[::4] + self.sensor.base_height_m, HISTOGRAM_EDGES)
+        st.fine += height_histogram(z[::4], FLOOR_EDGES)
         st.hit_bins += int(np.count_nonzero(np.isfinite(ranges)))
         if st.clouds == 1:
             st.rings = ring_count(cloud)
@@ -297,6 +303,7 @@ class CloudCollector:
             f"  equivalent scan: {self.bins} bins of {inc_deg:.3f} deg (from {self.bins_source}), "
             f"range {self.scans.range_limits[0]:g}..{self.scans.range_limits[1]:g} m, "
             f"{100 * st.hit_bins / max(st.clouds * self.bins, 1):.0f}% of bins hit")
+        lines += self._floor_hint()
         if st.has_time:
             lines.append("  per-point time field present: the sweep is not de-skewed (every "
                          "point is taken at the cloud's stamp)")
@@ -304,3 +311,19 @@ class CloudCollector:
             lines.append(f"  {self.unposed} clouds without TF from '{self.base}' at their stamp "
                          "skipped")
         return tuple(lines)
+
+    def _floor_hint(self) -> list[str]:
+        """A line naming ``base_height_m`` when the returns' densest height (the floor,
+        in a room) is not where the config puts the floor."""
+        inner = self.stats.fine[1:-1]
+        total = max(int(self.stats.fine.sum()), 1)
+        k = int(np.argmax(inner))
+        if inner[k] < FLOOR_SHARE * total:
+            return []
+        floor = 0.5 * (FLOOR_EDGES[k] + FLOOR_EDGES[k + 1])
+        if abs(floor + self.sensor.base_height_m) <= 0.05:
+            return []
+        return [f"  {100 * inner[k] / total:.0f}% of the returns lie at {floor:+.2f} m in "
+                f"'{self.base}', not at the floor the config gives "
+                f"({0.0 - self.sensor.base_height_m + 0.0:+.2f} m): if that is the floor, set "
+                f"sensors[].base_height_m: {-floor:.2f}"]
