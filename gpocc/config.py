@@ -57,6 +57,9 @@ class SensorConfig:
     override_pose_covariance: bool = False
     mount: MountConfig = field(default_factory=MountConfig)
     max_pose_gap_s: float = 0.25
+    # A scan within this of a pose sample takes it when it cannot be interpolated
+    # (header stamps of one driver vs. another's, or log times: never exact equality).
+    stamp_tolerance_s: float = 0.02
     no_return_free_m: float = 5.0
     range_min_m: float | None = None
     range_max_m: float | None = None
@@ -364,7 +367,7 @@ _Loader.add_implicit_resolver(
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "free_clearance_m",
+    "free_clearance_m", "stamp_tolerance_s",
     "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }

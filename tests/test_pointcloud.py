@@ -283,15 +283,20 @@ def test_horizontal_resolution_key_bins_coarser(tmp_path):
     assert coarse.sensor_config.bearing_variance_deg2 == pytest.approx(0.01 + 0.64 / 12)
 
 
-def test_pose_topic_and_static_mount_pose_the_scans_like_tf(tmp_path):
+@pytest.mark.parametrize("position_from_tf", [True, False])
+def test_pose_topic_and_static_mount_pose_the_scans_like_tf(tmp_path, position_from_tf):
     run = LidarRun(room(), Lidar(), cloud_t=0.31 + np.arange(4) * 4.0)
     [ref] = read_inputs([write_run(tmp_path / "ref", run)], Config())
     bag = BagWriter("mcap")
     run.write(bag, amcl=True)
     (tmp_path / "amcl").mkdir()
-    [batch] = read_inputs([bag.write(tmp_path / "amcl" / "run.mcap")], Config())
+    config = config_from_dict({"sensors": [{"name": "lidar", "scan_topic": "/velodyne_points",
+                                            "position_from_tf": position_from_tf}]})
+    [batch] = read_inputs([bag.write(tmp_path / "amcl" / "run.mcap")], config)
+    # The base pose from /amcl_pose, the lidar's offset on it from /tf_static: as TF's
+    # mount chain, or (TF not used for positions) as the entry's mount.
     assert batch.provenance.pose_source.startswith("topic /amcl_pose")
-    assert batch.sensor_config.mount.x_m == pytest.approx(0.15)
+    assert batch.sensor_config.mount.x_m == pytest.approx(0.0 if position_from_tf else 0.15)
     np.testing.assert_allclose(batch.ranges, ref.ranges, atol=1e-5)
     lidar = laser_poses(batch.poses, mount_vector(batch.sensor_config))
     np.testing.assert_allclose(lidar[:, :2], ref.poses[:, :2], atol=1e-3)

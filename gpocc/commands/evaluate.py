@@ -12,19 +12,19 @@ from gpocc.errors import GpoccError
 from gpocc.evaluation.report import (
     evaluate_map,
     probability_raster,
+    read_probability,
     results_table,
     unique_names,
     write_outputs,
 )
 from gpocc.evaluation.truth import load_truth
 from gpocc.io.atomic import prepare_output
-from gpocc.io.rasters import read_raster
 from gpocc.progress import log
 
 
 def evaluate(
     maps: list[Path] = typer.Argument(
-        ..., help="Map folders (with probability.tif) or probability GeoTIFFs."
+        ..., help="Map folders (with probability.tif), probability GeoTIFFs or map.mcap files."
     ),
     ground_truth: Path = typer.Option(
         ..., "--ground-truth", help="GeoTIFF (1/0/no-data), map_server YAML, or x,y,label file."
@@ -83,7 +83,7 @@ def warn_uncovered(raster: Path, points: np.ndarray) -> None:
 
 
 def _map_extent(raster: Path) -> str:
-    x0, y0, x1, y1 = read_raster(raster)[1].bounds
+    x0, y0, x1, y1 = read_probability(raster)[1].bounds
     return f"x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m"
 
 

@@ -82,6 +82,8 @@ def provenance_lines(batches: Sequence[ScanBatch]) -> list[str]:
         if p.frame_chain:
             lines.append(f"      frame chain: {p.frame_chain}")
         lines.append(f"      covariance: {p.covariance_source}")
+        if p.stamps:
+            lines.append(f"      stamps: {p.stamps}")
         lines += [f"      skipped {n}: {why} (config key {key})" for why, key, n in p.skipped]
         lines += [f"      note: {note}" for note in p.notes]
         lines += [f"      {line}" for line in p.sensor_lines]

@@ -83,8 +83,10 @@ def simulate_command(
     seed: int = typer.Option(0, "--seed", help="Random seed of all noise."),
     world: str = typer.Option(
         "default", "--world",
-        help=f"Ground-truth world: {', '.join(WORLD_NAMES)}, or grown-<seed> (a random "
-        f"corridor building grown from that seed).",
+        help=f"Ground-truth world: {', '.join(WORLD_NAMES)}, grown-<seed> (a random "
+        f"corridor building grown from that seed), or a building of another generator: "
+        f"offices-<seed>, hall-<seed>, clutter-<seed> (platform noise drawn around Table "
+        f"I's from the seed).",
     ),
     pose_noise: tuple[float, float] | None = typer.Option(
         None, "--pose-noise", metavar="SIGMA_XY SIGMA_YAW_DEG",
@@ -97,7 +99,8 @@ def simulate_command(
     prepare_output(out, force)
     if not is_world_name(world):
         raise GpoccError(f"--world: unknown world {world!r}; choose one of: "
-                         f"{', '.join(WORLD_NAMES)}, or grown-<seed>")
+                         f"{', '.join(WORLD_NAMES)}, grown-<seed>, offices-<seed>, "
+                         f"hall-<seed> or clutter-<seed>")
     check_resolution(resolution)
     if pose_noise is not None and not all(v >= 0 and math.isfinite(v) for v in pose_noise):
         raise GpoccError(f"--pose-noise needs two non-negative numbers (SIGMA_XY metres, "

@@ -11,16 +11,20 @@ import numpy as np
 from gpocc.errors import GpoccError
 from gpocc.evaluation.calibration import CALIBRATION_BINS, LOG_LOSS_CLIP
 from gpocc.evaluation.roc import RocResult, evaluate_scores
+from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory
 from gpocc.io.rasters import read_raster, sample_raster
+from gpocc.io.rosmap import read_map_mcap
 from gpocc.mapping.render import render_reliability, render_roc
 
-_MAP_FILES = ("probability.tif", "probability.vrt")
-_RASTER_SUFFIXES = {".tif", ".tiff", ".vrt"}
+# A folder's rasters first (full float precision); map.mcap holds p in steps of 0.01.
+_MAP_FILES = ("probability.tif", "probability.vrt", "map.mcap")
+_RASTER_SUFFIXES = {".tif", ".tiff", ".vrt", ".mcap"}
 
 
 def probability_raster(path: Path) -> tuple[str, Path]:
-    """The name and probability raster of a map folder or a probability GeoTIFF/VRT."""
+    """The name and probability raster of a map folder, a probability GeoTIFF/VRT or a
+    ``map.mcap`` (its ``/map`` OccupancyGrid, :func:`read_probability`)."""
     if path.is_dir():
         for name in _MAP_FILES:
             if (path / name).is_file():
@@ -34,9 +38,17 @@ def probability_raster(path: Path) -> tuple[str, Path]:
     if path.suffix.lower() not in _RASTER_SUFFIXES:
         raise GpoccError(
             f"{path}: not a map; pass a map folder (with probability.tif) or a probability "
-            f"GeoTIFF (.tif) or VRT mosaic (.vrt)"
+            f"GeoTIFF (.tif), VRT mosaic (.vrt) or map.mcap (.mcap)"
         )
     return path.stem, path
+
+
+def read_probability(path: Path) -> tuple[np.ndarray, GridSpec, float | int | None]:
+    """``(values (H, W), grid, nodata)`` of a probability raster or an MCAP map (p =
+    OccupancyGrid value / 100, unknown cells NaN), row 0 north."""
+    if path.suffix.lower() == ".mcap":
+        return read_map_mcap(path)
+    return read_raster(path)
 
 
 def unique_names(names: list[str], paths: list[Path]) -> list[str]:
@@ -48,7 +60,7 @@ def evaluate_map(
     name: str, raster: Path, points: np.ndarray, labels: np.ndarray
 ) -> RocResult:
     """Sample one map's probability at the truth points (nearest cell) and score it."""
-    values, spec, nodata = read_raster(raster)
+    values, spec, nodata = read_probability(raster)
     scores, inside = sample_raster(values, spec, nodata, points)
     finite = scores[np.isfinite(scores) & inside]
     if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):

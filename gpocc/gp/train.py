@@ -18,6 +18,7 @@ from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from multiprocessing.pool import Pool
+from typing import Any
 
 import numpy as np
 
@@ -185,15 +186,45 @@ def _patch_cost(patch: LocalProblem, level: int) -> float:
 def resident_patch_pool(patches: list[LocalProblem], workers: int, level: int):
     """A :class:`ResidentPatches` pool of ``workers`` processes holding ``patches``
     (``level``: the quadrature level they will be evaluated at, for the costs)."""
-    costs = [_patch_cost(p, level) for p in patches]
-    order = tuple(sorted(range(len(patches)), key=lambda i: -costs[i]))
+    order = _costliest_first(patches, level)
     with worker_pool(workers, _install_patches, (list(patches),)) as pool:
         yield ResidentPatches(pool, tuple(patches), order)
 
 
+@dataclass(frozen=True)
+class ClusterPatches:
+    """The workers of a Dask cluster holding ``patches`` (:func:`cluster_patches`): each
+    evaluation sends the hyperparameters and a reference to each patch, one task per
+    patch, most expensive first, as :class:`ResidentPatches` does locally."""
+
+    client: Any
+    futures: tuple[Any, ...]
+    patches: tuple[LocalProblem, ...]
+    order: tuple[int, ...]
+
+
+def _costliest_first(patches: list[LocalProblem], level: int) -> tuple[int, ...]:
+    costs = [_patch_cost(p, level) for p in patches]
+    return tuple(sorted(range(len(patches)), key=lambda i: -costs[i]))
+
+
+def cluster_patches(client: Any, patches: list[LocalProblem], level: int) -> ClusterPatches:
+    """:class:`ClusterPatches`: ``patches`` sent once to every worker of ``client``."""
+    futures = client.scatter(list(patches), broadcast=True)
+    return ClusterPatches(client, tuple(futures), tuple(patches),
+                          _costliest_first(patches, level))
+
+
+def _held_by(pool: ResidentPatches | ClusterPatches, patches: list[LocalProblem]) -> None:
+    if len(pool.patches) != len(patches) or any(
+            held is not patch for held, patch in zip(pool.patches, patches, strict=True)):
+        raise ValueError("the pool holds other patches than those to evaluate")
+
+
 def negative_log_likelihood(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
-    with_gradient: bool = True, executor: Executor | Pool | ResidentPatches | None = None,
+    with_gradient: bool = True,
+    executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
     input_scale: float = 1.0, scale_gradient: bool = False,
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
@@ -201,8 +232,9 @@ def negative_log_likelihood(
     ``params`` = ``[kernel.theta..., log noise_variance]``. Without ``with_gradient`` the
     gradient is returned as zeros (and not computed: the global stage needs values only).
     ``executor`` (a ``multiprocessing`` pool or a ``concurrent.futures`` executor: a
-    ``map`` that takes ``chunksize``; or a :class:`ResidentPatches` pool holding these
-    ``patches``) evaluates the patches concurrently; the sum is taken in patch order, so
+    ``map`` that takes ``chunksize``; a :class:`ResidentPatches` pool or the
+    :class:`ClusterPatches` of a Dask cluster holding these ``patches``) evaluates the
+    patches concurrently; the sum is taken in patch order, so
     the result does not depend on it.
     ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1);
     ``scale_gradient`` (with gradients): the gradient gains d/dlog g.
@@ -213,13 +245,19 @@ def negative_log_likelihood(
                "scale_gradient": scale_gradient and with_gradient}
     # One patch per task: patches differ in cost (3-12 ms), and Pool.map's default chunks of
     # two left one worker idle (gradient evaluations about 9% slower on 2 workers).
-    if isinstance(executor, ResidentPatches):
-        if len(executor.patches) != len(patches) or any(
-                held is not patch for held, patch in zip(executor.patches, patches, strict=True)):
-            raise ValueError("the pool holds other patches than those to evaluate")
-        one = functools.partial(_resident_patch_negative_log_likelihood, *arguments, **options)
-        by_cost = wait_for(executor.pool,
-                           executor.pool.map_async(one, executor.order, chunksize=1))
+    if isinstance(executor, ResidentPatches | ClusterPatches):
+        _held_by(executor, patches)
+        if isinstance(executor, ResidentPatches):
+            one = functools.partial(_resident_patch_negative_log_likelihood, *arguments,
+                                    **options)
+            by_cost = wait_for(executor.pool,
+                               executor.pool.map_async(one, executor.order, chunksize=1))
+        else:
+            client = executor.client
+            by_cost = client.gather([
+                client.submit(_patch_negative_log_likelihood, *arguments,
+                              executor.futures[index], pure=False, **options)
+                for index in executor.order])
         terms = [None] * len(patches)
         for index, term in zip(executor.order, by_cost, strict=True):
             terms[index] = term
@@ -240,7 +278,8 @@ def negative_log_likelihood(
 
 def negative_log_likelihood_with_scale(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
-    with_gradient: bool = True, executor: Executor | Pool | ResidentPatches | None = None,
+    with_gradient: bool = True,
+    executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
 ) -> tuple[float, np.ndarray]:
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
@@ -280,13 +319,15 @@ def learn_hyperparameters(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
-    workers: int | None = None,
+    workers: int | None = None, client: Any = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
-    concurrently; the result does not depend on their number.
+    concurrently, or the workers of the Dask cluster of ``client`` (a
+    ``distributed.Client``, :func:`gpocc.parallel.dask_client`); the result does not
+    depend on which, nor on their number.
     """
     patches = make_patches(samples, config, seed)
     # g only matters (and is only learned) when some input has a covariance.
@@ -295,8 +336,13 @@ def learn_hyperparameters(
     # Processes, not threads: much of a patch's work is numpy glue that holds the GIL
     # (threads gave 1.4x on 2 cores). The workers receive the patches once.
     workers = min(len(patches), workers or default_workers())
-    with resident_patch_pool(patches, workers, level) if workers > 1 \
-            else contextlib.nullcontext() as pool:
+    if client is not None:
+        holder = contextlib.nullcontext(cluster_patches(client, patches, level))
+    elif workers > 1:
+        holder = resident_patch_pool(patches, workers, level)
+    else:
+        holder = contextlib.nullcontext()
+    with holder as pool:
 
         def negative_log_likelihood_counted(
             params: np.ndarray, *args: object, with_gradient: bool = True

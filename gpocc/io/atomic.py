@@ -71,6 +71,9 @@ def _one_line(exc: OSError) -> str:
 
 def _write_error(target: Path, exc: OSError) -> GpoccError:
     where = f" ({exc.filename})" if exc.filename and str(exc.filename) != str(target) else ""
+    if exc.errno == errno.ENOSPC:
+        return GpoccError(f"{target}: cannot write{where}: no space left on device; free "
+                          "some space there, or choose another --out on another disk")
     return GpoccError(
         f"{target}: cannot write{where}: {_one_line(exc)}; check that the folder exists, is "
         f"writable and has free space, or choose another --out"
@@ -118,8 +121,14 @@ def claim_output(path: str | os.PathLike[str]) -> None:
         if same:
             break
         os.close(fd)
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    except OSError as exc:  # a full disk: leave no claim file behind
+        with contextlib.suppress(OSError):
+            claim.unlink()
+        os.close(fd)
+        raise _write_error(target, exc) from None
     _claims[key] = (claim, fd)
     _remove_stale(target)
 
@@ -387,6 +396,11 @@ def _claimed_temporary(path: str | os.PathLike[str], force: bool, folder: bool
             _install(tmp, target, force)
         except OSError as exc:
             raise _write_error(target, exc) from None
+        except GpoccError as exc:
+            # A writer's error names the file it wrote: the user knows the output.
+            if str(tmp) not in str(exc):
+                raise
+            raise GpoccError(str(exc).replace(str(tmp), str(target))) from None
         finally:
             if folder:
                 shutil.rmtree(tmp, ignore_errors=True)

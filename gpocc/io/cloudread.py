@@ -38,8 +38,9 @@ import numpy as np
 from gpocc.config import MountConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.cloudscan import height_histogram, rotation_matrix, scan_from_cloud
-from gpocc.io.laserpose import ScanTopic, find_chain
+from gpocc.io.laserpose import ScanTopic, find_chain, in_map_frame, mount_chain
 from gpocc.io.pointcloud import Cloud, decode_cloud, horizontal_bins, ring_count
+from gpocc.io.poses import PoseSeries
 from gpocc.io.tf import Chain, Edge, TfBuffer, frame_name, quat_multiply, yaw_of
 
 CLOUD_RANGE_MIN_M = 0.3
@@ -242,9 +243,12 @@ class CloudCollector:
                     topic=f"{self.topic} projected", stamps=stamps, translations=flat,
                     quaternions=np.tile([0.0, 0.0, 0.0, 1.0], (stamps.size, 1)))
 
-    def resolved(self) -> tuple[ScanTopic, TfBuffer, SensorConfig, tuple[str, ...]]:
+    def resolved(self, series: PoseSeries | None = None
+                 ) -> tuple[ScanTopic, TfBuffer, SensorConfig, tuple[str, ...]]:
         """The projected scans, TF with their frame, the sensor entry with the cloud
-        defaults filled in, and the ``gpocc info`` lines.
+        defaults filled in, and the ``gpocc info`` lines. ``series``: the sensor's pose
+        topic; when it poses the base without TF, the projected scans' offset on the base
+        becomes the entry's ``mount``.
 
         Raises:
             GpoccError: no clouds, or none with TF from the base frame at its stamp.
@@ -271,7 +275,11 @@ class CloudCollector:
         if sensor.bearing_variance_deg2 == defaults.bearing_variance_deg2:
             changes["bearing_variance_deg2"] = CLOUD_BEARING_VARIANCE_DEG2 + inc_deg**2 / 12
         chain = find_chain(tf, sensor, self.scans.frame_id)[0] if sensor.position_from_tf else None
-        if chain is None and sensor.mount == MountConfig():
+        from_tf = chain is not None or (
+            sensor.position_from_tf and series is not None
+            and in_map_frame(series.frame_id, sensor)
+            and mount_chain(tf, series, self.scans.frame_id) is not None)
+        if not from_tf and sensor.mount == MountConfig():
             # Poses from a pose topic give the base: the projected lidar is mounted on it.
             x, y, _ = edge.translations[0]
             changes["mount"] = MountConfig(x_m=float(x), y_m=float(y))

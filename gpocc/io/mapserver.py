@@ -171,7 +171,7 @@ def _write_pixels(path: Path, offset: int, spec: GridSpec,
     try:
         body[...] = UNKNOWN_PIXEL
         for window, pixels in tiles:
-            row, col = _offset_in(window, spec)
+            row, col = tile_offset(window, spec)
             px = np.asarray(pixels, dtype=np.uint8)
             if px.shape != window.shape:
                 raise ValueError(f"tile pixels {px.shape} do not match its grid {window.shape}")
@@ -181,7 +181,8 @@ def _write_pixels(path: Path, offset: int, spec: GridSpec,
         del body
 
 
-def _offset_in(window: GridSpec, spec: GridSpec) -> tuple[int, int]:
+def tile_offset(window: GridSpec, spec: GridSpec) -> tuple[int, int]:
+    """(row, col) of tile ``window``'s top-left cell in ``spec``; it must lie on its cells."""
     res = spec.resolution
     col_f, row_f = (window.x0 - spec.x0) / res, (spec.y1 - window.y1) / res
     col, row = round(col_f), round(row_f)

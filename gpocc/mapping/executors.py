@@ -17,7 +17,6 @@ from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 
 from gpocc.blas import single_threaded_blas
-from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
 from gpocc.mapping.blocks import (
@@ -27,7 +26,7 @@ from gpocc.mapping.blocks import (
     anchor_problems,
     predict_anchor,
 )
-from gpocc.parallel import watched, worker_pool
+from gpocc.parallel import dask_client, watched, worker_pool
 
 _worker_state: dict[str, object] = {}
 
@@ -142,19 +141,9 @@ def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = No
     if anchors is not None:
         workers = min(workers, -(-anchors // ANCHORS_PER_CHUNK))
     if scheduler:
-        from distributed import Client
-
-        try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError, ValueError) as exc:  # ValueError: a malformed address
-            raise GpoccError(
-                f"cannot reach the Dask scheduler at {scheduler} ({exc}); check the address"
-            ) from None
-        try:
+        with dask_client(scheduler) as client:
             yield AnchorExecutor(model, client=client,
                                  model_future=client.scatter(model, broadcast=True))
-        finally:
-            client.close()
         return
     if workers <= 1:
         yield AnchorExecutor(model)
