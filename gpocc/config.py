@@ -71,6 +71,16 @@ class SensorConfig:
     covariance_sentinel: float = 1e3
     max_covariance_age_s: float = 30.0
     repair_pose_covariance: bool = False
+    # 3-D lidars (scan_topic a sensor_msgs/PointCloud2; gpocc.io.cloudread): returns
+    # between the heights height_band_m above the floor are obstacles; the floor is
+    # base_height_m below the base frame's origin (0: the base frame is on the floor, as
+    # REP 105's base_footprint). Bearings are binned at horizontal_resolution_deg (null:
+    # from the cloud's layout). base_frame: the frame whose x-y plane is the ground
+    # plane (null: the frame TF moves the robot by, e.g. base_footprint).
+    height_band_m: tuple[float, float] = (0.1, 2.0)
+    base_height_m: float = 0.0
+    horizontal_resolution_deg: float | None = None
+    base_frame: str | None = None
 
     @property
     def bearing_variance_rad2(self) -> float:
@@ -371,6 +381,7 @@ _POSITIVE_KEYS = {
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
     "max_variance_ratio", "max_pgm_pixels", "covariance_sentinel",
     "min_input_noise_scale", "max_input_noise_scale", "calibration_blocks",
+    "horizontal_resolution_deg",
     "calibration_max_position_std_m",
     "weight_variance", "bias_variance", "max_cells",
 }
@@ -496,6 +507,14 @@ def _validate(config: Config, source: str) -> Config:
             raise GpoccError(
                 f"{source}: key '{key}' is not positive semi-definite; fix its off-diagonals"
             )
+        low, high = sensor.height_band_m
+        if not low < high:
+            raise GpoccError(f"{source}: key 'sensors[{i}].height_band_m' must be [min, max] "
+                             f"heights above the floor with min < max, got {[low, high]}")
+        res = sensor.horizontal_resolution_deg
+        if res is not None and not 0.01 <= res <= 10.0:
+            raise GpoccError(f"{source}: key 'sensors[{i}].horizontal_resolution_deg' must be "
+                             f"in [0.01, 10] degrees, got {res}")
         if sensor.range_min_m is not None and sensor.range_max_m is not None:
             if sensor.range_min_m >= sensor.range_max_m:
                 raise GpoccError(f"{source}: key 'sensors[{i}].range_min_m' must be < range_max_m")

@@ -23,7 +23,7 @@ from pathlib import Path
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import autodetect, bags, carmen
-from gpocc.io.bags import SCAN_TYPE, BagContents, TopicSummary
+from gpocc.io.bags import BagContents, TopicSummary
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
 
@@ -122,7 +122,7 @@ def _matches(sensor: SensorConfig, path: Path) -> bool:
 
 
 def _scan_topics(summary: InputSummary) -> list[str]:
-    return [t.name for t in summary.topics if t.msgtype == SCAN_TYPE]
+    return autodetect.scan_topics(summary.topics)
 
 
 def _only(path: Path, summary: InputSummary, names: list[str], what: str,
@@ -236,7 +236,9 @@ def read_input(path: str | Path, config: Config,
         batches = [carmen.read_carmen(path, sensors[0])]
     else:
         batches = bags.read_bag(path, sensors)
-    return [replace(b, sensor_config=s) for b, s in zip(batches, sensors, strict=True)]
+    # A reader may resolve more (a point cloud's defaults and layout): its entry wins.
+    return [replace(b, sensor_config=b.sensor_config or s)
+            for b, s in zip(batches, sensors, strict=True)]
 
 
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:
