@@ -7,7 +7,7 @@ from setuptools import Extension, setup
 # -O3: their loops are the map's and the training's hot path. -ffp-contract=fast: a * b + c
 # becomes one fused multiply-add (one rounding instead of two) where the CPU has FMA;
 # -std=c11 alone turns contraction off, and a map anchor's covariances took 25% longer
-# (docs/benchmarks.md, session 15).
+# (measured in commit dc508e1).
 FLAGS = ["-O3", "-fno-math-errno", "-fno-trapping-math", "-ffinite-math-only",
          "-fno-signed-zeros", "-std=c11", "-ffp-contract=fast"]
 

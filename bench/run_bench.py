@@ -34,8 +34,8 @@ from .registry import REGISTRY, Context, Result, Skipped
 PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
 ORDER = ("intel", "intel-repeats", "campus", "scaling-data", "scaling-size", "samples",
-         "anchor-cost", "expected-kernels", "quadrature", "anneal-budget", "knobs",
-         "fingerprints")
+         "sample-memory", "anchor-cost", "expected-kernels", "quadrature", "blas-threads",
+         "anneal-budget", "knobs", "fingerprints")
 
 
 def ordered() -> list[str]:

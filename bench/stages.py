@@ -121,3 +121,84 @@ def anchor_cost(ctx: Context) -> Result:
                      [[str(len(anchors)), str(len(chosen)), f"{1e3 * per_anchor:.2f}",
                        f"{per_anchor * len(anchors):.1f}"]]))
     return result
+
+
+@benchmark("blas-threads", "BLAS threads on small matrices")
+def blas_threads(ctx: Context) -> Result:
+    """gpocc runs BLAS on one thread per process (`gpocc/blas.py`) and parallelises over
+    processes instead. This measures what one thread costs or saves on matrices the size
+    of local problems (128 and 256 samples): the Cholesky factor and a triangular solve
+    against 333 columns (a block's queries), with the BLAS library's default threads and
+    with one; the median of 200 calls (50 in a quick run), so that thread wake-ups and
+    contention count."""
+    import numpy as np
+    from scipy.linalg import cho_factor, solve_triangular
+    from threadpoolctl import threadpool_limits
+
+    from gpocc.blas import single_threaded_blas
+
+    calls = 50 if ctx.quick else 200
+    rng = np.random.default_rng(0)
+    rows = []
+    for n in (128, 256):
+        a = rng.standard_normal((n, n))
+        spd = a @ a.T + n * np.eye(n)
+        rhs = rng.standard_normal((n, 333))
+        factor = np.linalg.cholesky(spd)
+        timings = []
+        for limit in (None, 1):
+            with threadpool_limits(limits=limit, user_api="blas") if limit is None \
+                    else single_threaded_blas():
+                chol, solve = [], []
+                for _ in range(calls):
+                    t0 = time.perf_counter()
+                    cho_factor(spd, lower=True)
+                    t1 = time.perf_counter()
+                    solve_triangular(factor, rhs, lower=True)
+                    chol.append(t1 - t0)
+                    solve.append(time.perf_counter() - t1)
+            timings.append({"chol": np.median(chol), "solve": np.median(solve)})
+        rows.append([str(n), f"{1e3 * timings[0]['chol']:.3f}",
+                     f"{1e3 * timings[1]['chol']:.3f}", f"{1e3 * timings[0]['solve']:.3f}",
+                     f"{1e3 * timings[1]['solve']:.3f}"])
+    result = Result()
+    result.add(Table(("samples", "Cholesky ms, default threads", "Cholesky ms, 1 thread",
+                      "solve (333 columns) ms, default threads", "solve ms, 1 thread"),
+                     rows))
+    return result
+
+
+@benchmark("sample-memory", "Memory per training sample")
+def sample_memory(ctx: Context) -> Result:
+    """Why `gpocc.limits.MAX_SAMPLES_PER_SCAN` bounds what one scan may give: sample
+    building pushes a whole scan through the unscented transform at once. Peak traced
+    memory (numpy's allocations, `tracemalloc`) of `build_samples` on one scan of 1080
+    beams (and 4000 beams in a full run) ending 29 m away, thinning off."""
+    import math
+    import tracemalloc
+
+    import numpy as np
+
+    from gpocc.config import Config, SamplesConfig, SensorConfig, replace
+    from gpocc.io.scans import ScanBatch
+    from gpocc.samples.beams import build_samples
+
+    rows = []
+    for beams in (1080,) if ctx.quick else (1080, 4000):
+        batch = ScanBatch(
+            sensor="wide", source="synthetic", stamps=np.zeros(1),
+            angles=np.linspace(-math.pi, math.pi, beams, endpoint=False),
+            ranges=np.full((1, beams), 29.0), poses=np.zeros((1, 3)),
+            pose_covariances=np.diag([1e-3, 1e-3, 1e-4])[None].copy(),
+            range_min=0.1, range_max=40.0)
+        config = replace(Config(sensors=(SensorConfig(name="wide"),)),
+                         samples=SamplesConfig(thin_cell_m=0.0))
+        tracemalloc.start()
+        built = build_samples([batch], config)
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        rows.append([str(beams), str(len(built)), f"{peak / 2**20:.0f}",
+                     f"{peak / len(built):.0f}"])
+    result = Result()
+    result.add(Table(("beams", "samples", "peak traced MiB", "bytes per sample"), rows))
+    return result

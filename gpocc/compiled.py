@@ -4,7 +4,7 @@
 releases the GIL for every call, so threads run them in parallel. Each wrapper checks
 what C cannot: dtypes, C order, shapes, and that output arrays are writable float64 in C
 order. Loading the library takes about a millisecond; numba, which they replace, cost
-0.5-0.9 s of every process's start (docs/benchmarks.md, session 14).
+0.5-0.9 s of every process's start (measured in commit b5aee9e, which replaced it).
 """
 
 from __future__ import annotations
