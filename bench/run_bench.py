@@ -52,11 +52,11 @@ def _git(*args: str) -> str:
 
 
 def commit() -> str:
-    """The short commit hash, with ``+ uncommitted changes`` when the tree differs from it
-    (the generated page itself aside)."""
+    """The short commit hash, with ``+ uncommitted changes`` when tracked files other than
+    markdown pages (which change no measurement) differ from it."""
     head = _git("rev-parse", "--short", "HEAD") or "unknown"
     changed = [line for line in _git("status", "--porcelain", "--untracked-files=no")
-               .splitlines() if not line.endswith("docs/benchmarks.md")]
+               .splitlines() if not line.endswith(".md")]
     return f"{head} + uncommitted changes" if changed else head
 
 
