@@ -19,8 +19,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -30,6 +28,7 @@ from pathlib import Path
 from . import fingerprints, kernels, knobs, pipeline, stages  # noqa: F401 (they register)
 from .paths import CARMEN, ROOT
 from .registry import REGISTRY, Context, Result, Skipped
+from .stamp import commit, machine
 
 PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
@@ -41,52 +40,6 @@ ORDER = ("intel", "intel-repeats", "campus", "scaling-data", "scaling-size", "sa
 def ordered() -> list[str]:
     """Every registered benchmark's name, in the page's order."""
     return sorted(REGISTRY, key=lambda n: ORDER.index(n) if n in ORDER else len(ORDER))
-
-
-def _git(*args: str) -> str:
-    try:
-        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return ""
-
-
-def commit() -> str:
-    """The short commit hash, with ``+ uncommitted changes`` when tracked files other than
-    markdown pages (which change no measurement) differ from it."""
-    head = _git("rev-parse", "--short", "HEAD") or "unknown"
-    changed = [line for line in _git("status", "--porcelain", "--untracked-files=no")
-               .splitlines() if not line.endswith(".md")]
-    return f"{head} + uncommitted changes" if changed else head
-
-
-def machine() -> str:
-    """CPU model, cores, memory, OS, Python and numpy with its BLAS, in one line."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            cpu = next(line.split(":", 1)[1].strip() for line in fh
-                       if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    memory = ""
-    try:
-        with open("/proc/meminfo") as fh:
-            kib = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal"))
-        memory = f", {kib / 2**20:.0f} GiB memory"
-    except (OSError, StopIteration):
-        pass
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    cores = f"{os.cpu_count()} cores" + (f" ({usable} usable)" if usable != os.cpu_count()
-                                         else "")
-    import numpy as np
-    from threadpoolctl import threadpool_info
-
-    blas = next((f"{i.get('internal_api')} {i.get('version')}" for i in threadpool_info()
-                 if i.get("user_api") == "blas"), "unknown BLAS")
-    return (f"{cpu} ({platform.machine()}), {cores}{memory}; {platform.system()} "
-            f"{platform.release()}, Python {platform.python_version()}, numpy "
-            f"{np.__version__} with {blas}")
 
 
 def run_all(names: list[str], ctx: Context) -> list[tuple[str, Result | str, float]]:
