@@ -80,9 +80,9 @@ def page(done: list[tuple[str, Result | str, float]], quick: bool, repeats: int,
         f"- Benchmarks run: {', '.join(f'`{n}`' for n in ran) or 'none'}"
         + (f"; not run: {', '.join(f'`{n}`' for n in left_out)}." if left_out else "."),
         "",
-        "Times are wall-clock seconds unless a column says CPU. On a shared machine they",
-        "drift from run to run: compare figures within one page, or repeat "
-        "(`intel-repeats`).",
+        "Times are wall-clock unless a column says CPU or a description says process",
+        "time. On a shared machine they drift from run to run: compare figures within one",
+        "page, or repeat (`intel-repeats`).",
         "",
         "## Reproduce",
         "",
