@@ -28,7 +28,7 @@ from pathlib import Path
 from . import fingerprints, kernels, knobs, pipeline, stages  # noqa: F401 (they register)
 from .paths import CARMEN, ROOT
 from .registry import REGISTRY, Context, Result, Skipped
-from .stamp import commit, machine
+from .stamp import commit, load, machine, usable_cores
 
 PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
@@ -62,7 +62,7 @@ def run_all(names: list[str], ctx: Context) -> list[tuple[str, Result | str, flo
 
 
 def page(done: list[tuple[str, Result | str, float]], quick: bool, repeats: int,
-         stamp: datetime.datetime) -> str:
+         stamp: datetime.datetime, loads: tuple[float | None, float | None]) -> str:
     """The markdown of docs/benchmarks.md."""
     ran = [name for name, _, _ in done]
     left_out = [name for name in ordered() if name not in ran]
@@ -76,6 +76,9 @@ def page(done: list[tuple[str, Result | str, float]], quick: bool, repeats: int,
         f"Generated on {stamp:%Y-%m-%d %H:%M} UTC at commit `{commit()}`, {kind}.",
         "",
         f"- Machine: {machine()}.",
+        f"- Load (1-minute average) at the start and end: {_load(loads)} on "
+        f"{usable_cores()} usable cores; above the cores, other work shared the CPU and "
+        "wall times are inflated.",
         f"- Data: `{_shown(CARMEN)}` (`GPOCC_CARMEN_DIR`).",
         f"- Benchmarks run: {', '.join(f'`{n}`' for n in ran) or 'none'}"
         + (f"; not run: {', '.join(f'`{n}`' for n in left_out)}." if left_out else "."),
@@ -116,6 +119,10 @@ def page(done: list[tuple[str, Result | str, float]], quick: bool, repeats: int,
             lines += [table.markdown(), ""]
         lines += [f"- {note}" for note in outcome.notes]
     return "\n".join(lines).rstrip() + "\n"
+
+
+def _load(loads: tuple[float | None, float | None]) -> str:
+    return " and ".join("unknown" if v is None else f"{v:.1f}" for v in loads)
 
 
 def _shown(path: Path) -> str:
@@ -166,9 +173,10 @@ def main() -> None:
         parser.error(f"unknown benchmark(s) {', '.join(unknown)}; --list shows them")
     names = args.only or [n for n in ordered() if REGISTRY[n].in_quick or not args.quick]
     stamp = datetime.datetime.now(datetime.UTC)
+    before = load()
     with tempfile.TemporaryDirectory(prefix="gpocc-bench-") as tmp:
         done = run_all(names, Context(Path(tmp), args.quick, args.repeats))
-    text = page(done, args.quick, args.repeats, stamp)
+    text = page(done, args.quick, args.repeats, stamp, (before, load()))
     if args.out == "-":
         sys.stdout.write(text)
     else:

@@ -49,17 +49,35 @@ def machine() -> str:
         memory = f", {kib / 2**20:.0f} GiB memory"
     except (OSError, StopIteration):
         pass
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    usable = usable_cores()
     cores = f"{os.cpu_count()} cores" + (f" ({usable} usable)" if usable != os.cpu_count()
                                          else "")
     import numpy as np
     from threadpoolctl import threadpool_info
 
-    blas = next((f"{i.get('internal_api')} {i.get('version')}" for i in threadpool_info()
-                 if i.get("user_api") == "blas"), "unknown BLAS")
+    # numpy's own BLAS (scipy may load another copy, listed in no fixed order).
+    found = [i for i in threadpool_info() if i.get("user_api") == "blas"]
+    found.sort(key=lambda i: "numpy" not in str(i.get("filepath", "")))
+    blas = (f"{found[0].get('internal_api')} {found[0].get('version')}" if found
+            else "unknown BLAS")
     return (f"{cpu} ({platform.machine()}), {cores}{memory}; {platform.system()} "
             f"{platform.release()}, Python {platform.python_version()}, numpy "
             f"{np.__version__} with {blas}")
+
+
+def load() -> float | None:
+    """The 1-minute load average (None where the system gives none)."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None
+
+
+def usable_cores() -> int:
+    """The cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def stamp(when: datetime.datetime | None = None) -> str:
