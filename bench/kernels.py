@@ -11,12 +11,10 @@ from .paths import INTEL
 from .registry import Context, Result, Table, benchmark, require
 
 
-def _use_compiled(on: bool) -> None:
-    """Route gpocc's expected kernels through the compiled loops or the numpy fallback,
-    with a cold node cache."""
+def _cold_cache() -> None:
+    """Empty the expected kernels' node-set cache, so that no backend reuses another's."""
     from gpocc.gp import expected as ex
 
-    ex.USE_FUSED = on
     ex._NODE_CACHE.clear()
 
 
@@ -24,9 +22,10 @@ def _use_compiled(on: bool) -> None:
 def expected_kernels(ctx: Context) -> Result:
     """Process (CPU) time per local problem, on one BLAS thread, of the expected training
     covariance K, of K with its gradients dK (what training evaluates) and of the cross
-    covariance to 100 queries, through the compiled loops and the numpy quadrature, with
-    their largest difference. The problems are `model.neighbours` samples around random
-    samples of the Intel model (20 problems; 5 in a quick run)."""
+    covariance to 100 queries, through the `compiled` and the `numpy` backends
+    (`model.backend`), with their largest difference. The problems are
+    `model.neighbours` samples around random samples of the Intel model (20 problems; 5
+    in a quick run)."""
     from gpocc.blas import single_threaded_blas
     from gpocc.gp import expected as ex
     from gpocc.gp.local import NeighbourIndex
@@ -45,37 +44,34 @@ def expected_kernels(ctx: Context) -> Result:
     pairs = np.mean([ex.same_scan_pairs(p.covariances, p.scan_ids, p.pose_factors)[0].size
                      for p in problems])
 
-    def run(what: str) -> list[np.ndarray]:
+    def run(what: str, backend: str) -> list[np.ndarray]:
         out = []
         for p in problems:
             if what == "cross":
                 out.append(ex.expected_kernel_cross(kernel, queries, p.means, p.covariances,
-                                                    level))
+                                                    level, backend=backend))
                 continue
             r = ex.expected_kernel_matrix(kernel, p.means, p.covariances, level,
                                           scan_ids=p.scan_ids, pose_factors=p.pose_factors,
-                                          with_gradient=what == "K+dK")
+                                          with_gradient=what == "K+dK", backend=backend)
             out.append(r[1] if what == "K+dK" else r)
         return out
 
     rows = []
-    try:
-        with single_threaded_blas():
-            for what in ("K", "K+dK", "cross"):
-                times, results = {}, {}
-                for compiled in (False, True):
-                    _use_compiled(compiled)
-                    run(what)  # warm up (not timed)
-                    _use_compiled(compiled)
-                    start = time.process_time()
-                    results[compiled] = run(what)
-                    times[compiled] = 1e3 * (time.process_time() - start) / len(problems)
-                diff = max(float(np.abs(a - b).max())
-                           for a, b in zip(results[False], results[True], strict=True))
-                rows.append([what, f"{times[False]:.2f}", f"{times[True]:.2f}",
-                             f"{times[False] / times[True]:.1f}x", f"{diff:.1e}"])
-    finally:
-        _use_compiled(True)
+    with single_threaded_blas():
+        for what in ("K", "K+dK", "cross"):
+            times, results = {}, {}
+            for backend in ("numpy", "compiled"):
+                _cold_cache()
+                run(what, backend)  # warm up (not timed)
+                _cold_cache()
+                start = time.process_time()
+                results[backend] = run(what, backend)
+                times[backend] = 1e3 * (time.process_time() - start) / len(problems)
+            diff = max(float(np.abs(a - b).max())
+                       for a, b in zip(results["numpy"], results["compiled"], strict=True))
+            rows.append([what, f"{times['numpy']:.2f}", f"{times['compiled']:.2f}",
+                         f"{times['numpy'] / times['compiled']:.1f}x", f"{diff:.1e}"])
     result = Result()
     result.add(Table(("matrix", "numpy ms", "compiled ms", "speed-up", "max abs difference"),
                      rows),

@@ -57,6 +57,9 @@ class SensorConfig:
     override_pose_covariance: bool = False
     mount: MountConfig = field(default_factory=MountConfig)
     max_pose_gap_s: float = 0.25
+    # A scan within this of a pose sample takes it when it cannot be interpolated
+    # (header stamps of one driver vs. another's, or log times: never exact equality).
+    stamp_tolerance_s: float = 0.02
     no_return_free_m: float = 5.0
     range_min_m: float | None = None
     range_max_m: float | None = None
@@ -226,6 +229,9 @@ class ModelConfig:
     1 blends bilinearly across whole blocks, so every cell is predicted by four local
     problems; smaller values predict a block's central (1 - o)^2 by its own problem
     alone, so each cell costs (1 + o)^2 problems on average instead of four.
+    ``backend``: where the expected kernels are computed (:mod:`gpocc.gp.backends`):
+    ``compiled`` (C loops for the kernels they serve, numpy for the others), ``numpy``
+    (the reference; slower) or ``auto`` (compiled where built).
     """
 
     kernel: str = "nn"
@@ -234,6 +240,7 @@ class ModelConfig:
     neighbours: int = 128
     block_size_m: float = 1.0
     blend_overlap: float = 1.0
+    backend: str = "auto"
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
 
@@ -356,7 +363,7 @@ _Loader.add_implicit_resolver(
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "free_clearance_m",
+    "free_clearance_m", "stamp_tolerance_s",
     "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }
@@ -499,10 +506,15 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'classify' needs 0 < free <= occupied < 1, got {c.free}, {c.occupied}"
         )
-    if config.model.kernel not in ("nn", "se"):
-        raise GpoccError(
-            f"{source}: key 'model.kernel' must be 'nn' or 'se', got {config.model.kernel!r}"
-        )
+    from gpocc.gp import backends  # gp.kernels imports this module: here, not on top
+    from gpocc.gp.kernels import KERNELS, kernel_names_text
+
+    if config.model.kernel not in KERNELS:
+        raise GpoccError(f"{source}: key 'model.kernel' must be {kernel_names_text()}, "
+                         f"got {config.model.kernel!r}")
+    if config.model.backend not in backends.NAMES:
+        raise GpoccError(f"{source}: key 'model.backend' must be one of "
+                         f"{', '.join(backends.NAMES)}, got {config.model.backend!r}")
     if config.map.epsg is not None:
         raise GpoccError(
             f"{source}: key 'map.epsg' is retired: a CRS code without the map frame's origin "

@@ -15,6 +15,7 @@ from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.io.rasters import BERNOULLI_VARIANCE_BAND
+from gpocc.io.scans import scan_stamps
 from gpocc.limits import check_cells, max_cells
 from gpocc.mapping.folder import MapFolder, folder_metadata, write_metadata
 from gpocc.progress import log
@@ -52,7 +53,8 @@ def grid_command(
     classes = classify(probability, cfg.classify.occupied, cfg.classify.free)
     t0 = time.perf_counter()
     with atomic_directory(out, force=force) as tmp:
-        folder = MapFolder(tmp, spec, cfg, bands={"variance": BERNOULLI_VARIANCE_BAND})
+        folder = MapFolder(tmp, spec, cfg, bands={"variance": BERNOULLI_VARIANCE_BAND},
+                           stamp_s=scan_stamps(batches)[1])
         folder.add(0, 0, spec, probability, variance, classes)
         counts = folder.finish("log-odds occupancy grid")
         write_s = time.perf_counter() - t0
@@ -61,6 +63,7 @@ def grid_command(
             {"probability": "p(occupied) = 1 - 1/(1 + exp(log-odds)), float32",
              "variance": "Bernoulli variance p (1 - p), float32"},
             {"read": read_s, "grid": grid_s, "write": write_s},
+            ros=folder.ros_outputs,
             inputs=[str(p) for p in inputs],
             sensors=[{"name": b.sensor, "source": b.source, "scans": b.n_scans,
                       "beams": b.n_beams} for b in batches],

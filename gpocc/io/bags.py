@@ -6,7 +6,8 @@ definitions. Scans come from ``sensor_msgs/msg/LaserScan``; poses from
 ``geometry_msgs/msg/PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry`` or
 ``geometry_msgs/msg/PoseStamped`` (no covariance), and TF (``/tf``, ``/tf_static``): see
 :mod:`gpocc.io.laserpose` for how the laser pose and its covariance are chosen. Times are
-header stamps in seconds (a zero header stamp falls back to the bag's record time).
+header stamps in seconds, or the log time for a topic whose header stamps are zero,
+constant or not increasing (:mod:`gpocc.io.stamps`).
 
 LaserScan messages are checked as read: ``angle_min``, ``angle_max`` and
 ``angle_increment`` must be finite and agree with the number of ranges (within two
@@ -18,6 +19,8 @@ field.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import errno
 import functools
 import math
 import os
@@ -65,12 +68,21 @@ class TopicSummary:
 
 @dataclass(frozen=True)
 class BagContents:
-    """What a bag holds: its format, topics and record-time span (seconds)."""
+    """What a bag holds: its format, topics and record-time span (seconds).
+
+    ``frames``: ``(topic, frame_id, child_frame_id)`` of each pose topic's first message
+    (child empty when the type has none), which pose-source choice needs.
+    """
 
     format: str
     topics: tuple[TopicSummary, ...]
     start_s: float | None
     end_s: float | None
+    frames: tuple[tuple[str, str, str], ...] = ()
+
+    def frame_of(self, topic: str) -> tuple[str, str]:
+        """``(frame_id, child_frame_id)`` of a pose topic, ``("", "")`` when unknown."""
+        return next(((f, c) for t, f, c in self.frames if t == topic), ("", ""))
 
     def topic(self, name: str) -> TopicSummary | None:
         return next((t for t in self.topics if t.name == name), None)
@@ -170,18 +182,32 @@ def _contents(reader: Any, fmt: str) -> BagContents:
     return BagContents(fmt, topics, start, end)
 
 
+def _pose_frames(reader: Any) -> tuple[tuple[str, str, str], ...]:
+    """``(topic, frame_id, child_frame_id)`` from the first message of each pose topic."""
+    out = []
+    for conn in reader.connections:
+        if conn.msgtype not in POSE_TYPES or any(t == conn.topic for t, _, _ in out):
+            continue
+        for c, _, raw in reader.messages(connections=[conn]):
+            msg = reader.deserialize(raw, c.msgtype)
+            out.append((conn.topic, frame_name(msg.header.frame_id),
+                        frame_name(getattr(msg, "child_frame_id", "") or "")))
+            break
+    return tuple(out)
+
+
 def describe_bag(path: str | Path) -> BagContents:
-    """Topics (type, message count) and time span of a bag, without reading its messages."""
+    """Topics (type, message count), time span and pose topics' frames of a bag (the
+    first message of each pose topic is read; no other message)."""
     path = Path(path)
     fmt = bag_format(path) or "mcap"
     with _open_reader(path) as reader:
-        return _contents(reader, fmt)
+        return dataclasses.replace(_contents(reader, fmt), frames=_pose_frames(reader))
 
 
-def _stamp(msg: Any, record_ns: int) -> float:
+def _stamp(msg: Any) -> float:
+    """The header stamp in seconds; 0.0 when it is zero (see :mod:`gpocc.io.stamps`)."""
     stamp = msg.header.stamp
-    if stamp.sec == 0 and stamp.nanosec == 0:
-        return record_ns * 1e-9
     return stamp.sec + stamp.nanosec * 1e-9
 
 
@@ -211,7 +237,8 @@ def _check_scan_fields(path: Path, topic: str, msg: Any, t: float, n: int) -> No
 
 def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int) -> None:
     ranges = np.asarray(msg.ranges, dtype=float)
-    t = _stamp(msg, record_ns)
+    header = _stamp(msg)
+    t = header or record_ns * 1e-9
     _check_scan_fields(path, topic, msg, t, ranges.shape[0])
     geometry = (ranges.shape[0], float(msg.angle_min), float(msg.angle_increment))
     if acc.geometry is None:
@@ -225,7 +252,8 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
             f"{geometry[0]}, or a different angle_min/angle_increment) at "
             f"t={t:.3f} s; split the bag at that time"
         )
-    acc.stamps.append(t)
+    acc.stamps.append(header)
+    acc.log_times.append(record_ns * 1e-9)
     acc.ranges.append(ranges)
 
 
@@ -239,9 +267,9 @@ def interpolate_poses(
     """Poses and covariances at ``stamps``, interpolated between the bracketing poses.
 
     x and y are linear in time, yaw follows the shorter arc, the covariance is linear.
-    A stamp is served only when it equals a pose stamp, or lies between two poses at
-    most ``max_gap_s`` apart; outside the poses' time range, or inside a longer gap, it
-    is not.
+    A stamp is served only when it lies between two poses at most ``max_gap_s`` apart,
+    or within 1 us of a pose stamp (:func:`gpocc.io.timeline.brackets`); outside the
+    poses' time range, or inside a longer gap, it is not.
 
     Args:
         pose_stamps: (P,) seconds, strictly increasing.
@@ -550,5 +578,8 @@ def write_bag(
     except GpoccError:
         raise
     except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise GpoccError(f"{path}: cannot write the bag: no space left on device; free "
+                             "some space there, or write it elsewhere") from None
         raise GpoccError(f"{path}: cannot write the bag ({_one_line(exc)}); check the folder "
                          "exists and is writable") from None

@@ -47,6 +47,7 @@ class InputSummary:
     topics: tuple[TopicSummary, ...]
     start_s: float | None
     end_s: float | None
+    frames: tuple[tuple[str, str, str], ...] = ()  # see BagContents.frames
 
     @property
     def format_name(self) -> str:
@@ -110,7 +111,7 @@ def describe_input(path: str | Path) -> InputSummary:
         )
         return InputSummary(path, fmt, topics, contents.start_s, contents.end_s)
     bag = bags.describe_bag(path)
-    return InputSummary(path, fmt, bag.topics, bag.start_s, bag.end_s)
+    return InputSummary(path, fmt, bag.topics, bag.start_s, bag.end_s, bag.frames)
 
 
 def _matches(sensor: SensorConfig, path: Path) -> bool:
@@ -158,7 +159,8 @@ def default_sensor(summary: InputSummary) -> SensorConfig:
 
 
 def _contents(summary: InputSummary) -> BagContents:
-    return BagContents(summary.format, summary.topics, summary.start_s, summary.end_s)
+    return BagContents(summary.format, summary.topics, summary.start_s, summary.end_s,
+                       summary.frames)
 
 
 def _resolve_bag_sensor(summary: InputSummary, sensor: SensorConfig) -> SensorConfig:
@@ -201,7 +203,7 @@ def sensors_for_input(summary: InputSummary, config: Config) -> list[SensorConfi
                 "holds one laser; give each entry an inputs glob"
             )
         return chosen
-    contents = BagContents(summary.format, summary.topics, summary.start_s, summary.end_s)
+    contents = _contents(summary)
     resolved = []
     for sensor in applicable:
         if not sensor.inputs and sensor.scan_topic and contents.topic(sensor.scan_topic) is None:

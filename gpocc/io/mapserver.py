@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from gpocc.constants import FREE as CLASS_FREE
+from gpocc.constants import OCCUPIED as CLASS_OCCUPIED
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_path
@@ -59,9 +61,6 @@ def class_pixels(classes: np.ndarray) -> np.ndarray:
 
     Unsure (2) and no-data (255) cells become unknown: map_server has no other state.
     """
-    from gpocc.gp.classify import FREE as CLASS_FREE
-    from gpocc.gp.classify import OCCUPIED as CLASS_OCCUPIED
-
     c = np.asarray(classes)
     pixels = np.full(c.shape, UNKNOWN_PIXEL, dtype=np.uint8)
     pixels[c == CLASS_OCCUPIED] = OCCUPIED_PIXEL
@@ -171,7 +170,7 @@ def _write_pixels(path: Path, offset: int, spec: GridSpec,
     try:
         body[...] = UNKNOWN_PIXEL
         for window, pixels in tiles:
-            row, col = _offset_in(window, spec)
+            row, col = tile_offset(window, spec)
             px = np.asarray(pixels, dtype=np.uint8)
             if px.shape != window.shape:
                 raise ValueError(f"tile pixels {px.shape} do not match its grid {window.shape}")
@@ -181,7 +180,8 @@ def _write_pixels(path: Path, offset: int, spec: GridSpec,
         del body
 
 
-def _offset_in(window: GridSpec, spec: GridSpec) -> tuple[int, int]:
+def tile_offset(window: GridSpec, spec: GridSpec) -> tuple[int, int]:
+    """(row, col) of tile ``window``'s top-left cell in ``spec``; it must lie on its cells."""
     res = spec.resolution
     col_f, row_f = (window.x0 - spec.x0) / res, (spec.y1 - window.y1) / res
     col, row = round(col_f), round(row_f)

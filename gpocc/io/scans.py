@@ -32,6 +32,7 @@ class Provenance:
         covariance_source: e.g. ``/amcl_pose (held up to 30 s)`` or ``config``.
         skipped: (reason, config key, count) of dropped scans.
         notes: counted repairs and fallbacks.
+        stamps: which clock times each topic used (``/scan: header stamps; ...``).
     """
 
     pose_source: str
@@ -39,6 +40,7 @@ class Provenance:
     covariance_source: str = ""
     skipped: tuple[tuple[str, str, int], ...] = ()
     notes: tuple[str, ...] = field(default=())
+    stamps: str = ""
 
 
 @dataclass(frozen=True)
@@ -91,3 +93,15 @@ class ScanBatch:
     @property
     def n_beams(self) -> int:
         return int(self.ranges.shape[1])
+
+
+def scan_stamps(batches: list[ScanBatch]) -> tuple[float | None, float | None]:
+    """(first, last) scan stamp of ``batches``, seconds; (None, None) without scans.
+
+    CARMEN logs whose logger stamps do not increase are read in line order, and their
+    stamps are scan numbers (:mod:`gpocc.io.carmen`).
+    """
+    stamps = [np.asarray(b.stamps, dtype=float) for b in batches if b.n_scans]
+    if not stamps:
+        return None, None
+    return (float(min(s.min() for s in stamps)), float(max(s.max() for s in stamps)))

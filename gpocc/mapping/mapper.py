@@ -13,7 +13,7 @@ import contextlib
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -49,12 +49,22 @@ class MapSummary:
     seconds: float
     class_counts: dict[str, int]
     stage_seconds: dict[str, float]
+    ros_outputs: dict[str, Any] = field(default_factory=dict)
 
 
 def default_spec(model: GPModel, resolution: float, margin: float) -> GridSpec:
     """The samples' extent plus ``margin`` metres, at ``resolution`` metres."""
     x0, y0, x1, y1 = model.extent
     return GridSpec.from_bounds(x0 - margin, y0 - margin, x1 + margin, y1 + margin, resolution)
+
+
+def last_scan_stamp(model: GPModel) -> float | None:
+    """The stamp of the model's last training scan, seconds (None: a model file written
+    before gpocc recorded it)."""
+    span = model.training.get("scan_stamps_s")
+    if isinstance(span, list | tuple) and len(span) == 2 and isinstance(span[1], int | float):
+        return float(span[1])
+    return None
 
 
 def _tile_windows(spec: GridSpec, tile: int) -> list[tuple[int, int, GridSpec]]:
@@ -120,7 +130,8 @@ def make_map(
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
     windows = _tile_windows(spec, tile)
-    folder = MapFolder(out_dir, spec, config, tiled=len(windows) > 1, tile=tile)
+    folder = MapFolder(out_dir, spec, config, tiled=len(windows) > 1, tile=tile,
+                       stamp_s=last_scan_stamp(model))
     n_blocks = 0
     stages = {"predict": 0.0, "write": 0.0, "finish": 0.0}
 
@@ -175,7 +186,7 @@ def make_map(
         stages["finish"] = time.perf_counter() - tick
     return MapSummary(spec=spec, tiles=len(windows), blocks=n_blocks,
                       seconds=time.perf_counter() - started, class_counts=counts,
-                      stage_seconds=stages)
+                      stage_seconds=stages, ros_outputs=folder.ros_outputs)
 
 
 def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
@@ -188,6 +199,7 @@ def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
         {"probability": "p(occupied), float32",
          "variance": "latent GP predictive variance, float32"},
         {"map": summary.seconds, **summary.stage_seconds},
+        ros=summary.ros_outputs,
         model=str(model_path),
         model_versions=dict(model.versions),
         model_sensors=list(model.samples.sensor_names),
