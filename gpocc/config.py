@@ -133,7 +133,8 @@ class SamplesConfig:
     published). With ``patch_centres: hits``, 0.05 (default) gave a better held-out Brier
     score on both real logs, dense and sparse, at two seeds, and a higher AUC in all 8
     cases of the experiment suite; alone (with the older patches) its results were mixed
-    (docs/results.md, session 6).
+    (``bench/experiment.py`` variants ``clearance-0.05`` and ``hit-patches-clearance-0.05``;
+    commit 3198d15).
 
     ``free_range_variance``: free samples of a beam that hit carry that beam's range
     variance, like its hit (false: free samples carry no range variance, as published);
@@ -177,13 +178,14 @@ class TrainingConfig:
     samples (spatially stratified), each centred at the origin as at inference.
     ``patch_centres``: ``hits`` (default) draws the centres from the occupied samples, so
     every patch holds a boundary; ``samples`` (as before) from all samples, where a draw
-    of mostly open space can learn a kernel far too smooth for the walls (docs/results.md,
-    session 6: Freiburg held-out AUC 0.937-0.942 in 2 of 6 runs). The classifier is fitted
+    of mostly open space can learn a kernel far too smooth for the walls (Freiburg held-out
+    AUC 0.937-0.942 in 2 of 6 runs; commit 3198d15). The classifier is fitted
     on the same patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
-    (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations,
-    docs/benchmarks.md, seventh session; its job is to leave a start whose covariance is
-    not positive definite, where L-BFGS-B alone stays); then L-BFGS-B for at most
+    (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations;
+    docs/benchmarks.md, 'Annealing budget of hyperparameter learning', re-measures it on
+    the real logs; its job is to leave a start whose covariance is not positive definite,
+    where L-BFGS-B alone stays); then L-BFGS-B for at most
     ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
     (natural log) of the initial values. The label-noise variance is kept at or above
     ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
