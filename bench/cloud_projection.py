@@ -1,21 +1,21 @@
 """Time the 3-D lidar projection against building the samples of the scans it gives.
 
-Run: ``.venv/bin/python bench/cloud_projection.py [seconds]`` (default 10 s of data).
-For lidars of 16 to 128 rings at 10 and 20 Hz (columns per turn as Velodyne / Ouster
-drivers give them), a robot drives a circle in a 20 x 14 m room with a 2.6 m ceiling;
+Registered as the benchmark ``cloud-projection`` (``python -m bench.run_bench --only
+cloud-projection``). For lidars of 16 to 128 rings at 10 and 20 Hz (columns per turn as
+Velodyne / Ouster drivers give them), a robot drives a circle in a 20 x 14 m room with a
+2.6 m ceiling;
 each cloud is packed as an organised float32 PointCloud2 (x, y, z, intensity, t, ring;
 a tenth of the points no return) and goes through what ``gpocc`` does per message:
 :meth:`gpocc.io.cloudread.CloudCollector.add` (decode, 3-D TF into the base frame,
 levelling, height band, bearing bins). Then the scans are posed
 (:func:`gpocc.io.laserpose.assemble`) and :func:`gpocc.samples.beams.build_samples`
-turns them into training samples with the default config. Prints one row per lidar:
-points per second, projection seconds, samples seconds, and their ratio.
+turns them into training samples with the default config. One row per lidar: points per
+second, projection seconds, samples seconds, and their ratio.
 """
 
 from __future__ import annotations
 
 import math
-import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -27,6 +27,8 @@ from gpocc.io.cloudread import CloudCollector
 from gpocc.io.laserpose import assemble
 from gpocc.io.tf import Edge, TfBuffer
 from gpocc.samples.beams import build_samples
+
+from .registry import Context, Result, Table, benchmark
 
 LIDARS = [  # (name, rings, columns, Hz, vertical field of view in degrees)
     ("VLP-16 10 Hz", 16, 1800, 10.0, (-15.0, 15.0)),
@@ -85,7 +87,7 @@ def tf_for(stamps: np.ndarray, poses: np.ndarray) -> TfBuffer:
 
 
 def run(name: str, rings: int, cols: int, hz: float, fov: tuple[float, float],
-        seconds: float) -> None:
+        seconds: float) -> list[str]:
     rng = np.random.default_rng(0)
     stamps = np.arange(0.0, seconds, 1.0 / hz)
     w = 2 * math.pi / 40.0
@@ -109,19 +111,20 @@ def run(name: str, rings: int, cols: int, hz: float, fov: tuple[float, float],
     t0 = time.perf_counter()
     samples = build_samples([batch], Config())
     samples_s = time.perf_counter() - t0
-    print(f"| {name} | {rings * cols * hz / 1e3:.0f} k | {stamps.size} x {batch.n_beams} | "
-          f"{project_s:.2f} | {samples_s:.2f} | {project_s / samples_s:.2f} | {len(samples)} |",
-          flush=True)
+    return [name, f"{rings * cols * hz / 1e3:.0f} k", f"{stamps.size} x {batch.n_beams}",
+            f"{project_s:.2f}", f"{samples_s:.2f}", f"{project_s / samples_s:.2f}",
+            str(len(samples))]
 
 
-def main() -> None:
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 10.0
-    print(f"{seconds:g} s of data per lidar")
-    print("| lidar | points/s | scans x bins | projection s | samples s | ratio | samples |")
-    print("|---|---|---|---|---|---|---|")
-    for spec in LIDARS:
-        run(*spec, seconds=seconds)
-
-
-if __name__ == "__main__":
-    main()
+@benchmark("cloud-projection", "3-D lidar projection against building samples")
+def cloud_projection(ctx: Context) -> Result:
+    """PointCloud2 messages of 16- to 128-ring lidars at 10 and 20 Hz (a robot circling
+    a 20 x 14 m room) projected into planar scans (decode, 3-D TF, levelling, height
+    band, bearing bins), against building the training samples of those scans: 10 s of
+    data per lidar (2 s, and the 16- and 64-ring lidars only, in a quick run)."""
+    seconds = 2.0 if ctx.quick else 10.0
+    lidars = [LIDARS[0], LIDARS[3]] if ctx.quick else LIDARS
+    result = Result()
+    result.add(Table(("lidar", "points/s", "scans x bins", "projection s", "samples s",
+                      "ratio", "samples"), [run(*spec, seconds=seconds) for spec in lidars]))
+    return result

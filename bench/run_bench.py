@@ -9,8 +9,8 @@ Run it from the repository's root. The page is stamped with the date, the git co
 the machine, and says which benchmarks ran and whether the run was quick. The real logs
 are read from ``../shared/data/carmen`` (or ``GPOCC_CARMEN_DIR``); benchmarks whose data is
 missing are listed as skipped. The benchmarks live in ``bench/pipeline.py`` (whole
-commands), ``bench/stages.py``, ``bench/kernels.py``, ``bench/knobs.py`` and
-``bench/fingerprints.py``; a new one is a function registered with
+commands), ``bench/stages.py``, ``bench/kernels.py``, ``bench/knobs.py``,
+``bench/cloud_projection.py`` and ``bench/fingerprints.py``; a new one is a function registered with
 ``bench.registry.benchmark``.
 """
 
@@ -25,7 +25,14 @@ import time
 import traceback
 from pathlib import Path
 
-from . import fingerprints, kernels, knobs, pipeline, stages  # noqa: F401 (they register)
+from . import (  # noqa: F401 (they register)
+    cloud_projection,
+    fingerprints,
+    kernels,
+    knobs,
+    pipeline,
+    stages,
+)
 from .paths import CARMEN, ROOT
 from .registry import REGISTRY, Context, Result, Skipped
 from .stamp import commit, load, machine, usable_cores
@@ -34,7 +41,7 @@ PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
 ORDER = ("intel", "intel-repeats", "campus", "scaling-data", "scaling-size", "samples",
          "sample-memory", "anchor-cost", "expected-kernels", "quadrature", "blas-threads",
-         "anneal-budget", "knobs", "fingerprints")
+         "anneal-budget", "knobs", "cloud-projection", "fingerprints")
 
 
 def ordered() -> list[str]:
