@@ -254,3 +254,16 @@ def add_planar_laser(bag: BagWriter, run: LidarRun, beams: int = 900,
         r = np.linalg.norm(pts, axis=1)
         bag.scan(topic, frame, T0 + t, angles, np.where(np.isfinite(r), r, np.inf),
                  level.max_range)
+
+
+def obstacle_distance(p: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """(N,) distance from each (N, 2) point to the nearest of the (K, 2, 2) segments."""
+    a, e = segments[:, 0], segments[:, 1] - segments[:, 0]
+    rel = p[:, None] - a[None]
+    u = np.clip((rel * e[None]).sum(-1) / (e * e).sum(-1)[None], 0.0, 1.0)
+    return np.linalg.norm(rel - u[..., None] * e[None], axis=-1).min(axis=1)
+
+
+def inside(p: np.ndarray, r: tuple) -> np.ndarray:
+    """Points strictly inside the rectangle ``r = (x0, y0, x1, y1)``."""
+    return (p[:, 0] > r[0]) & (p[:, 0] < r[2]) & (p[:, 1] > r[1]) & (p[:, 1] < r[3])

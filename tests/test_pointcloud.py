@@ -24,6 +24,8 @@ from cloud_scenes import (
     LidarRun,
     add_planar_laser,
     base_path,
+    inside,
+    obstacle_distance,
     rect,
     room,
 )
@@ -133,17 +135,6 @@ FORMATS = {"ros1": "run.bag", "ros2-sqlite3": "run", "ros2-mcap": "run", "mcap":
 OBSTACLES = np.array(rect(*ROOM_RECT) + rect(*BOX) + rect(*TABLE), float)
 
 
-def obstacle_distance(p: np.ndarray, segments: np.ndarray = OBSTACLES) -> np.ndarray:
-    a, e = segments[:, 0], segments[:, 1] - segments[:, 0]
-    rel = p[:, None] - a[None]
-    u = np.clip((rel * e[None]).sum(-1) / (e * e).sum(-1)[None], 0.0, 1.0)
-    return np.linalg.norm(rel - u[..., None] * e[None], axis=-1).min(axis=1)
-
-
-def inside(p: np.ndarray, r: tuple) -> np.ndarray:
-    return (p[:, 0] > r[0]) & (p[:, 0] < r[2]) & (p[:, 1] > r[1]) & (p[:, 1] < r[3])
-
-
 def hits(batch) -> np.ndarray:
     """(H, 2) map-frame endpoints of the batch's hits."""
     r = batch.ranges
@@ -168,7 +159,7 @@ def check_hits(batch, bin_width: float) -> None:
     # interpolation: never on the floor or the ceiling.
     reach = np.hypot(*(p - np.repeat(batch.poses[:, :2], np.isfinite(batch.ranges).sum(1),
                                      0)).T)
-    off = np.where(inside(p, TABLE), 0.0, obstacle_distance(p))
+    off = np.where(inside(p, TABLE), 0.0, obstacle_distance(p, OBSTACLES))
     assert (off <= 0.5 * bin_width * reach + 2e-3).all()
     # Every bearing hits something in a closed room.
     assert np.isfinite(batch.ranges).mean() > 0.99

@@ -14,7 +14,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from cloud_scenes import BOX, ROOM_RECT, TABLE, Lidar, LidarRun, add_planar_laser, rect, room
+from cloud_scenes import (
+    BOX,
+    ROOM_RECT,
+    TABLE,
+    Lidar,
+    LidarRun,
+    add_planar_laser,
+    inside,
+    obstacle_distance,
+    rect,
+    room,
+)
 from rosbag_scenes import BagWriter
 from typer.testing import CliRunner
 
@@ -22,17 +33,6 @@ from gpocc.cli import app
 from gpocc.evaluation.roc import evaluate_scores
 
 WALLS = np.array(rect(*ROOM_RECT) + rect(*BOX), float)
-
-
-def distance(p: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    a, e = segments[:, 0], segments[:, 1] - segments[:, 0]
-    rel = p[:, None] - a[None]
-    u = np.clip((rel * e[None]).sum(-1) / (e * e).sum(-1)[None], 0.0, 1.0)
-    return np.linalg.norm(rel - u[..., None] * e[None], axis=-1).min(axis=1)
-
-
-def inside(p: np.ndarray, r: tuple) -> np.ndarray:
-    return (p[:, 0] > r[0]) & (p[:, 0] < r[2]) & (p[:, 1] > r[1]) & (p[:, 1] < r[3])
 
 
 def build(path: Path, out: Path) -> None:
@@ -67,7 +67,8 @@ def test_lidar_bag_without_config_maps_walls_and_the_table_top(tmp_path):
     in_room = inside(occupied, ROOM_RECT)
     table = np.array(rect(*TABLE), float)
     # Occupied cells in the room are on a wall, in the cupboard or on the table top.
-    near = np.minimum(distance(occupied[in_room], WALLS), distance(occupied[in_room], table))
+    near = np.minimum(obstacle_distance(occupied[in_room], WALLS),
+                      obstacle_distance(occupied[in_room], table))
     near[inside(occupied[in_room], TABLE) | inside(occupied[in_room], BOX)] = 0.0
     assert in_room.sum() > 100 and near.max() <= 0.26
     # The table top at 0.75 m is in the band: where the lidar's rising rings reach its
@@ -85,7 +86,7 @@ def truth_points() -> tuple[np.ndarray, np.ndarray]:
     occ = np.concatenate([a + np.linspace(0, 1, 200)[:, None] * (b - a) for a, b in WALLS])
     g = np.stack(np.meshgrid(np.arange(0.05, 8, 0.1), np.arange(0.05, 6, 0.1)),
                  -1).reshape(-1, 2)
-    free = g[(distance(g, WALLS) > 0.15) & ~inside(g, BOX)]
+    free = g[(obstacle_distance(g, WALLS) > 0.15) & ~inside(g, BOX)]
     return np.concatenate([occ, free]), np.r_[np.ones(len(occ)), np.zeros(len(free))]
 
 
