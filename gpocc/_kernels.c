@@ -6,7 +6,9 @@
  * kernels whose import and first call cost 0.5-0.9 s of every command's start (numba's
  * typing and lowering registries load on the first call in each process); loading
  * this library takes about a millisecond. The loops, their order of summation and
- * their formulas are those of the numba versions (docs/benchmarks.md, session 14).
+ * their formulas are those of the numba versions they replaced (commit b5aee9e);
+ * docs/benchmarks.md, 'Expected kernels: compiled loops against numpy', compares them
+ * with the numpy quadrature.
  *
  * Each exported loop is compiled twice (GCC's target_clones on x86-64): for x86-64-v3
  * (AVX2 and FMA: with setup.py's -ffp-contract=fast, a * b + c becomes one fused
@@ -14,10 +16,14 @@
  * loops took 25% longer) and for the baseline (no FMA: its results may differ from the
  * other clone's in the last bits); the loader picks the clone the CPU runs.
  * setup.py compiles with -ffinite-math-only -fno-signed-zeros -fno-math-errno
- * -fno-trapping-math: no input here is NaN or infinite (samples and queries are checked
- * finite upstream), and without them GCC will not turn the branch-free arcsin's
- * selects and the clip to [-1, 1] into vector min/max and blends, which halves the
- * speed. No reassociation and no approximate division or square root.
+ * -fno-trapping-math (where the compiler accepts them): no input here is NaN or
+ * infinite (gpocc/compiled.py refuses them, or for the per-problem loops
+ * gpocc.gp.expected does, before any loop runs), and without them GCC will not turn the
+ * branch-free arcsin's selects and the clip to [-1, 1] into vector min/max and blends,
+ * which halves the speed. No reassociation and no approximate division or square root.
+ *
+ * The exported functions' prototypes are declared once more, for ctypes, in
+ * gpocc/compiled.py (DECLARATIONS); tests/test_compiled.py checks that they match.
  *
  * Array layouts (row-major, as numpy's C order):
  *   u (3, M): scaled nodes, coordinate-major (z = u_a . u_b is the kernel's arcsin
@@ -40,7 +46,11 @@
 #else
 #define CLONES
 #endif
+#if defined(_MSC_VER)
+#define EXPORT __declspec(dllexport)
+#else
 #define EXPORT __attribute__((visibility("default")))
+#endif
 
 typedef int64_t i64;
 

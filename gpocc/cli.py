@@ -26,7 +26,7 @@ import typer
 
 import gpocc
 from gpocc import progress
-from gpocc.entry import INTERRUPTED
+from gpocc.constants import INTERRUPTED
 from gpocc.errors import GpoccError
 from gpocc.lifecycle import command_scope
 

@@ -1,46 +1,200 @@
 """The compiled loops of ``gpocc/_kernels.c``, loaded with ctypes.
 
 ``pip install`` (``make install``) builds them as the extension ``gpocc._kernels``. ctypes
-releases the GIL for every call, so threads run them in parallel. Each wrapper checks
-what C cannot: dtypes, C order, shapes, and that output arrays are writable float64 in C
-order. Loading the library takes about a millisecond; numba, which they replace, cost
-0.5-0.9 s of every process's start (docs/benchmarks.md, session 14).
+releases the GIL for every call, so threads run them in parallel. Each loop is declared
+once, as a C prototype in :data:`DECLARATIONS` (a test checks it against the C file);
+the ctypes signature and a keyword-argument binding (:class:`_Function`) that checks
+every array's dtype, C order, writability and finiteness are made from it, and each
+wrapper below checks the shapes C indexes with. Loading the library takes about a
+millisecond; numba, which they replace, cost 0.5-0.9 s of every process's start
+(measured in commit b5aee9e, which replaced it).
 """
 
 from __future__ import annotations
 
 import ctypes
 import importlib.util
+import re
+from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
-_P = ctypes.c_void_p
-_I = ctypes.c_int64
-_D = ctypes.c_double
-_B = ctypes.c_int
+#: Every exported loop of ``gpocc/_kernels.c``, as C prototypes: the one declaration the
+#: ctypes signatures and the argument checks are made from (tests/test_compiled.py checks
+#: it against the C source's definitions). A ``const`` pointer is an input (C order, its
+#: dtype, finite: see :class:`_Function`), any other pointer an output (also writable).
+DECLARATIONS = """
+const char *gpocc_kernels_compiler(void);
+void gpocc_asin_array(const double *x, i64 n, double *out);
+void gpocc_gaussian_nodes_2d(const double *means, const double *cov, i64 n,
+                             const double *unit, i64 size, double *out);
+int gpocc_nn_matrix(const double *u, const double *weights, const i64 *starts, i64 n,
+                    double scale, double *out);
+int gpocc_nn_matrix_uniform(const double *u, const double *weights, i64 size, i64 n,
+                            double scale, double *out);
+int gpocc_nn_matrix_gradient(const double *u, const double *weights, const i64 *starts, i64 n,
+                             double scale, double *out, const double *offsets, int with_scale);
+int gpocc_nn_cross(const double *q, i64 nq, const double *u, const double *weights,
+                   const i64 *starts, i64 n, double scale, double *out);
+void gpocc_nn_cross_uniform(const double *q, i64 nq, const double *u, const double *weights,
+                            i64 size, i64 n, double scale, double *out);
+void gpocc_cholesky_psd4(const double *s, i64 pairs, double *out);
+void gpocc_correlated_nodes(const double *means, const double *cov, const double *pf,
+                            const i64 *first, const i64 *second, i64 pairs,
+                            const double *unit, i64 size, double input_scale, double *nodes);
+int gpocc_nn_same_scan_pairs(const double *means, const double *cov, const double *pf,
+                             const i64 *first, const i64 *second, i64 pairs,
+                             const double *unit, const double *weights, i64 size,
+                             const double *root, double scale, double input_scale,
+                             double *out, int with_gradient, int with_scale);
+i64 gpocc_correlated_pairs(const double *cov, const i64 *scan_ids, const double *pf, i64 n,
+                           double pose_share_min, double zero_variance, i64 *first,
+                           i64 *second);
+int gpocc_nn_local_system(const double *means, const double *cov, const i64 *scan_ids,
+                          const double *pf, i64 n, const double *queries, i64 nq,
+                          const double *unit, const double *weights, i64 size,
+                          const double *unit4, const double *weights4, i64 size4,
+                          const double *root, double scale, double diagonal, int correlated,
+                          double pose_share_min, double zero_variance, double *k_out,
+                          double *cross_out, double *prior_out);
+void gpocc_beam_unscented(const double *dist, const double *bearing, const double *range_sd,
+                          double bearing_sd, const i64 *scan, i64 n, const double *poses,
+                          const double *pose_root, const double *pose_map,
+                          const double *mount, const double *wm, const double *wc,
+                          double gamma, double *means, double *covariances, double *factors);
+void gpocc_mark_segments(const double *start, const double *end, i64 n,
+                         unsigned char *covered, i64 height, i64 width);
+"""
 
-#: name -> (argument types, return type) of every exported loop.
-_SIGNATURES: dict[str, tuple[list, object]] = {
-    "gpocc_kernels_compiler": ([], ctypes.c_char_p),
-    "gpocc_asin_array": ([_P, _I, _P], None),
-    "gpocc_gaussian_nodes_2d": ([_P, _P, _I, _P, _I, _P], None),
-    "gpocc_nn_matrix": ([_P, _P, _P, _I, _D, _P], ctypes.c_int),
-    "gpocc_nn_matrix_uniform": ([_P, _P, _I, _I, _D, _P], ctypes.c_int),
-    "gpocc_nn_matrix_gradient": ([_P, _P, _P, _I, _D, _P, _P, _B], ctypes.c_int),
-    "gpocc_nn_cross": ([_P, _I, _P, _P, _P, _I, _D, _P], ctypes.c_int),
-    "gpocc_nn_cross_uniform": ([_P, _I, _P, _P, _I, _I, _D, _P], None),
-    "gpocc_cholesky_psd4": ([_P, _I, _P], None),
-    "gpocc_correlated_nodes": ([_P, _P, _P, _P, _P, _I, _P, _I, _D, _P], None),
-    "gpocc_nn_same_scan_pairs": ([_P, _P, _P, _P, _P, _I, _P, _P, _I, _P, _D, _D, _P, _B, _B],
-                                 ctypes.c_int),
-    "gpocc_correlated_pairs": ([_P, _P, _P, _I, _D, _D, _P, _P], ctypes.c_int64),
-    "gpocc_nn_local_system": ([_P, _P, _P, _P, _I, _P, _I, _P, _P, _I, _P, _P, _I, _P, _D,
-                               _D, _B, _D, _D, _P, _P, _P], ctypes.c_int),
-    "gpocc_beam_unscented": ([_P, _P, _P, _D, _P, _I, _P, _P, _P, _P, _P, _P, _D, _P, _P, _P],
-                             None),
-    "gpocc_mark_segments": ([_P, _P, _I, _P, _I, _I], None),
-}
+#: Pointer arguments the C code accepts as NULL (count-only mode).
+NULLABLE = {("gpocc_correlated_pairs", "first"), ("gpocc_correlated_pairs", "second")}
+
+#: C scalar type -> ctypes type; C pointee type -> the numpy dtypes accepted for it.
+_SCALARS = {"i64": ctypes.c_int64, "int": ctypes.c_int, "double": ctypes.c_double,
+            "void": None}
+_POINTEES = {"double": (np.dtype(np.float64),), "i64": (np.dtype(np.int64),),
+             "unsigned char": (np.dtype(np.uint8), np.dtype(np.bool_))}
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One C parameter: ``const double *u`` is Parameter("u", "double", True, True)."""
+
+    name: str
+    ctype: str
+    pointer: bool
+    const: bool
+
+
+@dataclass(frozen=True)
+class Prototype:
+    """One C function: its return type (``const char *`` as ``char*``) and parameters."""
+
+    name: str
+    returns: str
+    parameters: tuple[Parameter, ...]
+
+
+def _parameter(text: str) -> Parameter:
+    words = text.replace("*", " * ").replace("restrict", " ").split()
+    name = words.pop()
+    const = "const" in words
+    pointer = "*" in words
+    ctype = " ".join(w for w in words if w not in ("const", "*"))
+    return Parameter(name, ctype, pointer, const)
+
+
+def parse_prototypes(text: str, definitions: bool = False) -> dict[str, Prototype]:
+    """The ``gpocc_*`` functions of C ``text`` by name: its declarations (``...);``, the
+    form of :data:`DECLARATIONS`), or with ``definitions`` its exported definitions
+    (``EXPORT [CLONES] ... ) {``, the form of ``_kernels.c``). ``restrict`` is ignored;
+    a return type stays on its function's first line."""
+    text = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
+    head = r"^EXPORT[ \t]+(?:CLONES[ \t]+)?" if definitions else r"^"
+    tail = r"\{" if definitions else r";"
+    pattern = head + r"([\w \t]+?\**)[ \t]*\b(gpocc_\w+)\s*\(([^)]*)\)\s*" + tail
+    found = {}
+    for match in re.finditer(pattern, text, flags=re.M):
+        returns, name, params = match.groups()
+        returns = " ".join(returns.replace("*", " * ").split()).replace(" *", "*")
+        returns = returns.removeprefix("const ")
+        params = " ".join(params.split())
+        parameters = () if params in ("", "void") else tuple(
+            _parameter(p) for p in params.split(","))
+        found[name] = Prototype(name, returns, parameters)
+    return found
+
+
+def _restype(returns: str):
+    return ctypes.c_char_p if returns == "char*" else _SCALARS[returns]
+
+
+#: Loops whose every call comes from :mod:`gpocc.gp.expected` and its backends, which
+#: refuse non-finite means, covariances, pose factors and queries before any loop runs
+#: (their other inputs derive from those and from kernel parameters that are checked
+#: positive and finite): they are called per local problem, and a finiteness pass over
+#: each of their arrays cost more than the check of the data once (3% of a map anchor).
+#: Every other loop's float inputs are checked finite here.
+FINITE_UPSTREAM = frozenset({
+    "gpocc_gaussian_nodes_2d", "gpocc_nn_matrix", "gpocc_nn_matrix_uniform",
+    "gpocc_nn_matrix_gradient", "gpocc_nn_cross", "gpocc_nn_cross_uniform",
+    "gpocc_nn_same_scan_pairs", "gpocc_correlated_pairs", "gpocc_nn_local_system",
+})
+
+
+class _Function:
+    """A loop of the library, called with keyword arguments named as in C: each array is
+    checked against its declared pointee type (dtype, C order; outputs writable; float
+    inputs finite unless :data:`FINITE_UPSTREAM`) and passed by address, each scalar
+    converted by ctypes.
+
+    ``setup.py`` compiles with -ffinite-math-only, under which the compiler may assume
+    that no value is NaN or infinite: the branch-free arcsin's clip and selects, and
+    every comparison, could then give any result for one. So no NaN may reach a loop:
+    it raises ValueError here or upstream (tests/test_compiled.py)."""
+
+    def __init__(self, library: ctypes.CDLL, prototype: Prototype) -> None:
+        self.name = prototype.name
+        self._function = getattr(library, prototype.name)
+        self._function.argtypes = [ctypes.c_void_p if p.pointer else _SCALARS[p.ctype]
+                                   for p in prototype.parameters]
+        self._function.restype = _restype(prototype.returns)
+        check_finite = prototype.name not in FINITE_UPSTREAM
+        # (name, accepted dtypes or None for a scalar, output, finite, nullable)
+        self._plan = tuple(
+            (p.name, _POINTEES[p.ctype] if p.pointer else None, p.pointer and not p.const,
+             check_finite and p.pointer and p.const and p.ctype == "double",
+             (prototype.name, p.name) in NULLABLE)
+            for p in prototype.parameters)
+
+    def __call__(self, **arguments):
+        if len(arguments) != len(self._plan):
+            raise TypeError(f"{self.name} takes {[p[0] for p in self._plan]}, "
+                            f"got {sorted(arguments)}")
+        values = []
+        for name, dtypes, output, finite, nullable in self._plan:
+            try:
+                value = arguments[name]
+            except KeyError:
+                raise TypeError(f"{self.name}: missing argument {name!r}") from None
+            if dtypes is None:
+                values.append(value)
+                continue
+            if value is None and nullable:
+                values.append(None)
+                continue
+            if (not isinstance(value, np.ndarray) or value.dtype not in dtypes
+                    or not value.flags.c_contiguous):
+                raise ValueError(f"{self.name}: {name} must be a C-ordered {dtypes[0]} "
+                                 f"array, got {getattr(value, 'dtype', type(value).__name__)}")
+            if output and not value.flags.writeable:
+                raise ValueError(f"{self.name}: output {name} must be writable")
+            if finite and not np.isfinite(value).all():
+                raise ValueError(f"{self.name}: {name} holds NaN or infinity")
+            values.append(value.ctypes.data)
+        return self._function(*values)
 
 
 def built_library() -> Path:
@@ -53,26 +207,36 @@ def built_library() -> Path:
 
 
 def load(library: Path, source: Path | None = None) -> ctypes.CDLL:
-    """Open ``library`` and declare its loops' signatures. A ``source`` (the C file of a
-    source checkout) newer than the library means stale loops: ImportError."""
+    """Open ``library`` and declare its loops' signatures (:data:`DECLARATIONS`). A
+    ``source`` (the C file of a source checkout) newer than the library means stale
+    loops: ImportError."""
     if source is not None and source.exists() \
             and source.stat().st_mtime > library.stat().st_mtime:
         raise ImportError(f"{library.name} is older than {source.name}: rebuild it with "
                           "'make install'")
     lib = ctypes.CDLL(str(library))
-    for name, (argtypes, restype) in _SIGNATURES.items():
-        function = getattr(lib, name)
-        function.argtypes = argtypes
-        function.restype = restype
+    for prototype in parse_prototypes(DECLARATIONS).values():
+        function = getattr(lib, prototype.name)
+        function.argtypes = [ctypes.c_void_p if p.pointer else _SCALARS[p.ctype]
+                             for p in prototype.parameters]
+        function.restype = _restype(prototype.returns)
     return lib
 
 
+def bind(library: ctypes.CDLL) -> SimpleNamespace:
+    """Every loop of :data:`DECLARATIONS` as a checked keyword-argument function
+    (:class:`_Function`), named without the ``gpocc_`` prefix."""
+    return SimpleNamespace(**{name.removeprefix("gpocc_"): _Function(library, prototype)
+                              for name, prototype in parse_prototypes(DECLARATIONS).items()})
+
+
 _lib = load(built_library(), Path(__file__).with_name("_kernels.c"))
+_c = bind(_lib)
 
 
 def compiler() -> str:
     """The compiler that built the loops, e.g. ``gcc 12.2.0`` (provenance)."""
-    return _lib.gpocc_kernels_compiler().decode()
+    return _c.kernels_compiler().decode()
 
 
 def _in(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
@@ -80,14 +244,14 @@ def _in(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
     return np.ascontiguousarray(array, dtype=dtype)
 
 
-def _out(array: np.ndarray, shape: tuple[int, ...]) -> int:
-    """The address of an output array, which must be writable C-ordered float64 of
-    ``shape``: C writes through it, so a wrong one would corrupt memory silently."""
+def _out(array: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """An output array, which must be writable C-ordered float64 of ``shape``: C writes
+    through it, so a wrong one would corrupt memory silently."""
     if (array.dtype != np.float64 or not array.flags.c_contiguous
             or not array.flags.writeable or array.shape != shape):
         raise ValueError(f"output must be writable C-ordered float64 of shape {shape}, "
                          f"got {array.dtype} {array.shape}")
-    return array.ctypes.data
+    return array
 
 
 def _check(status: int) -> None:
@@ -133,7 +297,7 @@ def asin_array(x: np.ndarray) -> np.ndarray:
     """The compiled branch-free arcsin, elementwise over (M,) values in [-1, 1]."""
     x = _in(x)
     out = np.empty_like(x)
-    _lib.gpocc_asin_array(x.ctypes.data, x.size, out.ctypes.data)
+    _c.asin_array(x=x, n=x.size, out=out)
     return out
 
 
@@ -146,8 +310,7 @@ def gaussian_nodes_2d(means: np.ndarray, covariances: np.ndarray, unit: np.ndarr
     if covariances.shape != (n, 2, 2) or means.shape != (n, 2) or unit.shape != (size, 2):
         raise ValueError("means (N, 2), covariances (N, 2, 2) and unit (L, 2) expected")
     out = np.empty((2, n * size))
-    _lib.gpocc_gaussian_nodes_2d(means.ctypes.data, covariances.ctypes.data, n,
-                                 unit.ctypes.data, size, out.ctypes.data)
+    _c.gaussian_nodes_2d(means=means, cov=covariances, n=n, unit=unit, size=size, out=out)
     return out
 
 
@@ -157,8 +320,8 @@ def nn_matrix(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, scale: flo
     ``u`` (3, M), per-node ``weights`` (M,) and node offsets ``starts`` (N + 1,)."""
     u, weights, starts = _in(u), _in(weights), _in(starts, np.int64)
     n = _points(u, weights, starts)
-    _check(_lib.gpocc_nn_matrix(u.ctypes.data, weights.ctypes.data, starts.ctypes.data, n,
-                                scale, _out(out, (n, n))))
+    _check(_c.nn_matrix(u=u, weights=weights, starts=starts, n=n, scale=scale,
+                        out=_out(out, (n, n))))
 
 
 def nn_matrix_uniform(u: np.ndarray, weights: np.ndarray, scale: float, out: np.ndarray
@@ -168,8 +331,8 @@ def nn_matrix_uniform(u: np.ndarray, weights: np.ndarray, scale: float, out: np.
     u, weights = _in(u), _in(weights)
     size = weights.shape[0]
     n = _uniform_points(u, weights)
-    _check(_lib.gpocc_nn_matrix_uniform(u.ctypes.data, weights.ctypes.data, size, n, scale,
-                                        _out(out, (n, n))))
+    _check(_c.nn_matrix_uniform(u=u, weights=weights, size=size, n=n, scale=scale,
+                                out=_out(out, (n, n))))
 
 
 def nn_matrix_gradient(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, scale: float,
@@ -183,9 +346,9 @@ def nn_matrix_gradient(u: np.ndarray, weights: np.ndarray, starts: np.ndarray, s
         raise ValueError(f"out needs {count} rows, got shape {out.shape}")
     if with_scale and offsets.shape != (2, u.shape[1]):
         raise ValueError("offsets (2, M) expected")
-    _check(_lib.gpocc_nn_matrix_gradient(
-        u.ctypes.data, weights.ctypes.data, starts.ctypes.data, n, scale,
-        _out(out, (out.shape[0], n, n)), offsets.ctypes.data, bool(with_scale)))
+    _check(_c.nn_matrix_gradient(
+        u=u, weights=weights, starts=starts, n=n, scale=scale,
+        out=_out(out, (out.shape[0], n, n)), offsets=offsets, with_scale=bool(with_scale)))
 
 
 def nn_cross(q: np.ndarray, u: np.ndarray, weights: np.ndarray, starts: np.ndarray,
@@ -193,8 +356,8 @@ def nn_cross(q: np.ndarray, u: np.ndarray, weights: np.ndarray, starts: np.ndarr
     """out (Q, N) = E k(query_r, x_i) for exact queries with scaled rows ``q`` (3, Q)."""
     q, u, weights, starts = _in(q), _in(u), _in(weights), _in(starts, np.int64)
     n, nq = _points(u, weights, starts), _queries(q)
-    _check(_lib.gpocc_nn_cross(q.ctypes.data, nq, u.ctypes.data, weights.ctypes.data,
-                               starts.ctypes.data, n, scale, _out(out, (nq, n))))
+    _check(_c.nn_cross(q=q, nq=nq, u=u, weights=weights, starts=starts, n=n, scale=scale,
+                       out=_out(out, (nq, n))))
 
 
 def nn_cross_uniform(q: np.ndarray, u: np.ndarray, weights: np.ndarray, scale: float,
@@ -204,8 +367,8 @@ def nn_cross_uniform(q: np.ndarray, u: np.ndarray, weights: np.ndarray, scale: f
     q, u, weights = _in(q), _in(u), _in(weights)
     size = weights.shape[0]
     n, nq = _uniform_points(u, weights), _queries(q)
-    _lib.gpocc_nn_cross_uniform(q.ctypes.data, nq, u.ctypes.data, weights.ctypes.data, size,
-                                n, scale, _out(out, (nq, n)))
+    _c.nn_cross_uniform(q=q, nq=nq, u=u, weights=weights, size=size, n=n, scale=scale,
+                        out=_out(out, (nq, n)))
 
 
 def cholesky_psd4(s: np.ndarray) -> np.ndarray:
@@ -216,7 +379,7 @@ def cholesky_psd4(s: np.ndarray) -> np.ndarray:
     if s.ndim != 3 or s.shape[:2] != (4, 4):
         raise ValueError(f"s (4, 4, P) expected, got {s.shape}")
     out = np.zeros_like(s)
-    _lib.gpocc_cholesky_psd4(s.ctypes.data, s.shape[2], out.ctypes.data)
+    _c.cholesky_psd4(s=s, pairs=s.shape[2], out=out)
     return out
 
 
@@ -240,9 +403,9 @@ def correlated_nodes(means: np.ndarray, covariances: np.ndarray, pose_factors: n
     if unit.shape != (size, 4):
         raise ValueError("unit (L, 4) expected")
     out = np.empty((4, pairs * size))
-    _lib.gpocc_correlated_nodes(means.ctypes.data, covariances.ctypes.data,
-                                pose_factors.ctypes.data, i.ctypes.data, j.ctypes.data, pairs,
-                                unit.ctypes.data, size, input_scale, out.ctypes.data)
+    _c.correlated_nodes(means=means, cov=covariances, pf=pose_factors, first=i, second=j,
+                        pairs=pairs, unit=unit, size=size, input_scale=input_scale,
+                        nodes=out)
     return out
 
 
@@ -263,11 +426,11 @@ def nn_same_scan_pairs(means: np.ndarray, covariances: np.ndarray, pose_factors:
     rows = (5 if with_scale else 4) if with_gradient else 1
     if out.ndim != 2 or out.shape[0] < rows:
         raise ValueError(f"out needs {rows} rows, got shape {out.shape}")
-    _check(_lib.gpocc_nn_same_scan_pairs(
-        means.ctypes.data, covariances.ctypes.data, pose_factors.ctypes.data, i.ctypes.data,
-        j.ctypes.data, pairs, unit.ctypes.data, weights.ctypes.data, weights.shape[0],
-        root.ctypes.data, scale, input_scale, _out(out, (out.shape[0], pairs)),
-        bool(with_gradient), bool(with_scale)))
+    _check(_c.nn_same_scan_pairs(
+        means=means, cov=covariances, pf=pose_factors, first=i, second=j, pairs=pairs,
+        unit=unit, weights=weights, size=weights.shape[0], root=root, scale=scale,
+        input_scale=input_scale, out=_out(out, (out.shape[0], pairs)),
+        with_gradient=bool(with_gradient), with_scale=bool(with_scale)))
 
 
 def correlated_pairs(covariances: np.ndarray, scan_ids: np.ndarray, pose_factors: np.ndarray,
@@ -282,13 +445,13 @@ def correlated_pairs(covariances: np.ndarray, scan_ids: np.ndarray, pose_factors
     if covariances.shape != (n, 2, 2) or scan_ids.shape != (n,) or pose_factors.shape != (n, 2, 3):
         raise ValueError("covariances (N, 2, 2), scan_ids (N,) and pose_factors (N, 2, 3) "
                          "expected")
-    args = (covariances.ctypes.data, scan_ids.ctypes.data, pose_factors.ctypes.data, n,
-            pose_share_min, zero_variance)
-    count = _lib.gpocc_correlated_pairs(*args, None, None)
+    args = {"cov": covariances, "scan_ids": scan_ids, "pf": pose_factors, "n": n,
+            "pose_share_min": pose_share_min, "zero_variance": zero_variance}
+    count = _c.correlated_pairs(**args, first=None, second=None)
     _check(count)
     first = np.empty(count, dtype=np.intp)
     second = np.empty(count, dtype=np.intp)
-    _check(_lib.gpocc_correlated_pairs(*args, first.ctypes.data, second.ctypes.data))
+    _check(_c.correlated_pairs(**args, first=first, second=second))
     return first, second
 
 
@@ -312,13 +475,13 @@ def nn_local_system(means: np.ndarray, covariances: np.ndarray, scan_ids: np.nda
             or unit.shape != (weights.shape[0], 2) or unit4.shape != (weights4.shape[0], 4)):
         raise ValueError("scan_ids (N,), queries (Q, 2), root (3,), unit (L, 2) with weights "
                          "(L,) and unit4 (L4, 4) with weights4 (L4,) expected")
-    _check(_lib.gpocc_nn_local_system(
-        means.ctypes.data, covariances.ctypes.data, scan_ids.ctypes.data,
-        pose_factors.ctypes.data, n, queries.ctypes.data, nq, unit.ctypes.data,
-        weights.ctypes.data, weights.shape[0], unit4.ctypes.data, weights4.ctypes.data,
-        weights4.shape[0], root.ctypes.data, scale, diagonal, bool(correlated),
-        pose_share_min, zero_variance, _out(k_out, (n, n)), _out(cross_out, (nq, n)),
-        _out(prior_out, (nq,))))
+    _check(_c.nn_local_system(
+        means=means, cov=covariances, scan_ids=scan_ids, pf=pose_factors, n=n,
+        queries=queries, nq=nq, unit=unit, weights=weights, size=weights.shape[0],
+        unit4=unit4, weights4=weights4, size4=weights4.shape[0], root=root, scale=scale,
+        diagonal=diagonal, correlated=bool(correlated), pose_share_min=pose_share_min,
+        zero_variance=zero_variance, k_out=_out(k_out, (n, n)),
+        cross_out=_out(cross_out, (nq, n)), prior_out=_out(prior_out, (nq,))))
 
 
 def beam_unscented(distances: np.ndarray, bearings: np.ndarray, range_sd: np.ndarray,
@@ -345,11 +508,10 @@ def beam_unscented(distances: np.ndarray, bearings: np.ndarray, range_sd: np.nda
     means = np.empty((n, 2))
     covariances = np.empty((n, 2, 2))
     factors = np.empty((n, 2, 3))
-    _lib.gpocc_beam_unscented(
-        distances.ctypes.data, bearings.ctypes.data, range_sd.ctypes.data, bearing_sd,
-        scans.ctypes.data, n, poses.ctypes.data, pose_roots.ctypes.data, pose_maps.ctypes.data,
-        mount.ctypes.data, wm.ctypes.data, wc.ctypes.data, gamma, means.ctypes.data,
-        covariances.ctypes.data, factors.ctypes.data)
+    _c.beam_unscented(
+        dist=distances, bearing=bearings, range_sd=range_sd, bearing_sd=bearing_sd,
+        scan=scans, n=n, poses=poses, pose_root=pose_roots, pose_map=pose_maps, mount=mount,
+        wm=wm, wc=wc, gamma=gamma, means=means, covariances=covariances, factors=factors)
     return means, covariances, factors
 
 
@@ -365,5 +527,5 @@ def mark_segments(start: np.ndarray, end: np.ndarray, covered: np.ndarray) -> No
     height, width = covered.shape
     if height == 0 or width == 0:
         return
-    _lib.gpocc_mark_segments(start.ctypes.data, end.ctypes.data, start.shape[0],
-                             covered.ctypes.data, height, width)
+    _c.mark_segments(start=start, end=end, n=start.shape[0], covered=covered, height=height,
+                     width=width)

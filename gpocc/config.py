@@ -57,6 +57,9 @@ class SensorConfig:
     override_pose_covariance: bool = False
     mount: MountConfig = field(default_factory=MountConfig)
     max_pose_gap_s: float = 0.25
+    # A scan within this of a pose sample takes it when it cannot be interpolated
+    # (header stamps of one driver vs. another's, or log times: never exact equality).
+    stamp_tolerance_s: float = 0.02
     no_return_free_m: float = 5.0
     range_min_m: float | None = None
     range_max_m: float | None = None
@@ -68,6 +71,16 @@ class SensorConfig:
     covariance_sentinel: float = 1e3
     max_covariance_age_s: float = 30.0
     repair_pose_covariance: bool = False
+    # 3-D lidars (scan_topic a sensor_msgs/PointCloud2; gpocc.io.cloudread): returns
+    # between the heights height_band_m above the floor are obstacles; the floor is
+    # base_height_m below the base frame's origin (0: the base frame is on the floor, as
+    # REP 105's base_footprint). Bearings are binned at horizontal_resolution_deg (null:
+    # from the cloud's layout). base_frame: the frame whose x-y plane is the ground
+    # plane (null: the frame TF moves the robot by, e.g. base_footprint).
+    height_band_m: tuple[float, float] = (0.1, 2.0)
+    base_height_m: float = 0.0
+    horizontal_resolution_deg: float | None = None
+    base_frame: str | None = None
 
     @property
     def bearing_variance_rad2(self) -> float:
@@ -120,7 +133,8 @@ class SamplesConfig:
     published). With ``patch_centres: hits``, 0.05 (default) gave a better held-out Brier
     score on both real logs, dense and sparse, at two seeds, and a higher AUC in all 8
     cases of the experiment suite; alone (with the older patches) its results were mixed
-    (docs/results.md, session 6).
+    (``bench/experiment.py`` variants ``clearance-0.05`` and ``hit-patches-clearance-0.05``;
+    commit 3198d15).
 
     ``free_range_variance``: free samples of a beam that hit carry that beam's range
     variance, like its hit (false: free samples carry no range variance, as published);
@@ -164,13 +178,14 @@ class TrainingConfig:
     samples (spatially stratified), each centred at the origin as at inference.
     ``patch_centres``: ``hits`` (default) draws the centres from the occupied samples, so
     every patch holds a boundary; ``samples`` (as before) from all samples, where a draw
-    of mostly open space can learn a kernel far too smooth for the walls (docs/results.md,
-    session 6: Freiburg held-out AUC 0.937-0.942 in 2 of 6 runs). The classifier is fitted
+    of mostly open space can learn a kernel far too smooth for the walls (Freiburg held-out
+    AUC 0.937-0.942 in 2 of 6 runs; commit 3198d15). The classifier is fitted
     on the same patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
-    (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations,
-    docs/benchmarks.md, seventh session; its job is to leave a start whose covariance is
-    not positive definite, where L-BFGS-B alone stays); then L-BFGS-B for at most
+    (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations;
+    docs/benchmarks.md, 'Annealing budget of hyperparameter learning', re-measures it on
+    the real logs; its job is to leave a start whose covariance is not positive definite,
+    where L-BFGS-B alone stays); then L-BFGS-B for at most
     ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
     (natural log) of the initial values. The label-noise variance is kept at or above
     ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
@@ -224,6 +239,9 @@ class ModelConfig:
     1 blends bilinearly across whole blocks, so every cell is predicted by four local
     problems; smaller values predict a block's central (1 - o)^2 by its own problem
     alone, so each cell costs (1 + o)^2 problems on average instead of four.
+    ``backend``: where the expected kernels are computed (:mod:`gpocc.gp.backends`):
+    ``compiled`` (C loops for the kernels they serve, numpy for the others), ``numpy``
+    (the reference; slower) or ``auto`` (compiled where built).
     """
 
     kernel: str = "nn"
@@ -232,6 +250,7 @@ class ModelConfig:
     neighbours: int = 128
     block_size_m: float = 1.0
     blend_overlap: float = 1.0
+    backend: str = "auto"
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
 
@@ -388,7 +407,7 @@ _Loader.add_implicit_resolver(
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "free_clearance_m", "sample_cell_m",
+    "free_clearance_m", "sample_cell_m", "stamp_tolerance_s",
     "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }
@@ -398,6 +417,7 @@ _POSITIVE_KEYS = {
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
     "max_variance_ratio", "max_pgm_pixels", "covariance_sentinel",
     "min_input_noise_scale", "max_input_noise_scale", "calibration_blocks",
+    "horizontal_resolution_deg",
     "calibration_max_position_std_m",
     "weight_variance", "bias_variance", "max_cells",
     "inducing_spacing_m", "gamma", "prior_precision", "em_iterations",
@@ -524,6 +544,14 @@ def _validate(config: Config, source: str) -> Config:
             raise GpoccError(
                 f"{source}: key '{key}' is not positive semi-definite; fix its off-diagonals"
             )
+        low, high = sensor.height_band_m
+        if not low < high:
+            raise GpoccError(f"{source}: key 'sensors[{i}].height_band_m' must be [min, max] "
+                             f"heights above the floor with min < max, got {[low, high]}")
+        res = sensor.horizontal_resolution_deg
+        if res is not None and not 0.01 <= res <= 10.0:
+            raise GpoccError(f"{source}: key 'sensors[{i}].horizontal_resolution_deg' must be "
+                             f"in [0.01, 10] degrees, got {res}")
         if sensor.range_min_m is not None and sensor.range_max_m is not None:
             if sensor.range_min_m >= sensor.range_max_m:
                 raise GpoccError(f"{source}: key 'sensors[{i}].range_min_m' must be < range_max_m")
@@ -532,10 +560,15 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'classify' needs 0 < free <= occupied < 1, got {c.free}, {c.occupied}"
         )
-    if config.model.kernel not in ("nn", "se"):
-        raise GpoccError(
-            f"{source}: key 'model.kernel' must be 'nn' or 'se', got {config.model.kernel!r}"
-        )
+    from gpocc.gp import backends  # gp.kernels imports this module: here, not on top
+    from gpocc.gp.kernels import KERNELS, kernel_names_text
+
+    if config.model.kernel not in KERNELS:
+        raise GpoccError(f"{source}: key 'model.kernel' must be {kernel_names_text()}, "
+                         f"got {config.model.kernel!r}")
+    if config.model.backend not in backends.NAMES:
+        raise GpoccError(f"{source}: key 'model.backend' must be one of "
+                         f"{', '.join(backends.NAMES)}, got {config.model.backend!r}")
     if config.map.epsg is not None:
         raise GpoccError(
             f"{source}: key 'map.epsg' is retired: a CRS code without the map frame's origin "

@@ -3,15 +3,15 @@
 :func:`gpocc.cli.main` turns a Ctrl-C into one line and status 130 once it runs, but
 importing :mod:`gpocc.cli` itself (typer, rich, pydantic: 0.2-0.3 s) came first, and a
 Ctrl-C then printed a KeyboardInterrupt traceback. This module imports nothing but
-:mod:`sys` before it catches that.
+:mod:`sys` and :mod:`gpocc.constants` (literals) before it catches that. :mod:`gpocc.cli`
+does not import it: the line both print is :data:`gpocc.constants.INTERRUPTED`.
 """
 
 from __future__ import annotations
 
 import sys
 
-#: What a Ctrl-C before any work prints (the same line as :func:`gpocc.cli.main`'s).
-INTERRUPTED = "gpocc: interrupted before any output was written"
+from gpocc.constants import INTERRUPTED
 
 
 def main() -> None:

@@ -11,6 +11,7 @@ temporaries of :mod:`gpocc.io.atomic` are removed, map workers are terminated in
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import signal
 import sys
@@ -58,6 +59,10 @@ def command_scope() -> Iterator[None]:
         os.dup2(devnull, sys.stdout.fileno())
         raise SystemExit(128 + signal.SIGPIPE) from None
     except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            where = exc.filename if exc.filename is not None else "writing"
+            raise GpoccError(f"{where}: no space left on device; free some space there, or "
+                             "write elsewhere") from None
         raise GpoccError(
             f"{describe_os_error(exc)}; check the path, its permissions and free space"
         ) from None

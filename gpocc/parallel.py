@@ -217,3 +217,52 @@ def thread_map(fn: Callable[[Any], Any], items: Iterable[Any],
             yield stream
         finally:
             stream.close()
+
+
+def _single_threaded_worker() -> None:
+    # A plain call (no context) limits BLAS for the worker's whole life; returns nothing,
+    # so that nothing has to travel back to the client.
+    single_threaded_blas()
+
+
+class SchedulerUnreachable(GpoccError):
+    """No Dask scheduler answers at ``address``; ``cause`` is Dask's reason, one line."""
+
+    def __init__(self, address: str, cause: str) -> None:
+        super().__init__(f"cannot reach the Dask scheduler at {address} ({cause}); check "
+                         "the address and that the scheduler is running")
+        self.address = address
+        self.cause = cause
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str) -> Iterator[Any]:
+    """A ``distributed.Client`` of the Dask cluster at ``scheduler`` (``tcp://HOST:PORT``),
+    closed on exit. Its workers run BLAS on one thread, as gpocc's local workers do, so
+    that a cluster computes every local problem bit for bit as this process would.
+
+    Raises:
+        SchedulerUnreachable: the scheduler cannot be reached or the address is malformed.
+    """
+    from distributed import Client
+
+    try:
+        client = Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError, ValueError) as exc:  # ValueError: a malformed address
+        raise SchedulerUnreachable(scheduler, " ".join(str(exc).split())) from None
+    try:
+        client.run(_single_threaded_worker)
+        yield client
+    finally:
+        client.close()
+
+
+def cluster_map(client: Any) -> Callable[[Callable[[Any], Any], Iterable[Any]], list[Any]]:
+    """A ``map(fn, items)`` that runs each item as one task on ``client``'s cluster and
+    returns the results in ``items`` order (``fn``: a module-level function or a partial
+    of one, so that workers can receive it)."""
+
+    def run(fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
+        return client.gather(client.map(fn, list(items), pure=False))
+
+    return run

@@ -81,7 +81,8 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], str]]:
         "half": ([str(tmp_path / "half.mcap")], "half.mcap: cannot read the bag"),
         "carmen": ([str(tmp_path / "bad.log")], "bad.log: line 1:"),
         "ambiguous": ([str(two)], "two.mcap: cannot choose the pose topic for /b_scan among "
-                      "/amcl_pose, /pose (no TF to settle it); a config for all its lasers: "
+                      "/amcl_pose, /pose (no TF to settle it); set sensors[].pose_topic in a "
+                      "config for all its lasers: "
                       "sensors: [{name: b_scan, scan_topic: /b_scan, pose_topic: /amcl_pose}, "
                       "{name: scan, scan_topic: /scan, pose_topic: /amcl_pose}]"),
         "missing": ([str(good), "--config", str(tmp_path / "missing.yaml")],
@@ -112,4 +113,5 @@ def test_a_path_with_a_semicolon_keeps_the_whole_problem(tmp_path: Path) -> None
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
     assert (f"{two}: cannot choose the pose topic for /b_scan among /amcl_pose, /pose (no TF "
-            f"to settle it); a config for all its lasers: sensors: [") in lines[0]
+            f"to settle it); set sensors[].pose_topic in a config for all its lasers: "
+            "sensors: [") in lines[0]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -92,3 +93,86 @@ def test_coverage_loop_marks_the_cells_of_a_walk_along_each_segment():
     _walk(start, end, want)
     np.testing.assert_array_equal(got, want)
     assert 300 < want.sum() < want.size
+
+
+def test_the_declarations_match_the_c_definitions():
+    """compiled.DECLARATIONS, from which every ctypes signature and argument check is
+    made, against the exported definitions of gpocc/_kernels.c: the same functions with
+    the same parameter names, types and constness."""
+    source = Path(compiled.__file__).with_name("_kernels.c")
+    if not source.exists():
+        pytest.skip("an installed copy without its C source")
+    defined = compiled.parse_prototypes(source.read_text(), definitions=True)
+    declared = compiled.parse_prototypes(compiled.DECLARATIONS)
+    assert len(defined) == 15
+    assert declared == defined
+    # The parser sees what it should: a pointer output, a const input, a scalar.
+    params = {p.name: p for p in declared["gpocc_nn_matrix"].parameters}
+    assert params["out"] == compiled.Parameter("out", "double", True, False)
+    assert params["starts"] == compiled.Parameter("starts", "i64", True, True)
+    assert params["n"] == compiled.Parameter("n", "i64", False, False)
+    assert declared["gpocc_kernels_compiler"].returns == "char*"
+
+
+def test_the_binding_checks_names_dtypes_and_outputs():
+    x = np.linspace(-1.0, 1.0, 7)
+    out = np.empty(7)
+    bound = compiled._c.asin_array
+    bound(x=x, n=7, out=out)
+    np.testing.assert_allclose(out, np.arcsin(x), rtol=0, atol=1e-15)
+    with pytest.raises(TypeError, match="missing argument 'out'"):
+        bound(x=x, n=7, output=out)
+    with pytest.raises(ValueError, match="x must be a C-ordered float64"):
+        bound(x=x.astype(np.float32), n=7, out=out)
+    with pytest.raises(ValueError, match="x must be a C-ordered float64"):
+        bound(x=np.linspace(-1, 1, 14)[::2], n=7, out=out)
+    out.setflags(write=False)
+    with pytest.raises(ValueError, match="output out must be writable"):
+        bound(x=x, n=7, out=out)
+
+
+def _nan_at(array: np.ndarray, value: float = np.nan) -> np.ndarray:
+    array = np.array(array, dtype=np.float64)
+    array.flat[array.size // 2] = value
+    return array
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_no_nan_reaches_the_loops_compiled_with_finite_math_only(value):
+    """setup.py's -ffinite-math-only lets the compiler assume no NaN or infinity: each is
+    refused with a ValueError before a loop runs, by the wrapper or, for the per-problem
+    loops of compiled.FINITE_UPSTREAM, by gpocc.gp.expected's entry points."""
+    from gpocc.gp import expected as ex
+    from gpocc.gp.kernels import NeuralNetworkKernel
+
+    # Loops that check here: every float input.
+    with pytest.raises(ValueError, match="NaN or infinity"):
+        compiled.asin_array(_nan_at(np.zeros(9), value))
+    with pytest.raises(ValueError, match="NaN or infinity"):
+        compiled.cholesky_psd4(_nan_at(np.tile(np.eye(4)[:, :, None], (1, 1, 3)), value))
+    with pytest.raises(ValueError, match="NaN or infinity"):
+        compiled.mark_segments(_nan_at(np.zeros((4, 2)), value), np.ones((4, 2)),
+                               np.zeros((3, 3), dtype=bool))
+    # The per-problem loops: their data is checked where it enters.
+    rng = np.random.default_rng(3)
+    n = 12
+    means, covs = rng.normal(size=(n, 2)), np.tile(np.eye(2) * 0.01, (n, 1, 1))
+    scans, factors = np.arange(n) // 4, rng.normal(size=(n, 2, 3)) * 0.05
+    queries = rng.normal(size=(5, 2))
+    kernel = NeuralNetworkKernel(1.0, 2.0, (3.0, 4.0))
+    for bad in ("means", "covs", "factors", "queries"):
+        args = {"means": means, "covs": covs, "factors": factors, "queries": queries}
+        args[bad] = _nan_at(args[bad], value)
+        with pytest.raises(ValueError, match="finite"):
+            ex.expected_local_system(kernel, args["means"], args["covs"], args["queries"], 2,
+                                     0.1, scan_ids=scans, pose_factors=args["factors"],
+                                     backend="compiled")
+        if bad != "queries":
+            with pytest.raises(ValueError, match="finite"):
+                ex.expected_kernel_matrix(kernel, args["means"], args["covs"], 2,
+                                          scan_ids=scans, pose_factors=args["factors"],
+                                          with_gradient=True, backend="compiled")
+        if bad in ("means", "covs", "queries"):
+            with pytest.raises(ValueError, match="finite"):
+                ex.expected_kernel_cross(kernel, args["queries"], args["means"],
+                                         args["covs"], 2, backend="compiled")

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from gpocc.gp import expected as ex
+from gpocc.gp.backends.c_loops import _node_major
 from gpocc.gp.expected import (
     expected_kernel_cross,
     expected_kernel_diag,
@@ -115,7 +116,7 @@ def test_closed_form_root_gives_the_eigh_node_sets():
 
 
 @pytest.mark.parametrize("level", [2, 3])
-def test_compiled_node_sets_equal_the_numpy_ones(level, monkeypatch):
+def test_compiled_node_sets_equal_the_numpy_ones(level):
     """The compiled expansion of points that all have a covariance against the numpy
     path (closed-form roots, tensordot): the same nodes, weights and layout."""
     rng = np.random.default_rng(11)
@@ -123,9 +124,8 @@ def test_compiled_node_sets_equal_the_numpy_ones(level, monkeypatch):
         np.diag([0.04, 0.04]), np.diag([0.01, 0.09]), [[0.04, -0.02], [-0.02, 0.01]],
         [[1e-30, 0.0], [0.0, 0.04]], [[0.02, 0.02], [0.02, 0.02]]])])  # singular ones
     means = rng.normal(0.0, 5.0, (len(covs), 2))
-    compiled = ex._expand(means, covs, level)
-    monkeypatch.setattr(ex, "USE_FUSED", False)
-    reference = ex._expand(means, covs, level)
+    compiled = ex._expand(means, covs, level, "compiled")
+    reference = ex._expand(means, covs, level, "numpy")
     np.testing.assert_allclose(compiled.nodes, reference.nodes, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(compiled.weights, reference.weights)
     np.testing.assert_array_equal(compiled.starts, reference.starts)
@@ -514,7 +514,7 @@ def test_compiled_root_of_joint_covariance_reproduces_it():
 
 @pytest.mark.parametrize("level", [1, 2, 3])
 @pytest.mark.parametrize("mixed", [True, False], ids=["mixed", "uniform"])
-def test_compiled_nn_path_matches_numpy_reference(level, mixed, monkeypatch):
+def test_compiled_nn_path_matches_numpy_reference(level, mixed):
     """Compiled loops against the numpy path: values, gradients, cross, correlated pairs;
     ``mixed``: points with zero covariance (one node) among others (the point-major loops),
     else every point with the same rule (the node-major loops)."""
@@ -525,16 +525,17 @@ def test_compiled_nn_path_matches_numpy_reference(level, mixed, monkeypatch):
     kernel = NeuralNetworkKernel(3.7, 50.0, (40.0, 60.0))
     queries = np.random.default_rng(23).uniform(-1.2, 1.2, (25, 2))
 
-    def run():
+    def run(backend):
         k = expected_kernel_matrix(kernel, means, covs, level, scan_ids=scan_ids,
-                                   pose_factors=factors)
+                                   pose_factors=factors, backend=backend)
         kg, dk = expected_kernel_matrix(kernel, means, covs, level, scan_ids=scan_ids,
-                                        pose_factors=factors, with_gradient=True)
-        return k, kg, dk, expected_kernel_cross(kernel, queries, means, covs, level)
+                                        pose_factors=factors, with_gradient=True,
+                                        backend=backend)
+        return k, kg, dk, expected_kernel_cross(kernel, queries, means, covs, level,
+                                                backend=backend)
 
-    fused = run()
-    monkeypatch.setattr(ex, "USE_FUSED", False)
-    reference = run()
+    fused = run("compiled")
+    reference = run("numpy")
     assert ex.same_scan_pairs(covs, scan_ids, factors)[0].shape[0] > 50
     for got, want in zip(fused, reference, strict=True):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
@@ -560,7 +561,7 @@ def test_node_major_loops_give_the_point_major_sums(level, n):
     rule = rng.dirichlet(np.ones(size))
     weights = np.tile(rule, n)
     u = kernel.scaled_columns(exp.nodes)
-    by_node = ex._node_major(u, size)
+    by_node = _node_major(u, size)
     if n > 5:
         last = size - 1  # node `last` of point 5
         np.testing.assert_array_equal(by_node[:, last * n + 5], u[:, 5 * size + last])
@@ -578,7 +579,7 @@ def test_node_major_loops_give_the_point_major_sums(level, n):
     np.testing.assert_allclose(cross_node, cross_point, rtol=1e-14, atol=1e-15)
 
 
-def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):
+def test_compiled_pair_listing_matches_the_numpy_rule():
     """Same pairs in the same order: unsorted scans, zero covariances, pose shares on both
     sides of POSE_SHARE_MIN, and integer scan ids of either width or byte order."""
     rng = np.random.default_rng(31)
@@ -590,10 +591,8 @@ def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):
     ids = rng.integers(0, 9, n)
     # the compiled rule converts any integer width and byte order
     for scan_ids in (ids, ids.astype(np.int32), ids.astype(">i8")):
-        compiled = ex.same_scan_pairs(covs, scan_ids, factors)
-        monkeypatch.setattr(ex, "USE_FUSED", False)
-        reference = ex.same_scan_pairs(covs, scan_ids, factors)
-        monkeypatch.setattr(ex, "USE_FUSED", True)
+        compiled = ex.same_scan_pairs(covs, scan_ids, factors, "compiled")
+        reference = ex.same_scan_pairs(covs, scan_ids, factors, "numpy")
         assert reference[0].shape[0] > 100
         for got, want in zip(compiled, reference, strict=True):
             np.testing.assert_array_equal(got, want)
@@ -601,7 +600,7 @@ def test_compiled_pair_listing_matches_the_numpy_rule(monkeypatch):
 
 @pytest.mark.parametrize("level", [1, 2, 3])
 @pytest.mark.parametrize("case", ["correlated", "independent", "all zero"])
-def test_local_system_in_one_call_matches_the_separate_calls(level, case, monkeypatch):
+def test_local_system_in_one_call_matches_the_separate_calls(level, case):
     """The one-call local system (training matrix plus diagonal term, cross-covariances,
     query priors) against the numpy reference of the three separate calls."""
     means, covs, scan_ids, factors, _ = _scan_problem(41, n=36)
@@ -613,16 +612,16 @@ def test_local_system_in_one_call_matches_the_separate_calls(level, case, monkey
     queries = np.random.default_rng(42).uniform(-1.3, 1.3, (30, 2))
     k, cross, prior = ex.expected_local_system(kernel, means, covs, queries, level, 0.125,
                                                **pairs)
-    monkeypatch.setattr(ex, "USE_FUSED", False)
-    want = expected_kernel_matrix(kernel, means, covs, level, **pairs)
+    want = expected_kernel_matrix(kernel, means, covs, level, backend="numpy", **pairs)
     want[np.diag_indices_from(want)] += 0.125
     if case == "correlated" and level > 1:
         assert ex.same_scan_pairs(covs, scan_ids, factors)[0].shape[0] > 100
-        independent = expected_kernel_matrix(kernel, means, covs, level)
+        independent = expected_kernel_matrix(kernel, means, covs, level, backend="numpy")
         assert np.abs(want - 0.125 * np.eye(36) - independent).max() > 1e-3
     np.testing.assert_allclose(k, want, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(cross, expected_kernel_cross(kernel, queries, means, covs, level),
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        cross, expected_kernel_cross(kernel, queries, means, covs, level, backend="numpy"),
+        rtol=0, atol=1e-12)
     np.testing.assert_allclose(prior, kernel.diag(queries), rtol=0, atol=1e-12)
 
 
@@ -636,3 +635,26 @@ def test_local_system_declines_what_it_does_not_compile():
     assert ex.expected_local_system(NN, means, covs, queries, 2, 0.1) is None
     assert ex.expected_local_system(SE, means, covs * 0 + np.eye(2) * 0.01, queries, 2,
                                     0.1) is None
+
+
+def test_backends_serve_the_kernels_they_register():
+    """``model.backend``'s names: the compiled loops serve the NN kernel, every other
+    kernel (and every kernel of the numpy backend) gets the numpy quadrature, and the
+    numpy backend agrees with Girard's closed form through the same entry point."""
+    from gpocc.gp import backends
+    from gpocc.gp.backends.quadrature import QUADRATURE
+
+    compiled, numpy_backend = backends.get("compiled"), backends.get("numpy")
+    assert backends.get("auto") is compiled
+    assert backends.get(compiled) is compiled
+    assert compiled.loops(NN) is not QUADRATURE
+    assert compiled.loops(SE) is QUADRATURE and numpy_backend.loops(NN) is QUADRATURE
+    with pytest.raises(ValueError, match="auto, numpy, compiled"):
+        backends.get("gpu")
+    rng = np.random.default_rng(5)
+    means, covs = rng.uniform(-1, 1, (12, 2)), _covariances(rng, 12, 0.05)
+    for backend in ("numpy", "compiled"):
+        k = expected_kernel_matrix(SE, means, covs, 8, backend=backend)
+        closed = expected_se_closed_form(SE, means, covs, means, covs)
+        off = ~np.eye(12, dtype=bool)
+        np.testing.assert_allclose(k[off], closed[off], rtol=1e-6, atol=1e-9)

@@ -176,7 +176,6 @@ def test_prediction_paths_agree_with_the_separate_calls(case, monkeypatch):
     """predict_local's one-call covariances, and its fallbacks (a failed factor of the
     one-call matrix; mixed zero and non-zero covariances, which the one call declines),
     against the separate calls of the numpy reference."""
-    import gpocc.gp.expected as expected
     import gpocc.gp.local as local
 
     rng = np.random.default_rng(5)
@@ -193,26 +192,26 @@ def test_prediction_paths_agree_with_the_separate_calls(case, monkeypatch):
     queries = rng.uniform(-3, 3, size=(40, 2))
     problem = NeighbourIndex(samples).problem(np.array([0.3, -0.2]), 120)
     calls = {"system": 0, "factors": 0}
-    system, factor = local.expected_local_system, local.try_cholesky
+    systems, factor = local._local_systems, local.try_cholesky
 
-    def counted_system(*args, **kwargs):
-        result = system(*args, **kwargs)
-        calls["system"] += result is not None
+    def counted_systems(*args, **kwargs):
+        result = systems(*args, **kwargs)
+        calls["system"] += sum(system is not None for system in result)
         return result
 
     def failing_once(matrix, jitter=True):
         calls["factors"] += 1
         return None if calls["factors"] == 1 else factor(matrix, jitter)
 
-    monkeypatch.setattr(local, "expected_local_system", counted_system)
+    monkeypatch.setattr(local, "_local_systems", counted_systems)
     if case == "factor fails once":
         monkeypatch.setattr(local, "try_cholesky", failing_once)
     got = predict_local(kernel, 0.05, problem, queries, 2)
     assert calls["system"] == (1 if case == "factor fails once" else 0)
-    monkeypatch.setattr(local, "expected_local_system", lambda *a, **k: None)
+    monkeypatch.setattr(local, "_local_systems",
+                        lambda kernel, backend, batch, *a: [None] * len(batch))
     monkeypatch.setattr(local, "try_cholesky", factor)
-    monkeypatch.setattr(expected, "USE_FUSED", False)
-    want = predict_local(kernel, 0.05, problem, queries, 2)
+    want = predict_local(kernel, 0.05, problem, queries, 2, backend="numpy")
     np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got.variance, want.variance, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got.prior_variance, want.prior_variance, rtol=0, atol=1e-12)
@@ -245,3 +244,45 @@ def test_problems_of_many_centres_are_the_brute_force_neighbourhoods(neighbours)
         single = index.problem(centre, neighbours)
         np.testing.assert_array_equal(single.index, problem.index)
     assert index.problems(np.empty((0, 2)), neighbours) == []
+
+
+def test_a_backend_gets_a_whole_batch_of_local_problems():
+    """A backend is an object with the Backend protocol: here the compiled one with its
+    NN loops' batch method observed. predict_locals hands it every problem of the batch
+    in one call (the empty one excluded), and each prediction equals predict_local's of
+    its problem alone and, to round-off, the numpy reference's."""
+    from gpocc.gp import backends
+    from gpocc.gp.backends.c_loops import CompiledBackend, NeuralNetworkLoops
+    from gpocc.gp.local import predict_locals
+
+    batches = []
+
+    class ObservedLoops(NeuralNetworkLoops):
+        def local_systems(self, kernel, batch, level, diagonal):
+            batches.append(len(batch))
+            return super().local_systems(kernel, batch, level, diagonal)
+
+    class ObservedBackend(CompiledBackend):
+        name = "observed"
+        served = {NeuralNetworkKernel: ObservedLoops()}
+
+    rng = np.random.default_rng(8)
+    samples = room_samples(rng, 300)
+    index = NeighbourIndex(samples)
+    kernel = NeuralNetworkKernel(2.0, 5.0, (3.0, 4.0))
+    centres = rng.uniform(-2, 2, (4, 2))
+    problems = index.problems(centres, 60)
+    empty = problems[0].samples.subset(np.zeros(0, dtype=np.intp))
+    problems.append(type(problems[0])(centres[0], empty, np.zeros(0, dtype=np.intp)))
+    queries = [c + rng.uniform(-0.5, 0.5, (9, 2)) for c in centres] + [centres[:1]]
+    got = predict_locals(kernel, 0.05, problems, queries, 2, backend=ObservedBackend())
+    assert batches == [4]
+    assert backends.get("compiled").loops(kernel).__class__ is NeuralNetworkLoops
+    for problem, q, pred in zip(problems, queries, got, strict=True):
+        alone = predict_local(kernel, 0.05, problem, q, 2)
+        reference = predict_local(kernel, 0.05, problem, q, 2, backend="numpy")
+        np.testing.assert_array_equal(pred.mean, alone.mean)
+        np.testing.assert_array_equal(pred.variance, alone.variance)
+        np.testing.assert_allclose(pred.mean, reference.mean, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(pred.variance, reference.variance, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(got[-1].variance, kernel.diag(centres[:1] - centres[0]))

@@ -135,3 +135,24 @@ def test_make_kernel_and_bad_values():
         SquaredExponentialKernel(1.0, (0.5, 0.0))
     with pytest.raises(GpoccError, match="bias_variance"):
         NeuralNetworkKernel(1.0, -1.0, (1.0, 1.0))
+
+
+def test_kernel_table_is_the_one_list_of_names(tmp_path):
+    """Config validation, make_kernel and the model file all read KERNELS: every name in
+    it makes its class, and a name outside it is refused by the config loader."""
+    from gpocc.config import load_config
+    from gpocc.gp.kernels import KERNELS
+
+    h = HyperparametersConfig()
+    for name, cls in KERNELS.items():
+        kernel = make_kernel(name, h)
+        assert type(kernel) is cls
+        np.testing.assert_allclose(kernel.with_theta(kernel.theta).theta, kernel.theta)
+        assert kernel.to_hyperparameters(h) == h
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(f"model:\n  kernel: {name}\n")
+        assert load_config(path).model.kernel == name
+    path = tmp_path / "bad.yaml"
+    path.write_text("model:\n  kernel: matern\n")
+    with pytest.raises(GpoccError, match="'nn' or 'se'"):
+        load_config(path)

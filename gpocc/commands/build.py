@@ -62,7 +62,7 @@ def build(
     if bounds is not None:  # the map's size is known before training: check it first
         check_map_size(GridSpec.from_bounds(*bounds, resolution), cfg, what, True)
     started = time.perf_counter()
-    model = learn_model(inputs, cfg)
+    model = learn_model(inputs, cfg, scheduler)
     model_path = out / MODEL_FILE
     spec = map_spec(model, resolution, bounds, what, configurable=True)
     mapping_started = time.perf_counter()

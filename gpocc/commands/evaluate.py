@@ -10,14 +10,16 @@ import typer
 from gpocc.commands.options import Force
 from gpocc.errors import GpoccError
 from gpocc.evaluation.report import (
-    evaluate_map,
+    kind_summary,
     probability_raster,
     read_probability,
     results_table,
+    sample_map,
+    score_protocols,
     unique_names,
     write_outputs,
 )
-from gpocc.evaluation.truth import load_truth
+from gpocc.evaluation.truth import load_truth_kinds
 from gpocc.io.atomic import prepare_output
 from gpocc.progress import log
 
@@ -39,13 +41,15 @@ def evaluate(
 
     Each map's probability is taken at the truth points (nearest cell); points outside a
     map or on no-data cells count as p = 0.5, and the coverage column says how many the
-    map covered.
+    map covered. A point file with a kind column (gpocc split's heldout.csv: hit, free,
+    near-wall) is scored per protocol: the hits with each kind of free point, and all
+    points together (union).
     """
     if out is not None:
         prepare_output(out, force, inputs=[*maps, ground_truth])
     located = [probability_raster(p) for p in maps]
     names = unique_names([n for n, _ in located], list(maps))
-    points, labels = load_truth(ground_truth)
+    points, labels, kinds = load_truth_kinds(ground_truth)
     n_occupied = int(np.count_nonzero(labels == 1))
     n_free = int(labels.size - n_occupied)
     if n_occupied == 0 or n_free == 0:
@@ -54,11 +58,14 @@ def evaluate(
             f"points; a ROC needs both"
         )
     log(f"ground truth {ground_truth}: {n_occupied} occupied, {n_free} free points")
-    results = []
-    for name, (_, raster) in zip(names, located, strict=True):
-        results.append(evaluate_map(name, raster, points, labels))
-        if results[-1].coverage == 0.0:
+    sampled = []
+    for _, raster in located:
+        sampled.append(sample_map(raster, points))
+        scores, inside = sampled[-1]
+        if not np.any(inside & np.isfinite(scores)):
             warn_uncovered(raster, points)
+    scored = score_protocols(names, sampled, labels, kinds)
+    results = scored[-1].results  # every point: "all" or "union"
     if all(r.coverage == 0.0 for r in results):
         # Every score would be that of p = 0.5 at every point (AUC 0.5): not a result.
         where = (f"the map ({_map_extent(located[0][1])})" if len(results) == 1
@@ -68,9 +75,10 @@ def evaluate(
             f"lies on a cell with data in {where}; the truth and the map"
             f"{'' if len(results) == 1 else 's'} must share one frame"
         )
-    typer.echo(results_table(results))
+    typer.echo(results_table(scored))
     if out is not None:
-        write_outputs(out, force, results, list(maps), ground_truth, labels)
+        write_outputs(out, force, results, list(maps), ground_truth, labels, scored,
+                      kind_summary(names, sampled, labels, kinds))
         log(f"wrote {out}/roc.png, reliability.png, roc.csv, results.json, results.md")
 
 

@@ -12,6 +12,7 @@ import typer
 from gpocc.commands.options import ConfigFile
 from gpocc.config import Config, load_config
 from gpocc.errors import GpoccError
+from gpocc.gp.bounds import values_on_bounds
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
@@ -82,8 +83,11 @@ def provenance_lines(batches: Sequence[ScanBatch]) -> list[str]:
         if p.frame_chain:
             lines.append(f"      frame chain: {p.frame_chain}")
         lines.append(f"      covariance: {p.covariance_source}")
+        if p.stamps:
+            lines.append(f"      stamps: {p.stamps}")
         lines += [f"      skipped {n}: {why} (config key {key})" for why, key, n in p.skipped]
         lines += [f"      note: {note}" for note in p.notes]
+        lines += [f"      {line}" for line in p.sensor_lines]
     return lines
 
 
@@ -133,6 +137,10 @@ def format_model(path: Path, model: GPModel) -> list[str]:
                                   zip(names, per_sensor, strict=False)),
         "  inputs: " + (", ".join(model.inputs) or "(not recorded)"),
     ]
+    on_bounds = values_on_bounds(model)
+    lines.append("  learned values on a bound: " + ("none" if not on_bounds
+                                                      else f"{len(on_bounds)}"))
+    lines += [f"    {b.message()}" for b in on_bounds]
     if "log_marginal_likelihood" in training:
         lines.append(f"  log marginal likelihood: {training['log_marginal_likelihood']:.3f} "
                      f"({training.get('evaluations', '?')} evaluations)")

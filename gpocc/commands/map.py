@@ -19,6 +19,7 @@ from gpocc.commands.options import (
     Workers,
     check_at_least,
     check_resolution,
+    scheduler_errors,
 )
 from gpocc.config import Config
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
@@ -140,7 +141,7 @@ def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
     total = len(plan_blocks(spec, cells))
     log(f"mapping {spec.width} x {spec.height} cells at {spec.resolution} m in {total} "
         f"blocks ({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
-    with progress_bar(total, "blocks") as advance:
+    with scheduler_errors(), progress_bar(total, "blocks") as advance:
         summary = make_map(model, spec, folder, n_workers, scheduler, advance,
                            while_writing=while_writing)
     write_metadata(folder, map_metadata(model_name, model, summary,

@@ -7,7 +7,9 @@ names a flag.
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
@@ -15,6 +17,7 @@ from typing import Annotated
 import typer
 
 from gpocc.errors import GpoccError
+from gpocc.parallel import SchedulerUnreachable
 
 
 class Switch(StrEnum):
@@ -41,9 +44,22 @@ Workers = Annotated[int | None, typer.Option(
     "--workers", help="Local processes for the map's local problems (default and most: the "
     "cores this process may use).")]
 Scheduler = Annotated[str | None, typer.Option(
-    "--scheduler", help="Dask scheduler address tcp://HOST:PORT.")]
+    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute the "
+    "local problems (output identical to a local run).")]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
+
+
+@contextlib.contextmanager
+def scheduler_errors() -> Iterator[None]:
+    """An unreachable ``--scheduler`` as one error line naming the option and address."""
+    try:
+        yield
+    except SchedulerUnreachable as exc:
+        raise GpoccError(
+            f"--scheduler {exc.address}: cannot reach a Dask scheduler there "
+            f"({exc.cause}); check the address (tcp://HOST:PORT) and that the scheduler "
+            "is running, or leave --scheduler out to work on this machine") from None
 
 
 def check_resolution(resolution: float) -> float:

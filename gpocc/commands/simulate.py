@@ -12,6 +12,7 @@ import yaml
 
 import gpocc
 from gpocc.commands.options import Force, check_resolution
+from gpocc.constants import FREE, NO_DATA, OCCUPIED, SIMULATION_FILE
 from gpocc.errors import GpoccError
 from gpocc.evaluation.simulate import (
     PoseNoise,
@@ -83,8 +84,10 @@ def simulate_command(
     seed: int = typer.Option(0, "--seed", help="Random seed of all noise."),
     world: str = typer.Option(
         "default", "--world",
-        help=f"Ground-truth world: {', '.join(WORLD_NAMES)}, or grown-<seed> (a random "
-        f"corridor building grown from that seed).",
+        help=f"Ground-truth world: {', '.join(WORLD_NAMES)}, grown-<seed> (a random "
+        f"corridor building grown from that seed), or a building of another generator: "
+        f"offices-<seed>, hall-<seed>, clutter-<seed> (platform noise drawn around Table "
+        f"I's from the seed).",
     ),
     pose_noise: tuple[float, float] | None = typer.Option(
         None, "--pose-noise", metavar="SIGMA_XY SIGMA_YAW_DEG",
@@ -97,7 +100,8 @@ def simulate_command(
     prepare_output(out, force)
     if not is_world_name(world):
         raise GpoccError(f"--world: unknown world {world!r}; choose one of: "
-                         f"{', '.join(WORLD_NAMES)}, or grown-<seed>")
+                         f"{', '.join(WORLD_NAMES)}, grown-<seed>, offices-<seed>, "
+                         f"hall-<seed> or clutter-<seed>")
     check_resolution(resolution)
     if pose_noise is not None and not all(v >= 0 and math.isfinite(v) for v in pose_noise):
         raise GpoccError(f"--pose-noise needs two non-negative numbers (SIGMA_XY metres, "
@@ -113,17 +117,17 @@ def simulate_command(
     seconds = time.perf_counter() - started
     for run in sim.runs:
         log(f"{run.platform.name}: {run.n_scans} scans of {run.platform.n_beams} beams")
-    counts = {"occupied": int((labels == 1).sum()), "free": int((labels == 0).sum()),
-              "no_data": int((labels == 255).sum())}
+    counts = {"occupied": int((labels == OCCUPIED).sum()), "free": int((labels == FREE).sum()),
+              "no_data": int((labels == NO_DATA).sum())}
     with atomic_directory(out, force=force) as tmp:
         batches = [run.batch(source=str(out / "sim.mcap")) for run in sim.runs]
         topics = [(run.platform.scan_topic, run.platform.pose_topic) for run in sim.runs]
         write_bag(tmp / "sim.mcap", batches, topics, "mcap")
-        write_geotiff(tmp / "truth.tif", labels, spec, nodata=255, band=TRUTH_BAND)
+        write_geotiff(tmp / "truth.tif", labels, spec, nodata=NO_DATA, band=TRUTH_BAND)
         with atomic_path(tmp / "sim.yaml") as path:
             path.write_text(_CONFIG_HEADER + yaml.safe_dump(sim_config(sim, resolution),
                                                             sort_keys=False))
-        with atomic_path(tmp / "simulation.json") as path:
+        with atomic_path(tmp / SIMULATION_FILE) as path:
             path.write_text(json.dumps(_metadata(sim, spec, counts, seconds), indent=2) + "\n")
     typer.echo(f"simulation: {out}")
     typer.echo(f"world: {sim.world.name} ({sim.world.description}), seed {seed}")

@@ -23,6 +23,7 @@ from gpocc.io.inputs import read_inputs
 from gpocc.limits import MAX_HELDOUT_POINTS, check_seed
 from gpocc.progress import log
 from gpocc.samples import beam
+from gpocc.samples.heldout import NEAR_WALL
 
 
 def split(
@@ -36,15 +37,20 @@ def split(
     beam_every: int = typer.Option(1, "--beam-every", help="Keep every B-th training beam."),
     seed: int | None = typer.Option(None, "--seed", help="Seed for the free points [config seed]."),
     free_per_beam: int = typer.Option(3, "--free-per-beam", help="Free points per held-out beam."),
+    near_wall_per_beam: int = typer.Option(
+        1, "--near-wall-per-beam",
+        help="Free points per held-out hit in the band 0.05-0.3 m in front of it."),
     force: Force = False,
 ) -> None:
     """Split a log into a training bag and held-out labelled points.
 
     Scans with index % K == K - 1 (per sensor, 0-based) are held out; their hits become
-    occupied points (label 1) and each beam gives F free points (label 0) at random
-    distances short of the hit. The other scans (thinned by --keep-every / --beam-every)
-    go to DIR/train.mcap with a config DIR/train.yaml that reads it; the labelled points
-    go to DIR/heldout.csv (x,y,label), usable as `gpocc evaluate --ground-truth`.
+    occupied points (label 1, kind hit), each beam gives F free points (label 0, kind
+    free) at random distances short of the hit, and each hit W free points uniform
+    0.05-0.3 m in front of it (kind near-wall). The other scans (thinned by --keep-every /
+    --beam-every) go to DIR/train.mcap with a config DIR/train.yaml that reads it; the
+    labelled points go to DIR/heldout.csv (x,y,label,kind), usable as `gpocc evaluate
+    --ground-truth`, which scores each kind of free point with the hits and all together.
     """
     prepare_output(out, force, inputs=[input_path, config_path])
     config = load_config(config_path)
@@ -52,18 +58,19 @@ def split(
     check_at_least("--keep-every", keep_every, 1)
     check_at_least("--beam-every", beam_every, 1)
     check_at_least("--free-per-beam", free_per_beam, 0)
+    check_at_least("--near-wall-per-beam", near_wall_per_beam, 0)
     check_seed(seed)
     rng = np.random.default_rng(config.seed if seed is None else seed)
 
     batches = merge_by_sensor(read_inputs([input_path], config))
     held_beams = sum((b.n_scans // every) * b.n_beams for b in batches)
-    if held_beams * (1 + free_per_beam) > MAX_HELDOUT_POINTS:
+    if held_beams * (1 + free_per_beam + near_wall_per_beam) > MAX_HELDOUT_POINTS:
         raise GpoccError(
             f"{input_path}: {held_beams} held-out beams x (1 + --free-per-beam "
-            f"{free_per_beam}) points is more than {MAX_HELDOUT_POINTS:.0e}; lower "
-            f"--free-per-beam or raise --every"
+            f"{free_per_beam} + --near-wall-per-beam {near_wall_per_beam}) points is more "
+            f"than {MAX_HELDOUT_POINTS:.0e}; lower them or raise --every"
         )
-    trains, topics, sensors, points, labels = [], [], [], [], []
+    trains, topics, sensors, points, labels, kinds = [], [], [], [], [], []
     n_heldout = 0
     used_prefixes: set[str] = set()
     for batch in batches:
@@ -75,6 +82,7 @@ def split(
             keep_every=keep_every,
             beam_every=beam_every,
             free_per_beam=free_per_beam,
+            near_wall_per_beam=near_wall_per_beam,
             rng=rng,
         )
         if result.train.n_scans == 0:
@@ -92,6 +100,7 @@ def split(
         sensors.append((sensor, scan_topic, pose_topic))
         points.append(result.points)
         labels.append(result.labels)
+        kinds.append(result.kinds)
         n_heldout += result.n_heldout
         log(
             f"{batch.sensor}: {batch.n_scans} scans -> {result.train.n_scans} training "
@@ -100,6 +109,7 @@ def split(
 
     all_points = np.concatenate(points)
     all_labels = np.concatenate(labels)
+    all_kinds = np.concatenate(kinds)
     new_config = train_config(config, sensors)
     with atomic_directory(out, force=force) as tmp:
         write_bag(tmp / "train.mcap", trains, topics, "mcap")
@@ -108,20 +118,17 @@ def split(
             + yaml.safe_dump(config_to_dict(new_config), sort_keys=False, default_flow_style=None)
         )
         with (tmp / "heldout.csv").open("w") as fh:
-            fh.write("x,y,label\n")
-            np.savetxt(
-                fh,
-                np.column_stack([all_points, all_labels]),
-                fmt=("%.4f", "%.4f", "%d"),
-                delimiter=",",
-            )
+            fh.write("x,y,label,kind\n")
+            fh.writelines(f"{x:.4f},{y:.4f},{lab:d},{kind}\n" for (x, y), lab, kind
+                          in zip(all_points, all_labels, all_kinds, strict=True))
 
     n_occupied = int(np.count_nonzero(all_labels == 1))
     typer.echo(f"sensors:          {len(batches)}")
     typer.echo(f"scans kept:       {sum(t.n_scans for t in trains)}")
     typer.echo(f"scans held out:   {n_heldout}")
+    n_near = int(np.count_nonzero(all_kinds == NEAR_WALL))
     typer.echo(
         f"held-out points:  {all_labels.size} ({n_occupied} occupied, "
-        f"{all_labels.size - n_occupied} free)"
+        f"{all_labels.size - n_occupied - n_near} free along beams, {n_near} near-wall free)"
     )
     typer.echo(f"wrote {out / 'train.mcap'}, {out / 'train.yaml'}, {out / 'heldout.csv'}")

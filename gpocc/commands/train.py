@@ -5,18 +5,30 @@ from __future__ import annotations
 import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 
 import typer
 
-from gpocc.commands.options import ConfigFile, Force, InputNoise, Inputs, Seed, Switch
+from gpocc.commands.options import (
+    ConfigFile,
+    Force,
+    InputNoise,
+    Inputs,
+    Scheduler,
+    Seed,
+    Switch,
+    scheduler_errors,
+)
 from gpocc.config import Config, load_config
+from gpocc.gp.bounds import values_on_bounds
 from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.io.scans import scan_stamps
 from gpocc.limits import check_seed
+from gpocc.parallel import dask_client
 from gpocc.progress import log, progress_bar
 from gpocc.samples.beams import build_samples
 from gpocc.samples.coverage import beam_coverage
@@ -29,13 +41,14 @@ def train(
     config: ConfigFile = None,
     input_noise: InputNoise = None,
     seed: Seed = None,
+    scheduler: Scheduler = None,
     force: Force = False,
 ) -> None:
     """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
     prepare_output(out, force, folder=False, inputs=[*inputs, config])
     cfg = job_config(config, input_noise, seed)
     started = time.perf_counter()
-    model = learn_model(inputs, cfg)
+    model = learn_model(inputs, cfg, scheduler)
     save_model(model, out, force=force)
     echo_model(model, out, time.perf_counter() - started)
 
@@ -53,9 +66,11 @@ def job_config(config: Path | None, input_noise: Switch | None, seed: int | None
     return cfg
 
 
-def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
+def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -> GPModel:
     """Read ``inputs``, build their samples and learn a model; its ``training`` records
-    the stages' wall seconds under ``timings_s``."""
+    the stages' wall seconds under ``timings_s``. ``scheduler``: the address of a Dask
+    cluster that computes the likelihood patches and the classifier's predictions (the
+    model is the same as without it)."""
     started = time.perf_counter()
     batches = read_inputs(inputs, cfg)
     read_s = time.perf_counter() - started
@@ -78,11 +93,14 @@ def learn_model(inputs: list[Path], cfg: Config) -> GPModel:
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
     budget = 2 + training_cfg.anneal_maxfun + 2 * training_cfg.lbfgs_maxiter
-    with progress_bar(budget, "likelihood evaluations (at most)") as advance:
+    with scheduler_errors(), (dask_client(scheduler) if scheduler else nullcontext()) as client, \
+            progress_bar(budget, "likelihood evaluations (at most)") as advance:
         model = build_model(samples, cfg, inputs=tuple(str(p) for p in inputs),
                             on_evaluation=advance, coverage=coverage,
-                            calibration=calibration)
+                            calibration=calibration, client=client)
     learn_s = time.perf_counter() - started - read_s - samples_s
+    for on_bound in values_on_bounds(model):
+        log(f"warning: {on_bound.message()}: the fit stopped at the bound, not at an optimum")
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
     # The scans' time span: a map of this model is stamped with the last scan's time.

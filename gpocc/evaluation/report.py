@@ -1,13 +1,22 @@
-"""Scoring maps against a ground truth and writing the evaluation report files."""
+"""Scoring maps against a ground truth and writing the evaluation report files.
+
+A ground truth whose points carry kinds (``gpocc split``'s ``heldout.csv``: ``hit``,
+``free``, ``near-wall``) is scored under several protocols (:func:`protocols`): the
+occupied points with each kind of free point on its own, and all points together
+(``union``). Free points drawn along whole beams rarely fall just in front of a wall, so
+that protocol alone rewards maps with thick walls; the near-wall protocol penalises them.
+"""
 
 from __future__ import annotations
 
 import csv
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from gpocc.constants import RESULTS_FILE
 from gpocc.errors import GpoccError
 from gpocc.evaluation.calibration import CALIBRATION_BINS, LOG_LOSS_CLIP
 from gpocc.evaluation.roc import RocResult, evaluate_scores
@@ -56,10 +65,9 @@ def unique_names(names: list[str], paths: list[Path]) -> list[str]:
     return [str(p) if names.count(n) > 1 else n for n, p in zip(names, paths, strict=True)]
 
 
-def evaluate_map(
-    name: str, raster: Path, points: np.ndarray, labels: np.ndarray
-) -> RocResult:
-    """Sample one map's probability at the truth points (nearest cell) and score it."""
+def sample_map(raster: Path, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One map's probability at the (N, 2) truth points (nearest cell): (N,) scores (NaN
+    on no-data) and (N,) inside the map."""
     values, spec, nodata = read_probability(raster)
     scores, inside = sample_raster(values, spec, nodata, points)
     finite = scores[np.isfinite(scores) & inside]
@@ -68,23 +76,132 @@ def evaluate_map(
             f"{raster}: values outside [0, 1] ({finite.min():g} .. {finite.max():g}); "
             f"pass a probability map (probability.tif), not another layer"
         )
+    return scores, inside
+
+
+def evaluate_map(
+    name: str, raster: Path, points: np.ndarray, labels: np.ndarray
+) -> RocResult:
+    """Sample one map's probability at the truth points (nearest cell) and score it."""
+    scores, inside = sample_map(raster, points)
     return evaluate_scores(name, labels, scores, inside)
 
 
-def results_table(results: list[RocResult]) -> str:
-    """An aligned plain-text table: map, AUC, FPR at TPR 0.97, Brier, log-loss, ECE, coverage."""
-    header = ("map", "AUC", "FPR@TPR0.97", "Brier", "log-loss", "ECE", "coverage")
-    rows = [
-        (r.name, f"{r.auc:.4f}", f"{r.fpr_at_tpr97:.4f}", f"{r.calibration.brier:.4f}",
-         f"{r.calibration.log_loss:.4f}", f"{r.calibration.ece:.4f}",
-         f"{100 * r.coverage:.1f}%")
-        for r in results
-    ]
+#: The protocol of a truth without kinds, and of all points of one with kinds.
+ALL, UNION = "all", "union"
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """A subset of the truth points scored on its own.
+
+    Attributes:
+        name: ``all`` (a truth without kinds), ``hits+<kind>`` (the occupied points and
+            the free points of one kind) or ``union`` (every point).
+        mask: (N,) bool, the points it scores.
+    """
+
+    name: str
+    mask: np.ndarray
+
+
+def protocols(labels: np.ndarray, kinds: np.ndarray | None) -> list[Protocol]:
+    """The protocols of (N,) labels (1 occupied, 0 free) and their (N,) kinds (or None).
+
+    Without kinds, or when the free points are of one kind only, one protocol of every
+    point; otherwise one per kind of free point (the occupied points with it, in order of
+    first appearance), then ``union``.
+    """
+    everything = np.ones(labels.shape, dtype=bool)
+    if kinds is None:
+        return [Protocol(ALL, everything)]
+    free_kinds = list(dict.fromkeys(kinds[labels == 0].tolist()))
+    if len(free_kinds) < 2:
+        return [Protocol(ALL, everything)]
+    occupied = labels == 1
+    return [Protocol(f"hits+{k}", occupied | ((kinds == k) & ~occupied)) for k in free_kinds] \
+        + [Protocol(UNION, everything)]
+
+
+@dataclass(frozen=True)
+class ProtocolResults:
+    """Every map's scores under one protocol.
+
+    Attributes:
+        name: the protocol's name (:class:`Protocol`).
+        n_occupied: occupied points it scores.
+        n_free: free points it scores.
+        results: one :class:`RocResult` per map, in the maps' order.
+    """
+
+    name: str
+    n_occupied: int
+    n_free: int
+    results: list[RocResult]
+
+
+def score_protocols(names: list[str], sampled: list[tuple[np.ndarray, np.ndarray]],
+                    labels: np.ndarray, kinds: np.ndarray | None) -> list[ProtocolResults]:
+    """Score every map's sampled ``(scores, inside)`` (:func:`sample_map`) under every
+    protocol of ``labels`` and ``kinds`` (:func:`protocols`)."""
+    out = []
+    for protocol in protocols(labels, kinds):
+        m = protocol.mask
+        y = labels[m]
+        results = [evaluate_scores(name, y, scores[m], inside[m])
+                   for name, (scores, inside) in zip(names, sampled, strict=True)]
+        n_occupied = int(np.count_nonzero(y == 1))
+        out.append(ProtocolResults(protocol.name, n_occupied, int(y.size) - n_occupied,
+                                   results))
+    return out
+
+
+def kind_summary(names: list[str], sampled: list[tuple[np.ndarray, np.ndarray]],
+                 labels: np.ndarray, kinds: np.ndarray | None) -> dict[str, dict]:
+    """Per kind of point: its label, count and, per map, the mean p there and its Brier
+    score (uncovered points at p = 0.5); empty without kinds."""
+    if kinds is None:
+        return {}
+    summary: dict[str, dict] = {}
+    for kind in dict.fromkeys(kinds.tolist()):
+        m = kinds == kind
+        y = labels[m].astype(float)
+        per_map = {}
+        for name, (scores, inside) in zip(names, sampled, strict=True):
+            s = scores[m]
+            p = np.where(inside[m] & np.isfinite(s), s, 0.5)
+            per_map[name] = {"mean_p": float(p.mean()), "brier": float(np.mean((p - y) ** 2))}
+        summary[kind] = {"n_points": int(m.sum()), "n_occupied": int(np.count_nonzero(y == 1)),
+                         "maps": per_map}
+    return summary
+
+
+def _score_cells(r: RocResult) -> tuple[str, ...]:
+    return (f"{r.auc:.4f}", f"{r.fpr_at_tpr97:.4f}", f"{r.calibration.brier:.4f}",
+            f"{r.calibration.log_loss:.4f}", f"{r.calibration.ece:.4f}",
+            f"{100 * r.coverage:.1f}%")
+
+
+def results_table(results: list[RocResult] | list[ProtocolResults]) -> str:
+    """An aligned plain-text table: map, AUC, FPR at TPR 0.97, Brier, log-loss, ECE,
+    coverage; given several protocols, a protocol column first (left-aligned too)."""
+    header: tuple[str, ...] = ("map", "AUC", "FPR@TPR0.97", "Brier", "log-loss", "ECE",
+                               "coverage")
+    text_columns = 1
+    if results and isinstance(results[0], ProtocolResults):
+        groups: list[ProtocolResults] = results  # type: ignore[assignment]
+        if len(groups) == 1:
+            return results_table(groups[0].results)
+        header = ("protocol", *header)
+        text_columns = 2
+        rows = [(g.name, r.name, *_score_cells(r)) for g in groups for r in g.results]
+    else:
+        rows = [(r.name, *_score_cells(r)) for r in results]  # type: ignore[union-attr]
     widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
     lines = []
     for row in [header, *rows]:
-        numbers = zip(row[1:], widths[1:], strict=True)
-        cells = [row[0].ljust(widths[0])] + [c.rjust(w) for c, w in numbers]
+        cells = [c.ljust(w) if i < text_columns else c.rjust(w)
+                 for i, (c, w) in enumerate(zip(row, widths, strict=True))]
         lines.append("  ".join(cells).rstrip())
     return "\n".join(lines)
 
@@ -98,21 +215,49 @@ CALIBRATION_NOTE = (
 )
 
 
-def results_markdown(results: list[RocResult], truth: Path, n_occupied: int, n_free: int) -> str:
-    """The results as a markdown table, with the ground truth named above it."""
-    lines = [
-        f"Ground truth: `{truth}` ({n_occupied} occupied, {n_free} free points)",
-        "",
-        "| map | AUC | FPR at TPR 0.97 | Brier | log-loss | ECE | coverage |",
-        "|:----|----:|----:|----:|----:|----:|----:|",
-    ]
-    lines += [
-        f"| {r.name} | {r.auc:.4f} | {r.fpr_at_tpr97:.4f} | {r.calibration.brier:.4f} | "
-        f"{r.calibration.log_loss:.4f} | {r.calibration.ece:.4f} | {100 * r.coverage:.1f}% |"
-        for r in results
-    ]
+def results_markdown(results: list[RocResult], truth: Path, n_occupied: int, n_free: int,
+                     protocols: list[ProtocolResults] | None = None) -> str:
+    """The results as a markdown table, with the ground truth named above it; with
+    several ``protocols``, one table per protocol (``results`` is then the last, union)."""
+    lines = [f"Ground truth: `{truth}` ({n_occupied} occupied, {n_free} free points)"]
+    groups = protocols if protocols and len(protocols) > 1 else [
+        ProtocolResults(ALL, n_occupied, n_free, results)]
+    for g in groups:
+        if len(groups) > 1:
+            lines += ["", f"Protocol `{g.name}` ({g.n_occupied} occupied, {g.n_free} free "
+                          f"points)"]
+        lines += [
+            "",
+            "| map | AUC | FPR at TPR 0.97 | Brier | log-loss | ECE | coverage |",
+            "|:----|----:|----:|----:|----:|----:|----:|",
+        ]
+        lines += [
+            f"| {r.name} | {r.auc:.4f} | {r.fpr_at_tpr97:.4f} | {r.calibration.brier:.4f} | "
+            f"{r.calibration.log_loss:.4f} | {r.calibration.ece:.4f} | "
+            f"{100 * r.coverage:.1f}% |"
+            for r in g.results
+        ]
     lines += ["", CALIBRATION_NOTE]
     return "\n".join(lines) + "\n"
+
+
+def _map_json(r: RocResult, path: Path) -> dict:
+    return {
+        "name": r.name,
+        "path": str(path),
+        "auc": r.auc,
+        "fpr_at_tpr97": r.fpr_at_tpr97,
+        "coverage": r.coverage,
+        "n_points": r.n_points,
+        "brier": r.calibration.brier,
+        "log_loss": r.calibration.log_loss,
+        "ece": r.calibration.ece,
+        "reliability": {
+            "mean_p": r.calibration.bin_mean_p.tolist(),
+            "fraction_occupied": r.calibration.bin_fraction_occupied.tolist(),
+            "count": r.calibration.bin_counts.tolist(),
+        },
+    }
 
 
 def write_outputs(
@@ -122,9 +267,13 @@ def write_outputs(
     paths: list[Path],
     truth: Path,
     labels: np.ndarray,
+    protocol_results: list[ProtocolResults] | None = None,
+    kinds: dict[str, dict] | None = None,
 ) -> None:
     """roc.png, reliability.png, roc.csv, results.json and results.md in a new folder,
-    atomically."""
+    atomically. ``results`` score every truth point (the union); results.json's
+    ``protocols`` holds every protocol's (:func:`score_protocols`) and ``kinds`` the
+    per-kind summary (:func:`kind_summary`)."""
     n_occupied = int(np.count_nonzero(labels == 1))
     n_free = int(labels.size - n_occupied)
     with atomic_directory(out, force=force) as tmp:
@@ -148,25 +297,15 @@ def write_outputs(
             "unknown_score": 0.5,
             "calibration": {"log_loss_clip": LOG_LOSS_CLIP, "ece_bins": CALIBRATION_BINS,
                             "binning": "equal-width in p", "note": CALIBRATION_NOTE},
-            "maps": [
-                {
-                    "name": r.name,
-                    "path": str(p),
-                    "auc": r.auc,
-                    "fpr_at_tpr97": r.fpr_at_tpr97,
-                    "coverage": r.coverage,
-                    "n_points": r.n_points,
-                    "brier": r.calibration.brier,
-                    "log_loss": r.calibration.log_loss,
-                    "ece": r.calibration.ece,
-                    "reliability": {
-                        "mean_p": r.calibration.bin_mean_p.tolist(),
-                        "fraction_occupied": r.calibration.bin_fraction_occupied.tolist(),
-                        "count": r.calibration.bin_counts.tolist(),
-                    },
-                }
-                for r, p in zip(results, paths, strict=True)
+            "maps": [_map_json(r, p) for r, p in zip(results, paths, strict=True)],
+            "protocols": [
+                {"name": g.name, "n_occupied": g.n_occupied, "n_free": g.n_free,
+                 "maps": [_map_json(r, p) for r, p in zip(g.results, paths, strict=True)]}
+                for g in (protocol_results or [ProtocolResults(ALL, n_occupied, n_free,
+                                                               results)])
             ],
+            "kinds": kinds or {},
         }
-        (tmp / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
-        (tmp / "results.md").write_text(results_markdown(results, truth, n_occupied, n_free))
+        (tmp / RESULTS_FILE).write_text(json.dumps(summary, indent=2) + "\n")
+        (tmp / "results.md").write_text(
+            results_markdown(results, truth, n_occupied, n_free, protocol_results))

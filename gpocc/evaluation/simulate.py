@@ -37,13 +37,16 @@ observed area.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from gpocc.baselines.grid import ray_cells
+from gpocc.constants import NO_DATA
 from gpocc.errors import GpoccError
+from gpocc.evaluation.families import FAMILIES, family_seed
 from gpocc.evaluation.world import World, make_world
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
@@ -101,6 +104,29 @@ PLATFORM_I = Platform("robot1", speed_m_s=0.5, scan_rate_hz=0.5, max_range_m=20.
                       range_variance_m2=1e-6, bearing_variance_deg2=1e-4)
 PLATFORM_II = Platform("robot2", speed_m_s=4.0, scan_rate_hz=4.0, max_range_m=8.0,
                        range_variance_m2=0.8, bearing_variance_deg2=0.5)
+
+
+def platforms_for(world: World) -> tuple[Platform, Platform]:
+    """Table I's platforms; for a family world (:mod:`gpocc.evaluation.families`), the
+    platforms' noise drawn around Table I's from the world's seed: each variance times a
+    log-uniform factor in [1/4, 2] (platform II's range variance 0.2-1.6 m^2), platform
+    II's range 6-10 m and speed 3-5 m/s, so that no result rests on one noise setting."""
+    parsed = family_seed(world.name)
+    if parsed is None:
+        return PLATFORM_I, PLATFORM_II
+    rng = np.random.default_rng([parsed[1], 1 + FAMILIES.index(parsed[0]), 2])
+
+    def factor() -> float:
+        return float(np.exp(rng.uniform(math.log(0.25), math.log(2.0))))
+
+    first = dataclasses.replace(
+        PLATFORM_I, range_variance_m2=PLATFORM_I.range_variance_m2 * factor(),
+        bearing_variance_deg2=PLATFORM_I.bearing_variance_deg2 * factor())
+    second = dataclasses.replace(
+        PLATFORM_II, range_variance_m2=PLATFORM_II.range_variance_m2 * factor(),
+        bearing_variance_deg2=PLATFORM_II.bearing_variance_deg2 * factor(),
+        max_range_m=float(rng.uniform(6.0, 10.0)), speed_m_s=float(rng.uniform(3.0, 5.0)))
+    return first, second
 
 
 @dataclass(frozen=True)
@@ -309,7 +335,7 @@ def region_truth(labels: np.ndarray, spec: GridSpec, quiet: tuple[RobotRun, ...]
         visited, hit = observed_cells(spec, run)
         seen |= visited | hit
     out = labels.copy()
-    out[seen] = 255
+    out[seen] = NO_DATA
     return out
 
 
@@ -327,14 +353,16 @@ def simulate(
     world: str | World = "default",
     seed: int = 0,
     pose_noise: PoseNoise | None = None,
-    platforms: tuple[Platform, ...] = (PLATFORM_I, PLATFORM_II),
+    platforms: tuple[Platform, ...] | None = None,
 ) -> Simulation:
-    """Run every platform on its route of ``world`` (platform i on ``world.routes[i]``).
+    """Run every platform on its route of ``world`` (platform i on ``world.routes[i]``;
+    default: :func:`platforms_for` the world).
 
     Deterministic for a given ``seed``: one ``numpy.random.default_rng(seed)`` is used
     for the platforms in order.
     """
     w = make_world(world) if isinstance(world, str) else world
+    platforms = platforms or platforms_for(w)
     if len(platforms) > len(w.routes):
         raise GpoccError(f"world '{w.name}' has {len(w.routes)} routes for "
                          f"{len(platforms)} platforms")
@@ -409,7 +437,7 @@ def truth_raster(
         visited |= v
         hit |= h
     occupied = hit | (outline_cells(spec, world) & visited)
-    labels = np.full(spec.shape, 255, dtype=np.uint8)
+    labels = np.full(spec.shape, NO_DATA, dtype=np.uint8)
     labels[visited] = 0
     labels[occupied] = 1
     return labels, spec

@@ -4,9 +4,12 @@ Of each sensor's scans, the ones whose index ``i`` (0-based, in recorded order) 
 ``i % every == every - 1`` are held out (so the first scan always trains, and ``every``
 scans hold out ``n // every`` of ``n``). The remaining scans, optionally thinned (every
 ``keep_every``-th scan, every ``beam_every``-th beam: the sparse regime), are the
-training set. The held-out scans become labelled points: each valid hit is an occupied
-point at its endpoint, and each beam adds ``free_per_beam`` free points at uniformly
-random distances along the beam, short of the hit.
+training set. The held-out scans become labelled points of three kinds
+(:func:`gpocc.samples.heldout.protocol_points`): each valid hit is an occupied point at
+its endpoint (``hit``), each beam adds ``free_per_beam`` free points at uniformly random
+distances along the beam, short of the hit (``free``), and each hit adds
+``near_wall_per_beam`` free points uniform in the band 0.05-0.3 m in front of it
+(``near-wall``).
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 from gpocc.samples import beam
-from gpocc.samples.heldout import heldout_mask, labelled_points, subset_batch
+from gpocc.samples.heldout import heldout_mask, protocol_points, subset_batch
+from gpocc.samples.heldout import labelled_points as labelled_points  # re-exported
 
 
 @dataclass(frozen=True)
@@ -33,12 +37,14 @@ class SplitResult:
         points: (N, 2) metres, labelled points from the held-out scans.
         labels: (N,) int8, 1 occupied, 0 free.
         n_heldout: number of held-out scans.
+        kinds: (N,) str, each point's kind (``hit``, ``free`` or ``near-wall``).
     """
 
     train: ScanBatch
     points: np.ndarray
     labels: np.ndarray
     n_heldout: int
+    kinds: np.ndarray
 
 
 def with_pose_covariances(batch: ScanBatch, sensor: SensorConfig) -> ScanBatch:
@@ -61,6 +67,7 @@ def split_batch(
     keep_every: int = 1,
     beam_every: int = 1,
     free_per_beam: int = 3,
+    near_wall_per_beam: int = 1,
     rng: np.random.Generator,
 ) -> SplitResult:
     """Split one sensor's scans into training scans and held-out labelled points.
@@ -71,15 +78,18 @@ def split_batch(
     if keep_every < 1 or beam_every < 1:
         raise GpoccError(f"the training scan and beam steps must be at least 1, got "
                          f"{keep_every} and {beam_every}")
-    if free_per_beam < 0:
-        raise GpoccError(f"the free points per beam must not be negative, got {free_per_beam}")
+    if free_per_beam < 0 or near_wall_per_beam < 0:
+        raise GpoccError(f"the free and near-wall points per beam must not be negative, got "
+                         f"{free_per_beam} and {near_wall_per_beam}")
     held = heldout_mask(batch.n_scans, every)
     train_idx = np.flatnonzero(~held)[::keep_every]
     train = with_pose_covariances(subset_batch(batch, train_idx, beam_every), sensor)
-    points, labels = labelled_points(
-        subset_batch(batch, np.flatnonzero(held)), sensor, free_per_beam, rng
+    points, labels, kinds = protocol_points(
+        subset_batch(batch, np.flatnonzero(held)), sensor, free_per_beam, near_wall_per_beam,
+        rng,
     )
-    return SplitResult(train=train, points=points, labels=labels, n_heldout=int(held.sum()))
+    return SplitResult(train=train, points=points, labels=labels, n_heldout=int(held.sum()),
+                       kinds=kinds)
 
 
 def topic_prefix(sensor_name: str) -> str:

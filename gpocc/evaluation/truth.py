@@ -12,7 +12,9 @@ Three kinds of file are accepted:
   columns ignored), or whitespace-separated text with the columns ``x y label`` (an
   optional ``x y label`` header line); ``#`` starts a comment. Every row holds one value
   for each column. Labels are 1 (occupied)
-  and 0 or -1 (free).
+  and 0 or -1 (free). A header may also name a ``kind`` column (``gpocc split`` writes
+  ``hit``, ``free`` and ``near-wall``): :func:`load_truth_kinds` returns it, so that
+  ``gpocc evaluate`` scores each kind of free point with the occupied points.
 """
 
 from __future__ import annotations
@@ -49,28 +51,36 @@ def load_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     Raises:
         GpoccError: the file is missing, of another kind, malformed, or labels nothing.
     """
+    points, labels, _ = load_truth_kinds(path)
+    return points, labels
+
+
+def load_truth_kinds(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`load_truth` plus each point's kind: (N,) str from a point file's ``kind``
+    column, None for rasters, map_server maps and point files without one."""
     p = Path(path)
     if not p.exists():
         raise GpoccError(f"{p}: ground-truth file not found; check the path")
     if p.is_dir():
         raise GpoccError(f"{p}: is a folder, not a ground-truth file; {ACCEPTED}")
     suffix = p.suffix.lower()
+    kinds = None
     if suffix in _RASTER_SUFFIXES:
         points, labels = _truth_from_raster(p)
     elif suffix in _YAML_SUFFIXES:
         points, labels = _truth_from_map_server(p)
     elif suffix in _POINT_SUFFIXES:
-        points, labels = _truth_from_points(p)
+        points, labels, kinds = _truth_from_points(p)
     else:
         with p.open("rb") as fh:
             head = fh.read(4)
         if head in _TIFF_MAGIC:
             points, labels = _truth_from_raster(p)
         else:
-            points, labels = _truth_from_points(p)
+            points, labels, kinds = _truth_from_points(p)
     if labels.size == 0:
         raise GpoccError(f"{p}: the ground truth labels no points (all unknown); {ACCEPTED}")
-    return points, labels
+    return points, labels, kinds
 
 
 def labelled_cell_centres(
@@ -113,7 +123,7 @@ def _truth_from_map_server(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return labelled_cell_centres(classes, spec, 2, str(path))
 
 
-def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -130,6 +140,7 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     tokens = [(n, split(line)) for n, line in rows]
     columns = (0, 1, 2)
     width, where = 3, "x y label"
+    kind_column = None
     first_line, first = tokens[0]
     if not is_number(first[0]):
         names = [t.lower() for t in first]
@@ -140,6 +151,7 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
                 f"(missing {', '.join(missing)}); {ACCEPTED}"
             )
         columns = (names.index("x"), names.index("y"), names.index("label"))
+        kind_column = names.index("kind") if "kind" in names else None
         width, where = len(names), f"the header (line {first_line})"
         tokens = tokens[1:]
     elif comma:
@@ -174,4 +186,6 @@ def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
             f"{path}: line {lineno}: x and y must be finite and the label 1 (occupied) or "
             f"0 / -1 (free), got {' '.join(row[c] for c in columns)!r}"
         )
-    return table[:, :2].copy(), (raw_labels == 1).astype(np.int8)
+    kinds = (None if kind_column is None
+             else np.array([row[kind_column] for _, row in tokens], dtype=str))
+    return table[:, :2].copy(), (raw_labels == 1).astype(np.int8), kinds

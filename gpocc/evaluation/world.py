@@ -14,6 +14,8 @@ explorer's and a fast traverser's (see :mod:`gpocc.evaluation.simulate`). Named 
   widths and depths on both sides, doors, boxes and pillars, optionally turned
   north-south and mirrored. The explorer visits the rooms of the west (or south) part,
   the traverser runs the whole corridor and visits the others.
+* ``offices-<seed>``, ``hall-<seed>``, ``clutter-<seed>``: the families of a second,
+  different generator with planned routes (:mod:`gpocc.evaluation.families`).
 
 Coordinates are metres in the map frame, x east, y north.
 """
@@ -414,19 +416,28 @@ WORLD_NAMES: tuple[str, ...] = tuple(_WORLDS)
 
 
 def is_world_name(name: str) -> bool:
-    """True for a named world or ``grown-<non-negative integer>``."""
-    if name in _WORLDS:
+    """True for a named world, ``grown-<non-negative integer>`` or a family world
+    (``offices-<seed>``, ``hall-<seed>``, ``clutter-<seed>``)."""
+    from gpocc.evaluation.families import family_seed
+
+    if name in _WORLDS or family_seed(name) is not None:
         return True
     tail = name[len(_GROWN):] if name.startswith(_GROWN) else ""
     return tail.isdigit()
 
 
 def make_world(name: str = "default") -> World:
-    """The named world, or ``grown-<seed>`` (see the module docstring)."""
+    """The named world, ``grown-<seed>`` or a family world (see the module docstring)."""
+    # Imported here: families builds its worlds from this module's pieces.
+    from gpocc.evaluation.families import family_seed, family_world
+
     if name in _WORLDS:
         return _WORLDS[name]()
+    if family_seed(name) is not None:
+        return family_world(name)
     if is_world_name(name):
         return grow_world(int(name[len(_GROWN):]))
     raise GpoccError(
-        f"unknown world {name!r}; choose one of: {', '.join(WORLD_NAMES)}, or grown-<seed>"
+        f"unknown world {name!r}; choose one of: {', '.join(WORLD_NAMES)}, grown-<seed>, "
+        f"offices-<seed>, hall-<seed> or clutter-<seed>"
     )

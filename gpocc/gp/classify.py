@@ -39,11 +39,15 @@ score there; docs/results.md).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
+from gpocc.constants import FREE, NO_DATA, OCCUPIED, UNSURE
 from gpocc.gp.expected import expected_kernel_cross
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import (
@@ -57,10 +61,12 @@ from gpocc.gp.local import (
 from gpocc.samples.heldout import CalibrationPoints
 from gpocc.samples.sampleset import SampleSet, has_both_labels
 
+#: ``map(fn, items)``: the results of ``fn`` over ``items``, in order.
+MapFunction = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
+
 #: Ways to hold labels out when fitting the classifier (see the module docstring).
 HOLDOUTS = ("scan", "sample")
 
-OCCUPIED, FREE, UNSURE, NO_DATA = 1, 0, 2, 255
 
 
 #: Most held-out points predicted per block for the beam offset (Freiburg's busiest blocks hold
@@ -123,7 +129,8 @@ def _negative_log_probability(params: np.ndarray, mean: np.ndarray, variance: np
 
 
 def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProblem,
-                       level: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       level: int, backend: str = "auto",
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Latent predictions at each sample of ``patch`` from the patch's other scans.
 
     Sample ``i`` of scan ``s`` is treated as a query at its mean (exact, like a map
@@ -138,10 +145,11 @@ def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProble
     """
     s = patch.samples
     m = len(s)
-    chol = factor_training_covariance(kernel, noise_variance, s, level)
+    chol = factor_training_covariance(kernel, noise_variance, s, level, backend)
     inverse = cholesky_solve(chol, np.eye(m))
     alpha = inverse @ s.labels
-    cross = expected_kernel_cross(kernel, s.means, s.means, s.covariances, level)
+    cross = expected_kernel_cross(kernel, s.means, s.means, s.covariances, level,
+                                  backend=backend)
     prior = kernel.diag(s.means)
     mean, variance = np.zeros(m), np.zeros(m)
     mask = np.zeros(m, dtype=bool)
@@ -162,24 +170,34 @@ def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProble
     return mean, variance, mask
 
 
+def patch_holdout_predictions(kernel: Kernel, noise_variance: float, patch: LocalProblem,
+                              level: int, holdout: str = "sample", backend: str = "auto",
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Held-out latent means, variances and labels of one patch's samples (``holdout``:
+    scan or sample; with ``scan``, only the samples another scan of the patch can
+    predict)."""
+    if holdout == "scan":
+        mu, var, mask = leave_one_scan_out(kernel, noise_variance, patch, level, backend)
+        return mu[mask], var[mask], patch.samples.labels[mask]
+    chol = factor_training_covariance(kernel, noise_variance, patch.samples, level, backend)
+    mu, var = leave_one_out(chol, patch.samples.labels)
+    return mu, var, patch.samples.labels
+
+
 def holdout_predictions(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
-                        level: int, holdout: str = "sample",
+                        level: int, holdout: str = "sample", backend: str = "auto",
+                        map_fn: MapFunction = map,
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Held-out latent means, variances and labels (concatenated over ``patches``)."""
+    """Held-out latent means, variances and labels (concatenated over ``patches``);
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`), as everywhere here.
+
+    ``map_fn(fn, items)``: how the patches are computed, in order (the built-in ``map``
+    here; :func:`gpocc.parallel.cluster_map` on a Dask cluster)."""
     if holdout not in HOLDOUTS:
         raise ValueError(f"holdout must be one of {HOLDOUTS}, got {holdout!r}")
-    means, variances, labels = [], [], []
-    for patch in patches:
-        if holdout == "scan":
-            mu, var, mask = leave_one_scan_out(kernel, noise_variance, patch, level)
-            mu, var, y = mu[mask], var[mask], patch.samples.labels[mask]
-        else:
-            chol = factor_training_covariance(kernel, noise_variance, patch.samples, level)
-            mu, var = leave_one_out(chol, patch.samples.labels)
-            y = patch.samples.labels
-        means.append(mu)
-        variances.append(var)
-        labels.append(y)
+    one = functools.partial(patch_holdout_predictions, kernel, noise_variance,
+                            level=level, holdout=holdout, backend=backend)
+    means, variances, labels = zip(*map_fn(one, patches), strict=True)
     return np.concatenate(means), np.concatenate(variances), np.concatenate(labels)
 
 
@@ -203,14 +221,15 @@ def fit_platt(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray) -> Pla
 def beam_holdout_predictions(
     kernel: Kernel, noise_variance: float, samples: SampleSet, calibration: CalibrationPoints,
     level: int, neighbours: int, block_size_m: float, max_blocks: int,
-    rng: np.random.Generator,
+    rng: np.random.Generator, backend: str = "auto", map_fn: MapFunction = map,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Latent predictions at held-out beam points from the samples of the other scans.
 
     The points are grouped into square blocks of ``block_size_m``; up to ``max_blocks``
     blocks (chosen with ``rng``) are predicted, each from the ``neighbours`` samples
     nearest its centre among those whose scan is not held out, like a map block, at up
-    to :data:`POINTS_PER_BLOCK` of its points.
+    to :data:`POINTS_PER_BLOCK` of its points. ``map_fn``: as in
+    :func:`holdout_predictions`, over the blocks.
 
     Returns:
         ``(mean, variance, labels)``, each (M,), M <= len(calibration.points).
@@ -225,17 +244,25 @@ def beam_holdout_predictions(
     chosen = np.sort(rng.permutation(len(blocks))[:max_blocks])
     order = np.argsort(member, kind="stable")
     bounds = np.searchsorted(member[order], np.arange(len(blocks) + 1))
-    means, variances, labels = [], [], []
+    problems, points, labels = [], [], []
     for b in chosen:
         rows = order[bounds[b]:bounds[b + 1]]
         if rows.size > POINTS_PER_BLOCK:  # a block many scans crossed: a random share
             rows = np.sort(rng.choice(rows, POINTS_PER_BLOCK, replace=False))
-        problem = index.problem((blocks[b] + 0.5) * block_size_m, neighbours)
-        pred = predict_local(kernel, noise_variance, problem, calibration.points[rows], level)
-        means.append(pred.mean)
-        variances.append(pred.variance)
+        problems.append(index.problem((blocks[b] + 0.5) * block_size_m, neighbours))
+        points.append(calibration.points[rows])
         labels.append(calibration.labels[rows])
+    one = functools.partial(_predict_block, kernel, noise_variance, level=level,
+                            backend=backend)
+    means, variances = zip(*map_fn(one, zip(problems, points, strict=True)), strict=True)
     return np.concatenate(means), np.concatenate(variances), np.concatenate(labels)
+
+
+def _predict_block(kernel: Kernel, noise_variance: float,
+                   block: tuple[LocalProblem, np.ndarray], level: int, backend: str,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    pred = predict_local(kernel, noise_variance, block[0], block[1], level, backend)
+    return pred.mean, pred.variance
 
 
 def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
@@ -251,9 +278,12 @@ def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
 
 
 def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
-                   level: int, holdout: str = "sample") -> PlattClassifier:
-    """Fit the classifier on held-out predictions over ``patches`` (``holdout``: scan or sample)."""
-    mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout)
+                   level: int, holdout: str = "sample", backend: str = "auto",
+                   map_fn: MapFunction = map) -> PlattClassifier:
+    """Fit the classifier on held-out predictions over ``patches`` (``holdout``: scan or
+    sample; ``backend`` and ``map_fn`` as in :func:`holdout_predictions`)."""
+    mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout, backend,
+                                     map_fn)
     return fit_platt(mu, var, y)
 
 

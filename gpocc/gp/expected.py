@@ -10,15 +10,13 @@ uses
 * ``Kx[q, i] = E[k(x*_q, x_i)]`` for exact queries.
 
 Nodes never depend on the hyperparameters, so gradients are the same quadrature applied to
-``kernel.gradient``. The node matrix is evaluated by row groups over its upper triangle
-only (the expected matrix is symmetric): a handful of vectorised kernel calls instead of one,
-for a little over half of the kernel evaluations (arcsin for the NN kernel, the cost that
-dominates) and blocks that stay in cache. Points whose covariance is zero get one node.
+``kernel.gradient``. Points whose covariance is zero get one node.
 
-For the NN kernel the same sums run in compiled loops (:mod:`gpocc.compiled`: arcsin,
-quadrature reduction and the 4 x 4 roots of same-scan pairs fused, no node-pair
-temporaries); the numpy code here is their reference (``USE_FUSED = False``) and serves the
-SE kernel. Node sets are cached for repeated calls on the same inputs (training).
+This module builds the node sets and assembles the matrices; the sums run in a backend
+(:mod:`gpocc.gp.backends`, chosen by ``model.backend`` and passed as ``backend=``): the
+numpy quadrature for any kernel (the reference), or compiled loops for the kernels they
+serve (the NN kernel). Node sets are cached for repeated calls on the same inputs
+(training).
 
 :func:`expected_se_closed_form` is Girard's closed form for the squared exponential, used as
 an independent check of the quadrature.
@@ -36,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.polynomial.hermite_e import hermegauss
 
-from gpocc import compiled as _fused_module  # the NN kernel's loops; numpy: the reference
-from gpocc.gp.kernels import Kernel, NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.gp import backends
+from gpocc.gp.kernels import Kernel, SquaredExponentialKernel
 
 #: Smallest share of a point's covariance trace due to the shared pose error for its
 #: same-scan pairs to get the correlated 4-D rule.
@@ -51,17 +49,6 @@ ZERO_VARIANCE_M2 = 1e-24
 # level 3, single-threaded), and the node-pair chunk (float64 per temporary).
 _BLOCK_NODES = 192
 _PAIR_CHUNK = 1 << 19
-
-#: Use the compiled loops of :mod:`gpocc.compiled` for the NN kernel. Tests switch it off to
-#: compare against the numpy path.
-USE_FUSED = True
-
-
-def _fused(kernel: Kernel):
-    """The fused-loop module when it applies to ``kernel`` (the NN kernel), else None."""
-    if USE_FUSED and isinstance(kernel, NeuralNetworkKernel):
-        return _fused_module
-    return None
 
 
 # --------------------------------------------------------------------------- quadrature rules
@@ -231,7 +218,8 @@ class _Expansion:
         return self.starts.shape[0] - 1
 
 
-def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansion:
+def _expand(means: np.ndarray, covariances: np.ndarray, level: int,
+            backend: str | backends.Backend = "auto") -> _Expansion:
     n = means.shape[0]
     zero = np.abs(covariances).reshape(n, 4).max(axis=1) <= ZERO_VARIANCE_M2
     unit, w = gauss_hermite(level, 2)
@@ -239,9 +227,9 @@ def _expand(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansio
         return _Expansion(means.copy(), np.ones(n), np.arange(n + 1, dtype=np.intp), 1)
     if not zero.any():
         starts = np.arange(n + 1, dtype=np.intp) * w.shape[0]
-        if USE_FUSED:
-            # (M, 2) with contiguous columns: what the kernels read fastest.
-            flat = _fused_module.gaussian_nodes_2d(means, covariances, unit).T
+        built = backends.get(backend).nodes_2d(means, covariances, level)
+        if built is not None:
+            flat, w = built
         else:
             nodes, w = gaussian_nodes(means, covariances, level)
             flat = np.transpose(nodes, (2, 0, 1)).reshape(2, -1).T
@@ -320,13 +308,14 @@ _NODE_CACHE_ENTRIES = 48
 _NODE_CACHE_LOCK = threading.Lock()
 
 
-def _cached_expansion(means: np.ndarray, covariances: np.ndarray, level: int) -> _Expansion:
+def _cached_expansion(means: np.ndarray, covariances: np.ndarray, level: int,
+                      backend: backends.Backend) -> _Expansion:
     """:func:`_expand` through the node-set cache."""
     digest = hashlib.blake2b(digest_size=20)
-    # The compiled and the numpy path build the nodes apart (equal to round-off): the
-    # tests that compare the two paths must not be served the other path's nodes.
-    compiled = bool(USE_FUSED)
-    for a in (means, covariances, np.array([level, compiled])):
+    # Backends build the nodes apart (equal to round-off): a comparison of two backends
+    # must not be served the other one's nodes.
+    digest.update(backend.name.encode())
+    for a in (means, covariances, np.array([level])):
         a = np.ascontiguousarray(a)
         digest.update(str((a.dtype.str, a.shape)).encode())
         digest.update(a.data)
@@ -336,7 +325,7 @@ def _cached_expansion(means: np.ndarray, covariances: np.ndarray, level: int) ->
         if hit is not None:
             _NODE_CACHE.move_to_end(key)
             return hit
-    value = _expand(means, covariances, level)
+    value = _expand(means, covariances, level, backend)
     for a in vars(value).values():
         if isinstance(a, np.ndarray):
             a.setflags(write=False)  # shared between calls: nobody may change it
@@ -364,7 +353,7 @@ def _check_inputs(means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarra
 def _check_scan_inputs(n: int, scan_ids: np.ndarray, pose_factors: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """``scan_ids`` (n,) as an array and ``pose_factors`` (n, 2, 3) as float64, or a
-    ValueError naming their shapes."""
+    ValueError naming their shapes or non-finite pose factors."""
     scan_ids = np.asarray(scan_ids)
     pose_factors = np.asarray(pose_factors, dtype=np.float64)
     if scan_ids.shape != (n,) or pose_factors.shape != (n, 2, 3):
@@ -372,11 +361,24 @@ def _check_scan_inputs(n: int, scan_ids: np.ndarray, pose_factors: np.ndarray
             f"scan_ids must have shape ({n},) and pose_factors ({n}, 2, 3), got "
             f"{scan_ids.shape} and {pose_factors.shape}"
         )
+    if not np.isfinite(pose_factors).all():
+        raise ValueError("pose_factors must be finite (found NaN or inf)")
     return scan_ids, pose_factors
 
 
+def _check_queries(queries: np.ndarray) -> np.ndarray:
+    """``queries`` (Q, 2) as finite float64, or a ValueError."""
+    queries = np.asarray(queries, dtype=np.float64)
+    if queries.ndim != 2 or queries.shape[1] != 2:
+        raise ValueError(f"queries must have shape (Q, 2), got {queries.shape}")
+    if not np.isfinite(queries).all():
+        raise ValueError("queries must be finite (found NaN or inf)")
+    return queries
+
+
 def same_scan_pairs(
-    covariances: np.ndarray, scan_ids: np.ndarray | None, pose_factors: np.ndarray | None
+    covariances: np.ndarray, scan_ids: np.ndarray | None, pose_factors: np.ndarray | None,
+    backend: str | backends.Backend = "auto",
 ) -> tuple[np.ndarray, np.ndarray]:
     """(i, j) with i < j, same scan and both with nonzero pose factors and covariances."""
     n = covariances.shape[0]
@@ -386,10 +388,9 @@ def same_scan_pairs(
     # A pair is treated as correlated only when the shared pose error is a noticeable
     # part (POSE_SHARE_MIN) of both points' covariances: below that the cross-covariance
     # is negligible and the product rule is both cheaper and exactly positive definite.
-    if USE_FUSED and scan_ids.dtype.kind in "iu":
-        # gpocc.compiled converts layout, dtype and byte order for the C loop.
-        return _fused_module.correlated_pairs(covariances, scan_ids, pose_factors,
-                                              POSE_SHARE_MIN, ZERO_VARIANCE_M2)
+    listed = backends.get(backend).same_scan_pairs(covariances, scan_ids, pose_factors)
+    if listed is not None:
+        return listed
     pose_part = np.einsum("nij,nij->n", pose_factors, pose_factors)
     trace = covariances[:, 0, 0] + covariances[:, 1, 1]
     live = pose_part > POSE_SHARE_MIN * trace
@@ -400,59 +401,6 @@ def same_scan_pairs(
     return np.nonzero(np.triu(mask, 1))
 
 
-def _correlated_values(
-    kernel: Kernel,
-    means: np.ndarray,
-    covariances: np.ndarray,
-    pose_factors: np.ndarray,
-    i: np.ndarray,
-    j: np.ndarray,
-    level: int,
-    with_gradient: bool,
-    input_scale: float = 1.0,
-    with_scale_gradient: bool = False,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """E[k(x_i, x_j)] under the joint 4-D Gaussian of each pair: (Pp,) and (P, Pp).
-
-    ``input_scale``, ``with_scale_gradient`` (compiled path only): the joint covariances
-    times g; the gradients gain d/dlog g."""
-    unit, w = gauss_hermite(level, 4)
-    fused = _fused(kernel)
-    if fused is not None:
-        # Joint covariance, its root, the nodes and the arcsin in one compiled call: no
-        # (pairs x nodes) temporaries and no per-matrix LAPACK call for the 4 x 4 roots.
-        rows = _nparams(kernel) + (1 if with_scale_gradient else 0) if with_gradient else 1
-        out = np.empty((rows, i.shape[0]))
-        fused.nn_same_scan_pairs(
-            means, covariances, pose_factors, i, j, unit, w, kernel.root_two_s,
-            kernel.arcsin_scale, float(input_scale), out, with_gradient, with_scale_gradient)
-        return out[0].copy(), (out if with_gradient else None)
-    values = np.empty(i.shape[0])
-    grads = np.empty((_nparams(kernel), i.shape[0])) if with_gradient else None
-    step = max(1, _PAIR_CHUNK // w.shape[0])
-    for lo in range(0, i.shape[0], step):
-        ii, jj = i[lo : lo + step], j[lo : lo + step]
-        cross = np.einsum("pik,pjk->pij", pose_factors[ii], pose_factors[jj])
-        joint = np.empty((ii.shape[0], 4, 4))
-        joint[:, :2, :2] = covariances[ii]
-        joint[:, 2:, 2:] = covariances[jj]
-        joint[:, :2, 2:] = cross
-        joint[:, 2:, :2] = np.swapaxes(cross, 1, 2)
-        # One GEMM for all pairs, coordinate-major so each coordinate is contiguous.
-        nodes = np.tensordot(cholesky_psd(joint), unit, axes=([2], [1]))  # (p, 4, L^4)
-        nodes[:, :2] += means[ii, :, None]
-        nodes[:, 2:] += means[jj, :, None]
-        flat = np.swapaxes(nodes, 0, 1).reshape(4, -1)
-        a, b = flat[:2].T, flat[2:].T
-        if grads is None:
-            values[lo : lo + step] = kernel.pairwise(a, b).reshape(-1, w.shape[0]) @ w
-        else:
-            g = kernel.pairwise_gradient(a, b)
-            grads[:, lo : lo + step] = g.reshape(g.shape[0], -1, w.shape[0]) @ w
-            values[lo : lo + step] = grads[0, lo : lo + step]  # d/dlog(signal) = k
-    return values, grads
-
-
 def expected_kernel_diag(
     kernel: Kernel,
     means: np.ndarray,
@@ -460,6 +408,7 @@ def expected_kernel_diag(
     level: int,
     *,
     with_gradient: bool = False,
+    backend: str | backends.Backend = "auto",
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """E[k(x_i, x_i)] for ONE random point x_i ~ N(means[i], covariances[i]).
 
@@ -467,7 +416,7 @@ def expected_kernel_diag(
         (N,), or ((N,), (P, N)) with the gradient w.r.t. ``kernel.theta``.
     """
     means, covariances = _check_inputs(means, covariances)
-    return _diag(kernel, _expand(means, covariances, level), with_gradient)
+    return _diag(kernel, _expand(means, covariances, level, backend), with_gradient)
 
 
 def _diag(
@@ -479,35 +428,9 @@ def _diag(
     return values, _reduce_last(kernel.pairwise_gradient(ex.nodes, ex.nodes), ex)
 
 
-def supports_scale_gradient(kernel: Kernel) -> bool:
+def supports_scale_gradient(kernel: Kernel, backend: str | backends.Backend = "auto") -> bool:
     """Whether :func:`expected_kernel_matrix` gives dK/dlog g for ``kernel``."""
-    return _fused(kernel) is not None
-
-
-def _scaled_offsets(kernel: Kernel, u: np.ndarray, ex: _Expansion,
-                    means: np.ndarray) -> np.ndarray:
-    """(2, M) each node's offset from its point's mean in scaled coordinates,
-    ``root_c (x_c - m_c) / n``, from its scaled row u (3, M) (``u_0 = root_0 / n``)."""
-    root = kernel.root_two_s
-    centres = np.repeat(means, np.diff(ex.starts), axis=0)  # (M, 2)
-    inv = u[0] / root[0]
-    return np.ascontiguousarray(u[1:] - root[1:, None] * centres.T * inv)
-
-
-def _diag_scale_gradient(kernel: Kernel, u: np.ndarray, offsets: np.ndarray,
-                         ex: _Expansion) -> np.ndarray:
-    """(N,) dE[k(x_i, x_i)]/dlog g: the pair derivative with both nodes the same point,
-    ``k'(z) (1 - z) a . da`` with z = |a|^2."""
-    z = np.einsum("ij,ij->j", u, u)
-    slope = kernel.arcsin_scale / np.sqrt(1.0 - np.minimum(z, 1.0) ** 2)
-    per_node = slope * (1.0 - z) * np.einsum("ij,ij->j", u[1:], offsets)
-    return _reduce_last(per_node, ex)
-
-
-def _node_major(u: np.ndarray, size: int) -> np.ndarray:
-    """(3, N L) point-major scaled rows (node k of point i in column i L + k) reordered
-    node-major (column k N + i), the layout of the compiled uniform loops."""
-    return np.ascontiguousarray(u.reshape(3, -1, size).transpose(0, 2, 1).reshape(3, -1))
+    return backends.get(backend).loops(kernel).scale_gradient
 
 
 def expected_kernel_matrix(
@@ -521,6 +444,7 @@ def expected_kernel_matrix(
     with_gradient: bool = False,
     input_scale: float = 1.0,
     with_scale_gradient: bool = False,
+    backend: str | backends.Backend = "auto",
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Expected training covariance ``K[i, j] = E[k(x_i, x_j)]``, x_i ~ N(u_i, S_i).
 
@@ -543,59 +467,32 @@ def expected_kernel_matrix(
         with_scale_gradient: with ``with_gradient``, dK gains a last entry, dK/dlog g
             (every node moves away from its mean as sqrt(g)); compiled NN path only, see
             :func:`supports_scale_gradient`.
+        backend: ``model.backend``'s name or a backend (:mod:`gpocc.gp.backends`).
 
     Returns:
         K (N, N) symmetric, or (K, dK) with dK (P, N, N), P = len(kernel.theta) (+ 1).
     """
     means, covariances = _check_inputs(means, covariances)
-    fused = _fused(kernel)
-    if with_scale_gradient and (fused is None or not with_gradient):
+    backend = backends.get(backend)
+    loops = backend.loops(kernel)
+    if with_scale_gradient and (not loops.scale_gradient or not with_gradient):
         raise ValueError("dK/dlog g needs with_gradient and the compiled NN kernel")
-    if input_scale != 1.0 and fused is None:  # the reference path scales its inputs
+    if input_scale != 1.0 and not loops.scale_gradient:  # scaled inputs instead
         covariances = covariances * input_scale
         if pose_factors is not None:
             pose_factors = np.asarray(pose_factors, dtype=np.float64) * math.sqrt(input_scale)
         input_scale = 1.0
-    ex = _cached_expansion(means, covariances, level)
+    ex = _cached_expansion(means, covariances, level, backend)
     ex = _scaled_expansion(ex, means, input_scale)
     n = ex.size
     nparams = _nparams(kernel) + (1 if with_scale_gradient else 0)
     k = np.empty((n, n))
     dk = np.empty((nparams, n, n)) if with_gradient else None
-    if fused is not None:
-        # Off-diagonal entries straight from the scaled nodes, no node-pair temporaries.
-        u = kernel.scaled_columns(ex.nodes)
-        offsets = _scaled_offsets(kernel, u, ex, means) if with_scale_gradient else u[1:]
-        if dk is None and ex.uniform:
-            fused.nn_matrix_uniform(_node_major(u, ex.uniform), ex.weights[: ex.uniform],
-                                    kernel.arcsin_scale, k)
-        elif dk is None:
-            fused.nn_matrix(u, ex.weights, ex.starts, kernel.arcsin_scale, k)
-        else:
-            fused.nn_matrix_gradient(u, ex.weights, ex.starts, kernel.arcsin_scale, dk,
-                                     offsets, with_scale_gradient)
-            k[...] = dk[0]
-    # Upper triangle only. Values: one call per row group against every later point (fewest
-    # calls); gradients hold P values per entry, so square blocks that stay in cache.
-    groups = [] if fused is not None else _groups(ex)
-    for gi, (r0, r1) in enumerate(groups):
-        rows = ex.rows(r0, r1)
-        for c0, c1 in groups[gi:] if with_gradient else [(r0, n)]:
-            cols = ex.rows(c0, c1)
-            if dk is None:
-                block = _reduce_block(kernel(rows.nodes, cols.nodes), rows, cols)
-            else:
-                # theta[0] is log(signal_variance), so the first derivative is k itself.
-                gblock = _reduce_block(kernel.gradient(rows.nodes, cols.nodes), rows, cols)
-                dk[:, r0:r1, c0:c1] = gblock
-                dk[:, c0:c1, r0:r1] = np.swapaxes(gblock, 1, 2)
-                block = gblock[0]
-            k[r0:r1, c0:c1] = block
-            k[c0:c1, r0:r1] = block.T
+    diag_scale_gradient = loops.matrix(kernel, ex, means, k, dk, with_scale_gradient)
 
-    i, j = same_scan_pairs(covariances, scan_ids, pose_factors)
+    i, j = same_scan_pairs(covariances, scan_ids, pose_factors, backend)
     if i.shape[0] and level > 1:  # a 1-node rule puts both points at their means anyway
-        values, grads = _correlated_values(
+        values, grads = loops.same_scan(
             kernel, means, covariances, np.asarray(pose_factors, dtype=np.float64),
             i, j, level, with_gradient, input_scale, with_scale_gradient,
         )
@@ -606,11 +503,11 @@ def expected_kernel_matrix(
             dk[:, j, i] = grads
 
     diag = np.arange(n)
-    # The compiled loops and the pair scatter write both triangles with one value, so
-    # their matrices are symmetric as they stand; the numpy path's diagonal blocks come
-    # from products that need not be (averaging the transposed gradients took a tenth
-    # of a training evaluation).
-    symmetrise = fused is None
+    # Loops that write both triangles with one value (as the pair scatter does) leave
+    # the matrices symmetric as they stand; the numpy path's diagonal blocks come from
+    # products that need not be (averaging the transposed gradients took a tenth of a
+    # training evaluation).
+    symmetrise = not loops.symmetric
     if dk is None:
         k[diag, diag] = _diag(kernel, ex, False)
         if symmetrise:
@@ -619,7 +516,7 @@ def expected_kernel_matrix(
         return k
     dvalues, dgrads = _diag(kernel, ex, True)
     if with_scale_gradient:
-        dgrads = np.vstack([dgrads, _diag_scale_gradient(kernel, u, offsets, ex)])
+        dgrads = np.vstack([dgrads, diag_scale_gradient])
     k[diag, diag] = dvalues
     dk[:, diag, diag] = dgrads
     if symmetrise:
@@ -638,6 +535,7 @@ def expected_kernel_cross(
     level: int,
     *,
     with_gradient: bool = False,
+    backend: str | backends.Backend = "auto",
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """``Kx[q, i] = E[k(x*_q, x_i)]`` for exact queries and x_i ~ N(u_i, S_i).
 
@@ -650,31 +548,11 @@ def expected_kernel_cross(
         (Q, N), or ((Q, N), (P, Q, N)) with the gradient w.r.t. ``kernel.theta``.
     """
     means, covariances = _check_inputs(means, covariances)
-    queries = np.asarray(queries, dtype=np.float64)
-    if queries.ndim != 2 or queries.shape[1] != 2:
-        raise ValueError(f"queries must have shape (Q, 2), got {queries.shape}")
+    queries = _check_queries(queries)
     # The training matrix of the same problem has just expanded these points.
-    ex = _cached_expansion(means, covariances, level)
-    q = queries.shape[0]
-    out = np.empty((q, ex.size))
-    dout = np.empty((_nparams(kernel), q, ex.size)) if with_gradient else None
-    fused = _fused(kernel)
-    if fused is not None and dout is None:
-        u = kernel.scaled_columns(ex.nodes)
-        if ex.uniform:
-            fused.nn_cross_uniform(kernel.scaled_columns(queries), _node_major(u, ex.uniform),
-                                   ex.weights[: ex.uniform], kernel.arcsin_scale, out)
-        else:
-            fused.nn_cross(kernel.scaled_columns(queries), u, ex.weights, ex.starts,
-                           kernel.arcsin_scale, out)
-        return out
-    step = max(1, _PAIR_CHUNK // max(1, ex.nodes.shape[0]))
-    for lo in range(0, q, step):
-        chunk = queries[lo : lo + step]
-        out[lo : lo + step] = _reduce_last(kernel(chunk, ex.nodes), ex)
-        if dout is not None:
-            dout[:, lo : lo + step] = _reduce_last(kernel.gradient(chunk, ex.nodes), ex)
-    return out if dout is None else (out, dout)
+    backend = backends.get(backend)
+    ex = _cached_expansion(means, covariances, level, backend)
+    return backend.loops(kernel).cross(kernel, queries, ex, with_gradient)
 
 
 def expected_local_system(
@@ -687,11 +565,13 @@ def expected_local_system(
     *,
     scan_ids: np.ndarray | None = None,
     pose_factors: np.ndarray | None = None,
+    backend: str | backends.Backend = "auto",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The three covariances of one local prediction in one compiled call, or None where
-    that call does not apply (a kernel without compiled loops, or some covariances zero
-    and others not): then use :func:`expected_kernel_matrix`, :func:`expected_kernel_cross`
-    and ``kernel.diag``, which give the same values to round-off.
+    that call does not apply (a kernel without such a pass in ``backend``, or some
+    covariances zero and others not): then use :func:`expected_kernel_matrix`,
+    :func:`expected_kernel_cross` and ``kernel.diag``, which give the same values to
+    round-off.
 
     Args:
         means: (N, 2) metres; covariances: (N, 2, 2) m^2; queries: (Q, 2) metres.
@@ -702,31 +582,8 @@ def expected_local_system(
     Returns:
         K + diagonal I (N, N), Kx (Q, N), k(q, q) (Q,).
     """
-    fused = _fused(kernel)
-    if fused is None:
-        return None
-    means, covariances = _check_inputs(means, covariances)
-    n = means.shape[0]
-    zero = np.abs(covariances).reshape(n, 4).max(axis=1) <= ZERO_VARIANCE_M2
-    if zero.any() and not zero.all():
-        return None
-    unit, weights = gauss_hermite(1 if zero.all() else level, 2)
-    unit4, weights4 = gauss_hermite(level, 4)
-    correlated = scan_ids is not None and pose_factors is not None
-    if correlated:
-        scan_ids, pose_factors = _check_scan_inputs(n, scan_ids, pose_factors)
-    else:
-        scan_ids, pose_factors = np.zeros(n, dtype=np.int64), np.zeros((n, 2, 3))
-    queries = np.asarray(queries, dtype=np.float64)
-    k = np.empty((n, n))
-    cross = np.empty((queries.shape[0], n))
-    prior = np.empty(queries.shape[0])
-    # gpocc.compiled gives the C loop its C-ordered float64 / int64 copies where needed.
-    fused.nn_local_system(
-        means, covariances, scan_ids, pose_factors, queries, unit, weights, unit4, weights4,
-        kernel.root_two_s, kernel.arcsin_scale, float(diagonal), correlated, POSE_SHARE_MIN,
-        ZERO_VARIANCE_M2, k, cross, prior)
-    return k, cross, prior
+    return backends.get(backend).loops(kernel).local_system(
+        kernel, means, covariances, queries, level, diagonal, scan_ids, pose_factors)
 
 
 # --------------------------------------------------------------------------- closed form (SE)

@@ -47,6 +47,8 @@ class Kernel(Protocol):
 
     def pairwise_gradient(self, a: np.ndarray, b: np.ndarray) -> np.ndarray: ...
 
+    def to_hyperparameters(self, base: HyperparametersConfig) -> HyperparametersConfig: ...
+
 
 def _points(x: np.ndarray, name: str) -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
@@ -224,6 +226,11 @@ class NeuralNetworkKernel:
         a, b = _pair(a, b)
         return self._gradient(self._scaled(a), self._scaled(b), outer=False)
 
+    @classmethod
+    def from_hyperparameters(cls, h: HyperparametersConfig) -> NeuralNetworkKernel:
+        """The kernel with the initial values of ``model.hyperparameters``."""
+        return cls(h.signal_variance, h.bias_variance, tuple(h.weight_variance))
+
     def to_hyperparameters(self, base: HyperparametersConfig) -> HyperparametersConfig:
         """``base`` with this kernel's values (for writing learned values back)."""
         return HyperparametersConfig(
@@ -323,6 +330,11 @@ class SquaredExponentialKernel:
         a, b = _pair(a, b)
         return self._gradient(a, b, outer=False)
 
+    @classmethod
+    def from_hyperparameters(cls, h: HyperparametersConfig) -> SquaredExponentialKernel:
+        """The kernel with the initial values of ``model.hyperparameters``."""
+        return cls(h.signal_variance, tuple(h.lengthscale_m))
+
     def to_hyperparameters(self, base: HyperparametersConfig) -> HyperparametersConfig:
         """``base`` with this kernel's values (for writing learned values back)."""
         return HyperparametersConfig(
@@ -334,13 +346,27 @@ class SquaredExponentialKernel:
         )
 
 
-def make_kernel(
-    name: str, hyperparameters: HyperparametersConfig
-) -> NeuralNetworkKernel | SquaredExponentialKernel:
-    """The kernel named by ``model.kernel`` (``"nn"`` or ``"se"``) with its initial values."""
-    h = hyperparameters
-    if name == "nn":
-        return NeuralNetworkKernel(h.signal_variance, h.bias_variance, tuple(h.weight_variance))
-    if name == "se":
-        return SquaredExponentialKernel(h.signal_variance, tuple(h.lengthscale_m))
-    raise GpoccError(f"config key 'model.kernel' must be 'nn' or 'se', got {name!r}")
+#: Every kernel, by its name in ``model.kernel`` and in model files: the one list that
+#: config validation, :func:`make_kernel` and :mod:`gpocc.gp.modelfile` read. A new
+#: kernel is a class (the :class:`Kernel` protocol plus ``from_hyperparameters`` and
+#: ``to_hyperparameters``) and one entry here.
+KERNELS: dict[str, type] = {
+    "nn": NeuralNetworkKernel,
+    "se": SquaredExponentialKernel,
+}
+
+
+def kernel_names_text() -> str:
+    """``'nn' or 'se'``: the kernel names for an error message."""
+    names = [repr(name) for name in KERNELS]
+    return " or ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
+
+
+def make_kernel(name: str, hyperparameters: HyperparametersConfig) -> Kernel:
+    """The kernel named by ``model.kernel`` (a key of :data:`KERNELS`) with its initial
+    values."""
+    cls = KERNELS.get(name)
+    if cls is None:
+        raise GpoccError(
+            f"config key 'model.kernel' must be {kernel_names_text()}, got {name!r}")
+    return cls.from_hyperparameters(hyperparameters)

@@ -8,6 +8,7 @@ samples' input distributions (correlated within a scan); queries are exact point
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,18 +16,14 @@ from scipy.linalg.blas import dtrsm
 from scipy.linalg.lapack import dpotrf, dpotrs
 from scipy.spatial import cKDTree
 
+from gpocc.constants import JITTER
 from gpocc.errors import GpoccError
-from gpocc.gp.expected import (
-    expected_kernel_cross,
-    expected_kernel_matrix,
-    expected_local_system,
-)
+from gpocc.gp import backends
+from gpocc.gp.expected import expected_kernel_cross, expected_kernel_matrix
 from gpocc.gp.kernels import Kernel
 from gpocc.samples.sampleset import SampleSet
 
-# Added to the diagonal on top of the label-noise variance; keeps Cholesky stable when two
-# samples are (numerically) the same point.
-_JITTER = 1e-8
+_LOG_2PI = math.log(2.0 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -140,11 +137,12 @@ def try_cholesky(matrix: np.ndarray, jitter: bool = True) -> np.ndarray | None:
 
 def training_covariance(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
-    correlated: bool = True
+    correlated: bool = True, backend: str = "auto",
 ) -> np.ndarray:
     """(M, M) covariance of the training labels: expected kernel plus label noise.
 
     ``correlated=False`` treats every pair as independent (no 4-D same-scan rule).
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`), as in every function here.
     """
     k = expected_kernel_matrix(
         kernel,
@@ -153,13 +151,15 @@ def training_covariance(
         level,
         scan_ids=samples.scan_ids if correlated else None,
         pose_factors=samples.pose_factors if correlated else None,
+        backend=backend,
     )
-    k[np.diag_indices_from(k)] += noise_variance + _JITTER
+    k[np.diag_indices_from(k)] += noise_variance + JITTER
     return k
 
 
 def factor_training_covariance(
-    kernel: Kernel, noise_variance: float, samples: SampleSet, level: int
+    kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
+    backend: str = "auto",
 ) -> np.ndarray:
     """Lower Cholesky factor of the label covariance of ``samples``.
 
@@ -169,11 +169,11 @@ def factor_training_covariance(
     level is low. If even jitter cannot save it, the problem falls back to independent
     inputs, which is exactly positive definite.
     """
-    chol = try_cholesky(training_covariance(kernel, noise_variance, samples, level))
+    chol = try_cholesky(training_covariance(kernel, noise_variance, samples, level,
+                                            backend=backend))
     if chol is None:
-        chol = try_cholesky(
-            training_covariance(kernel, noise_variance, samples, level, correlated=False)
-        )
+        chol = try_cholesky(training_covariance(kernel, noise_variance, samples, level,
+                                                correlated=False, backend=backend))
     if chol is None:
         raise GpoccError(
             "the training covariance of a local problem is not positive definite; raise "
@@ -184,26 +184,57 @@ def factor_training_covariance(
 
 def predict_local(
     kernel: Kernel, noise_variance: float, problem: LocalProblem, queries: np.ndarray,
-    level: int
+    level: int, backend: str = "auto",
 ) -> Prediction:
     """GP predictive mean and variance at (Q, 2) map-frame queries from one local problem."""
-    local_queries = np.asarray(queries, dtype=float) - problem.centre
+    return predict_locals(kernel, noise_variance, [problem], [queries], level, backend)[0]
+
+
+def _local_systems(kernel: Kernel, backend: backends.Backend,
+                   batch: list[tuple[SampleSet, np.ndarray]], level: int, diagonal: float
+                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+    """The backend's one-pass covariances of a batch of (samples, local queries)."""
+    return backend.loops(kernel).local_systems(kernel, batch, level, diagonal)
+
+
+def predict_locals(
+    kernel: Kernel, noise_variance: float, problems: list[LocalProblem],
+    queries: list[np.ndarray], level: int, backend: str = "auto",
+) -> list[Prediction]:
+    """:func:`predict_local` of each problem at its (Q_k, 2) map-frame queries: the
+    backend computes the covariances of the whole batch in one call
+    (``KernelLoops.local_systems``), then each problem is solved."""
+    backend = backends.get(backend)
+    local_queries = [np.asarray(q, dtype=float) - p.centre
+                     for p, q in zip(problems, queries, strict=True)]
+    live = [k for k, p in enumerate(problems) if len(p.samples)]
+    systems = _local_systems(kernel, backend,
+                             [(problems[k].samples, local_queries[k]) for k in live], level,
+                             noise_variance + JITTER) if live else []
+    by_problem = dict(zip(live, systems, strict=True))
+    return [_predict(kernel, noise_variance, problem, local, level, by_problem.get(k), backend)
+            for k, (problem, local) in enumerate(zip(problems, local_queries, strict=True))]
+
+
+def _predict(kernel: Kernel, noise_variance: float, problem: LocalProblem,
+             local_queries: np.ndarray, level: int,
+             system: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+             backend: backends.Backend) -> Prediction:
+    """One problem's prediction at its centred queries from its one-pass ``system``, or
+    (None) from the separate calls."""
     samples = problem.samples
     if len(samples) == 0:
         prior = kernel.diag(local_queries)
         return Prediction(mean=np.zeros(len(local_queries)), variance=prior, prior_variance=prior)
-    system = expected_local_system(
-        kernel, samples.means, samples.covariances, local_queries, level,
-        noise_variance + _JITTER, scan_ids=samples.scan_ids, pose_factors=samples.pose_factors)
     chol = None
     if system is not None:
         k, k_cross, prior = system
         chol = try_cholesky(k)
-    if chol is None:  # no compiled path, or the fallbacks of factor_training_covariance
-        chol = factor_training_covariance(kernel, noise_variance, samples, level)
+    if chol is None:  # no one-pass system, or the fallbacks of factor_training_covariance
+        chol = factor_training_covariance(kernel, noise_variance, samples, level, backend)
     if system is None:
         k_cross = expected_kernel_cross(
-            kernel, local_queries, samples.means, samples.covariances, level
+            kernel, local_queries, samples.means, samples.covariances, level, backend=backend
         )
         prior = kernel.diag(local_queries)
     alpha = cholesky_solve(chol, samples.labels)
@@ -216,10 +247,48 @@ def predict_local(
 
 
 def predict_full(kernel: Kernel, noise_variance: float, samples: SampleSet, queries: np.ndarray,
-                 level: int) -> Prediction:
+                 level: int, backend: str = "auto") -> Prediction:
     """The exact (non-local) GP prediction from every sample; the oracle for small problems."""
     problem = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(len(samples)))
-    return predict_local(kernel, noise_variance, problem, queries, level)
+    return predict_local(kernel, noise_variance, problem, queries, level, backend)
+
+
+def negative_log_likelihood(
+    kernel: Kernel, noise: float, samples: SampleSet, level: int, *, with_gradient: bool,
+    input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
+) -> tuple[float, np.ndarray | None] | None:
+    """One local problem's (a training patch's) -LML and its gradient in log-parameters
+    ``[kernel.theta..., log noise]`` (with ``scale_gradient``, then in log g); None if K
+    is not a covariance. The generic form of ``KernelLoops.patch_likelihoods``."""
+    s = samples
+    if with_gradient:
+        cov, dcov = expected_kernel_matrix(
+            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
+            pose_factors=s.pose_factors, with_gradient=True, input_scale=input_scale,
+            with_scale_gradient=scale_gradient, backend=backend,
+        )
+    else:
+        cov = expected_kernel_matrix(
+            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
+            pose_factors=s.pose_factors, input_scale=input_scale, backend=backend,
+        )
+    cov[np.diag_indices_from(cov)] += noise + JITTER
+    chol = try_cholesky(cov, jitter=False)
+    if chol is None:
+        return None
+    alpha = cholesky_solve(chol, s.labels)
+    value = 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
+    if not with_gradient:
+        return float(value), None
+    inner = cholesky_solve(chol, np.eye(len(s))) - np.outer(alpha, alpha)
+    nkernel = len(kernel.theta)
+    grad = np.empty(nkernel + (2 if scale_gradient else 1))
+    # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
+    grad[:nkernel] = 0.5 * np.einsum("ij,pij->p", inner, dcov[:nkernel])
+    grad[nkernel] = 0.5 * noise * np.trace(inner)
+    if scale_gradient:
+        grad[nkernel + 1] = 0.5 * np.einsum("ij,ij->", inner, dcov[nkernel])
+    return float(value), grad
 
 
 def leave_one_out(chol: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

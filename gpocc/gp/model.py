@@ -22,6 +22,7 @@ from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import (
+    MapFunction,
     PlattClassifier,
     beam_holdout_predictions,
     fit_classifier,
@@ -32,6 +33,7 @@ from gpocc.gp.kernels import Kernel, make_kernel
 from gpocc.gp.modelfile import validate_contents, validate_coverage
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_output_file
+from gpocc.parallel import cluster_map
 from gpocc.samples.coverage import Coverage
 from gpocc.samples.heldout import CalibrationPoints
 from gpocc.samples.sampleset import SampleSet, has_both_labels
@@ -96,10 +98,14 @@ def build_model(
     on_evaluation: Callable[[int], None] | None = None,
     coverage: Coverage | None = None,
     calibration: CalibrationPoints | None = None,
+    client: Any = None,
 ) -> GPModel:
     """Learn hyperparameters and the classifier from ``samples`` under ``config``.
 
     ``on_evaluation(1)`` is called after each likelihood evaluation (progress display).
+    ``client``: a ``distributed.Client`` (:func:`gpocc.parallel.dask_client`) whose
+    cluster computes the likelihood patches and the classifier's predictions; the model
+    is the same as without it.
     ``calibration``: labelled points of held-out scans for ``classifier_offset: beams``
     (:func:`gpocc.samples.heldout.calibration_points`); without them, or if they lack
     either class, the offset stays that of the hold-out fit.
@@ -112,10 +118,13 @@ def build_model(
         result: TrainingResult = learn_hyperparameters(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
+            backend=model_cfg.backend, client=client,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale)
-        classifier, offset, points = _fit_classifier(result, samples, config, calibration)
+        map_fn = map if client is None else cluster_map(client)
+        classifier, offset, points = _fit_classifier(result, samples, config, calibration,
+                                                     map_fn)
     training = {
         "log_marginal_likelihood": result.log_marginal_likelihood,
         "initial_log_marginal_likelihood": result.initial_log_marginal_likelihood,
@@ -134,7 +143,7 @@ def build_model(
 
 
 def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
-                    calibration: CalibrationPoints | None,
+                    calibration: CalibrationPoints | None, map_fn: MapFunction = map,
                     ) -> tuple[PlattClassifier, str, int]:
     """The Platt classifier of the learned GP, where its offset came from (``holdout`` or
     ``beams``) and the number of held-out beam points it was fitted on (0 for holdout)."""
@@ -144,13 +153,15 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
     patches = make_patches(samples, training, config.seed + 1)
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
-                                model_cfg.quadrature_level, training.classifier_holdout)
+                                model_cfg.quadrature_level, training.classifier_holdout,
+                                model_cfg.backend, map_fn)
     if training.classifier_offset != "beams" or calibration is None or not calibration.usable:
         return classifier, "holdout", 0
     mean, variance, labels = beam_holdout_predictions(
         result.kernel, result.noise_variance, samples, calibration,
         model_cfg.quadrature_level, model_cfg.neighbours, model_cfg.block_size_m,
-        training.calibration_blocks, np.random.default_rng(config.seed + 2))
+        training.calibration_blocks, np.random.default_rng(config.seed + 2),
+        model_cfg.backend, map_fn)
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0
     return (fit_offset(mean, variance, labels, classifier.extra_variance), "beams",

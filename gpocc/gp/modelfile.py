@@ -20,12 +20,10 @@ import numpy as np
 from gpocc.config import Config, config_from_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier
-from gpocc.gp.kernels import Kernel, NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.gp.kernels import KERNELS, Kernel
 from gpocc.limits import max_cells
 from gpocc.samples.coverage import Coverage
 from gpocc.samples.sampleset import SampleSet
-
-_KERNELS = {"nn": NeuralNetworkKernel, "se": SquaredExponentialKernel}
 
 #: name -> (dtype it is stored as, shape after the sample axis N)
 ARRAY_LAYOUT: dict[str, tuple[type, tuple[int, ...]]] = {
@@ -70,9 +68,9 @@ def _finite_number(value: Any, what: str, positive: bool = False) -> float:
 
 def _kernel(meta: dict[str, Any]) -> Any:
     name = meta.get("kernel_name")
-    if not isinstance(name, str) or name not in _KERNELS:
-        raise _Damaged(f"kernel_name is {name!r}, not one of {sorted(_KERNELS)}")
-    cls = _KERNELS[name]
+    if not isinstance(name, str) or name not in KERNELS:
+        raise _Damaged(f"kernel_name is {name!r}, not one of {sorted(KERNELS)}")
+    cls = KERNELS[name]
     params = meta.get("kernel")
     if not isinstance(params, dict):
         raise _Damaged("the kernel parameters are missing")

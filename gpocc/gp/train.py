@@ -14,28 +14,24 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from multiprocessing.pool import Pool
+from typing import Any
 
 import numpy as np
 
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
-from gpocc.gp.expected import (
-    expected_kernel_matrix,
-    same_scan_pairs,
-    supports_scale_gradient,
-)
+from gpocc.gp import backends
+from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel
-from gpocc.gp.local import LocalProblem, NeighbourIndex, cholesky_solve, try_cholesky
+from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
-_JITTER = 1e-8
-_LOG_2PI = math.log(2.0 * math.pi)
 #: Value of hyperparameters whose training covariance is not positive definite.
 _REJECTED = 1e10
 
@@ -104,40 +100,24 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
 
 
 def _patch_negative_log_likelihood(
-    kernel: Kernel, noise: float, patch: LocalProblem, *, level: int, with_gradient: bool,
-    input_scale: float = 1.0, scale_gradient: bool = False,
+    kernel: Kernel, noise: float, patch: LocalProblem, **options
 ) -> tuple[float, np.ndarray | None] | None:
-    """One patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
-    in log g); None if K is not a covariance."""
-    s = patch.samples
-    if with_gradient:
-        cov, dcov = expected_kernel_matrix(
-            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, with_gradient=True, input_scale=input_scale,
-            with_scale_gradient=scale_gradient,
-        )
-    else:
-        cov = expected_kernel_matrix(
-            kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
-            pose_factors=s.pose_factors, input_scale=input_scale,
-        )
-    cov[np.diag_indices_from(cov)] += noise + _JITTER
-    chol = try_cholesky(cov, jitter=False)
-    if chol is None:
-        return None
-    alpha = cholesky_solve(chol, s.labels)
-    value = 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
-    if not with_gradient:
-        return float(value), None
-    inner = cholesky_solve(chol, np.eye(len(s))) - np.outer(alpha, alpha)
-    nkernel = len(kernel.theta)
-    grad = np.empty(nkernel + (2 if scale_gradient else 1))
-    # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
-    grad[:nkernel] = 0.5 * np.einsum("ij,pij->p", inner, dcov[:nkernel])
-    grad[nkernel] = 0.5 * noise * np.trace(inner)
-    if scale_gradient:
-        grad[nkernel + 1] = 0.5 * np.einsum("ij,ij->", inner, dcov[nkernel])
-    return float(value), grad
+    """One patch's -LML and its gradient (:func:`_patch_negative_log_likelihoods`)."""
+    return next(_patch_negative_log_likelihoods(kernel, noise, [patch], **options))
+
+
+def _patch_negative_log_likelihoods(
+    kernel: Kernel, noise: float, patches: list[LocalProblem], *, level: int,
+    with_gradient: bool, input_scale: float = 1.0, scale_gradient: bool = False,
+    backend: str = "auto",
+) -> Iterator[tuple[float, np.ndarray | None] | None]:
+    """Each patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
+    in log g), or None where K is not a covariance, in patch order: one batch for the
+    backend (``KernelLoops.patch_likelihoods``)."""
+    chosen = backends.get(backend)
+    return chosen.loops(kernel).patch_likelihoods(
+        kernel, noise, [p.samples for p in patches], level, with_gradient=with_gradient,
+        input_scale=input_scale, scale_gradient=scale_gradient, backend=chosen)
 
 
 # The patches of a training worker process, installed once when its pool starts
@@ -185,48 +165,86 @@ def _patch_cost(patch: LocalProblem, level: int) -> float:
 def resident_patch_pool(patches: list[LocalProblem], workers: int, level: int):
     """A :class:`ResidentPatches` pool of ``workers`` processes holding ``patches``
     (``level``: the quadrature level they will be evaluated at, for the costs)."""
-    costs = [_patch_cost(p, level) for p in patches]
-    order = tuple(sorted(range(len(patches)), key=lambda i: -costs[i]))
+    order = _costliest_first(patches, level)
     with worker_pool(workers, _install_patches, (list(patches),)) as pool:
         yield ResidentPatches(pool, tuple(patches), order)
 
 
+@dataclass(frozen=True)
+class ClusterPatches:
+    """The workers of a Dask cluster holding ``patches`` (:func:`cluster_patches`): each
+    evaluation sends the hyperparameters and a reference to each patch, one task per
+    patch, most expensive first, as :class:`ResidentPatches` does locally."""
+
+    client: Any
+    futures: tuple[Any, ...]
+    patches: tuple[LocalProblem, ...]
+    order: tuple[int, ...]
+
+
+def _costliest_first(patches: list[LocalProblem], level: int) -> tuple[int, ...]:
+    costs = [_patch_cost(p, level) for p in patches]
+    return tuple(sorted(range(len(patches)), key=lambda i: -costs[i]))
+
+
+def cluster_patches(client: Any, patches: list[LocalProblem], level: int) -> ClusterPatches:
+    """:class:`ClusterPatches`: ``patches`` sent once to every worker of ``client``."""
+    futures = client.scatter(list(patches), broadcast=True)
+    return ClusterPatches(client, tuple(futures), tuple(patches),
+                          _costliest_first(patches, level))
+
+
+def _held_by(pool: ResidentPatches | ClusterPatches, patches: list[LocalProblem]) -> None:
+    if len(pool.patches) != len(patches) or any(
+            held is not patch for held, patch in zip(pool.patches, patches, strict=True)):
+        raise ValueError("the pool holds other patches than those to evaluate")
+
+
 def negative_log_likelihood(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
-    with_gradient: bool = True, executor: Executor | Pool | ResidentPatches | None = None,
-    input_scale: float = 1.0, scale_gradient: bool = False,
+    with_gradient: bool = True,
+    executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
+    input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
 
     ``params`` = ``[kernel.theta..., log noise_variance]``. Without ``with_gradient`` the
     gradient is returned as zeros (and not computed: the global stage needs values only).
     ``executor`` (a ``multiprocessing`` pool or a ``concurrent.futures`` executor: a
-    ``map`` that takes ``chunksize``; or a :class:`ResidentPatches` pool holding these
-    ``patches``) evaluates the patches concurrently; the sum is taken in patch order, so
+    ``map`` that takes ``chunksize``; a :class:`ResidentPatches` pool or the
+    :class:`ClusterPatches` of a Dask cluster holding these ``patches``) evaluates the
+    patches concurrently; the sum is taken in patch order, so
     the result does not depend on it.
     ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1);
     ``scale_gradient`` (with gradients): the gradient gains d/dlog g.
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`).
     """
     # Partials of module-level functions, so that worker processes can receive them.
     arguments = (kernel.with_theta(params[:-1]), math.exp(params[-1]))
     options = {"level": level, "with_gradient": with_gradient, "input_scale": input_scale,
-               "scale_gradient": scale_gradient and with_gradient}
+               "scale_gradient": scale_gradient and with_gradient, "backend": backend}
     # One patch per task: patches differ in cost (3-12 ms), and Pool.map's default chunks of
     # two left one worker idle (gradient evaluations about 9% slower on 2 workers).
-    if isinstance(executor, ResidentPatches):
-        if len(executor.patches) != len(patches) or any(
-                held is not patch for held, patch in zip(executor.patches, patches, strict=True)):
-            raise ValueError("the pool holds other patches than those to evaluate")
-        one = functools.partial(_resident_patch_negative_log_likelihood, *arguments, **options)
-        by_cost = wait_for(executor.pool,
-                           executor.pool.map_async(one, executor.order, chunksize=1))
+    if isinstance(executor, ResidentPatches | ClusterPatches):
+        _held_by(executor, patches)
+        if isinstance(executor, ResidentPatches):
+            one = functools.partial(_resident_patch_negative_log_likelihood, *arguments,
+                                    **options)
+            by_cost = wait_for(executor.pool,
+                               executor.pool.map_async(one, executor.order, chunksize=1))
+        else:
+            client = executor.client
+            by_cost = client.gather([
+                client.submit(_patch_negative_log_likelihood, *arguments,
+                              executor.futures[index], pure=False, **options)
+                for index in executor.order])
         terms = [None] * len(patches)
         for index, term in zip(executor.order, by_cost, strict=True):
             terms[index] = term
     else:
         one = functools.partial(_patch_negative_log_likelihood, *arguments, **options)
         terms = (list(executor.map(one, patches, chunksize=1)) if executor is not None
-                 else map(one, patches))
+                 else _patch_negative_log_likelihoods(*arguments, patches, **options))
     value = 0.0
     grad = np.zeros(len(params) + (1 if scale_gradient else 0))
     for term in terms:
@@ -240,7 +258,9 @@ def negative_log_likelihood(
 
 def negative_log_likelihood_with_scale(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
-    with_gradient: bool = True, executor: Executor | Pool | ResidentPatches | None = None,
+    with_gradient: bool = True,
+    executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
+    backend: str = "auto",
 ) -> tuple[float, np.ndarray]:
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
@@ -257,9 +277,9 @@ def negative_log_likelihood_with_scale(
         return negative_log_likelihood(params[:-1], kernel, patches, level,
                                        with_gradient=gradient, executor=executor,
                                        input_scale=math.exp(log_scale),
-                                       scale_gradient=scale_gradient)
+                                       scale_gradient=scale_gradient, backend=backend)
 
-    if with_gradient and supports_scale_gradient(kernel):
+    if with_gradient and supports_scale_gradient(kernel, backend):
         return at(log_g, True, scale_gradient=True)
     value, grad = at(log_g, with_gradient)
     if not with_gradient or value >= _REJECTED:
@@ -280,13 +300,16 @@ def learn_hyperparameters(
     kernel: Kernel, noise_variance: float, samples: SampleSet, level: int,
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
-    workers: int | None = None,
+    workers: int | None = None, backend: str = "auto", client: Any = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
-    concurrently; the result does not depend on their number.
+    concurrently, or the workers of the Dask cluster of ``client`` (a
+    ``distributed.Client``, :func:`gpocc.parallel.dask_client`); the result does not
+    depend on which, nor on their number. ``backend``: ``model.backend``
+    (:mod:`gpocc.gp.backends`).
     """
     patches = make_patches(samples, config, seed)
     # g only matters (and is only learned) when some input has a covariance.
@@ -295,13 +318,19 @@ def learn_hyperparameters(
     # Processes, not threads: much of a patch's work is numpy glue that holds the GIL
     # (threads gave 1.4x on 2 cores). The workers receive the patches once.
     workers = min(len(patches), workers or default_workers())
-    with resident_patch_pool(patches, workers, level) if workers > 1 \
-            else contextlib.nullcontext() as pool:
+    if client is not None:
+        holder = contextlib.nullcontext(cluster_patches(client, patches, level))
+    elif workers > 1:
+        holder = resident_patch_pool(patches, workers, level)
+    else:
+        holder = contextlib.nullcontext()
+    with holder as pool:
 
         def negative_log_likelihood_counted(
             params: np.ndarray, *args: object, with_gradient: bool = True
         ) -> tuple[float, np.ndarray]:
-            result = objective(params, *args, with_gradient=with_gradient, executor=pool)
+            result = objective(params, *args, with_gradient=with_gradient, executor=pool,
+                               backend=backend)
             if on_evaluation is not None:
                 on_evaluation(1)
             return result
@@ -315,6 +344,25 @@ def load_optimiser() -> None:
     :func:`learn_hyperparameters` (``gpocc train`` builds its samples meanwhile). Imported
     at the learner's start, it kept both freshly forked workers idle."""
     import scipy.optimize  # noqa: F401
+
+
+def search_bounds(theta: np.ndarray, noise_variance: float, config: TrainingConfig,
+                  learn_scale: bool) -> list[tuple[float, float]]:
+    """The optimiser's box in its parameters (all natural logs): the kernel's ``theta``
+    and the label-noise variance each within ``log_bounds_width`` of their initial
+    values, the noise kept at or above ``min_noise_variance`` (its box at least one unit
+    wide), then log g in ``[min_input_noise_scale, max_input_noise_scale]`` when
+    ``learn_scale``. :mod:`gpocc.gp.bounds` checks learned values against the same box."""
+    width = config.log_bounds_width
+    x0 = [*np.asarray(theta, dtype=float), math.log(noise_variance)]
+    bounds = [(v - width, v + width) for v in x0]
+    floor = math.log(config.min_noise_variance)
+    lo, hi = bounds[-1]
+    bounds[-1] = (max(lo, floor), max(hi, floor + 1.0))
+    if learn_scale:
+        bounds.append((math.log(config.min_input_noise_scale),
+                       math.log(config.max_input_noise_scale)))
+    return bounds
 
 
 def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem], level: int,
@@ -334,13 +382,7 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     if not config.learn:
         return TrainingResult(kernel, noise_variance, -initial, -initial, evaluations,
                               (len(patches), len(patches[0].samples)))
-    width = config.log_bounds_width
-    bounds = [(v - width, v + width) for v in x0]
-    floor = math.log(config.min_noise_variance)
-    bounds[noise_at] = (max(bounds[noise_at][0], floor), max(bounds[noise_at][1], floor + 1.0))
-    if learn_scale:
-        bounds[-1] = (math.log(config.min_input_noise_scale),
-                      math.log(config.max_input_noise_scale))
+    bounds = search_bounds(kernel.theta, noise_variance, config, learn_scale)
     start = min(max(x0[noise_at], bounds[noise_at][0]), bounds[noise_at][1])
 
     def value_only(p: np.ndarray) -> float:

@@ -33,13 +33,12 @@ import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from gpocc.constants import FOLDER_MARKERS
 from gpocc.errors import GpoccError
 
 _CLAIM = ".gpocc-claim"
 _TMP = ".gpocc-tmp-"
 _OLD = ".gpocc-old-"
-#: Folder outputs are recognised by one of these JSON files (see is_gpocc_output).
-_FOLDER_MARKERS = ("metadata.json", "simulation.json", "results.json")
 _SPLIT_HEADER = "# Written by gpocc split"
 
 # Claims this process holds: absolute target -> (claim file, open descriptor).
@@ -71,6 +70,9 @@ def _one_line(exc: OSError) -> str:
 
 def _write_error(target: Path, exc: OSError) -> GpoccError:
     where = f" ({exc.filename})" if exc.filename and str(exc.filename) != str(target) else ""
+    if exc.errno == errno.ENOSPC:
+        return GpoccError(f"{target}: cannot write{where}: no space left on device; free "
+                          "some space there, or choose another --out on another disk")
     return GpoccError(
         f"{target}: cannot write{where}: {_one_line(exc)}; check that the folder exists, is "
         f"writable and has free space, or choose another --out"
@@ -118,8 +120,14 @@ def claim_output(path: str | os.PathLike[str]) -> None:
         if same:
             break
         os.close(fd)
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    except OSError as exc:  # a full disk: leave no claim file behind
+        with contextlib.suppress(OSError):
+            claim.unlink()
+        os.close(fd)
+        raise _write_error(target, exc) from None
     _claims[key] = (claim, fd)
     _remove_stale(target)
 
@@ -178,7 +186,7 @@ def _is_gpocc_folder(path: Path) -> bool:
         return False
     if not entries:
         return True  # nothing of the user's to lose
-    for name in _FOLDER_MARKERS:
+    for name in FOLDER_MARKERS:  # a folder output holds one (see is_gpocc_output)
         try:
             meta = json.loads((path / name).read_text())
         except (OSError, ValueError):
@@ -387,6 +395,11 @@ def _claimed_temporary(path: str | os.PathLike[str], force: bool, folder: bool
             _install(tmp, target, force)
         except OSError as exc:
             raise _write_error(target, exc) from None
+        except GpoccError as exc:
+            # A writer's error names the file it wrote: the user knows the output.
+            if str(tmp) not in str(exc):
+                raise
+            raise GpoccError(str(exc).replace(str(tmp), str(target))) from None
         finally:
             if folder:
                 shutil.rmtree(tmp, ignore_errors=True)

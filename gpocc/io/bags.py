@@ -6,7 +6,8 @@ definitions. Scans come from ``sensor_msgs/msg/LaserScan``; poses from
 ``geometry_msgs/msg/PoseWithCovarianceStamped``, ``nav_msgs/msg/Odometry`` or
 ``geometry_msgs/msg/PoseStamped`` (no covariance), and TF (``/tf``, ``/tf_static``): see
 :mod:`gpocc.io.laserpose` for how the laser pose and its covariance are chosen. Times are
-header stamps in seconds (a zero header stamp falls back to the bag's record time).
+header stamps in seconds, or the log time for a topic whose header stamps are zero,
+constant or not increasing (:mod:`gpocc.io.stamps`).
 
 LaserScan messages are checked as read: ``angle_min``, ``angle_max`` and
 ``angle_increment`` must be finite and agree with the number of ranges (within two
@@ -18,12 +19,14 @@ field.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import errno
 import functools
 import math
 import os
 import tempfile
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,14 +37,19 @@ from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import laserpose
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.io.cloudread import CloudCollector
 from gpocc.io.laserpose import ScanTopic as _ScanTopic
 from gpocc.io.laserpose import namespace
+from gpocc.io.pointcloud import CLOUD_TYPE
 from gpocc.io.poses import POSE_TYPES, XY_YAW, PoseCollector
 from gpocc.io.scans import ScanBatch
 from gpocc.io.tf import TF_TYPES, TfBuffer, TfCollector, frame_name, merge_buffers
 from gpocc.io.timeline import blend_poses, brackets
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+#: Message types a sensor's ``scan_topic`` may have: a planar laser or a 3-D lidar's cloud
+#: (projected into one scan per cloud, :mod:`gpocc.io.cloudread`).
+SCAN_TYPES = (SCAN_TYPE, CLOUD_TYPE)
 #: ``pose_topic`` value meaning: positions from TF only, covariance from the config.
 TF_POSE = "/tf"
 #: ``write_bag`` formats; also what ``bag_format`` reports.
@@ -65,12 +73,21 @@ class TopicSummary:
 
 @dataclass(frozen=True)
 class BagContents:
-    """What a bag holds: its format, topics and record-time span (seconds)."""
+    """What a bag holds: its format, topics and record-time span (seconds).
+
+    ``frames``: ``(topic, frame_id, child_frame_id)`` of each pose topic's first message
+    (child empty when the type has none), which pose-source choice needs.
+    """
 
     format: str
     topics: tuple[TopicSummary, ...]
     start_s: float | None
     end_s: float | None
+    frames: tuple[tuple[str, str, str], ...] = ()
+
+    def frame_of(self, topic: str) -> tuple[str, str]:
+        """``(frame_id, child_frame_id)`` of a pose topic, ``("", "")`` when unknown."""
+        return next(((f, c) for t, f, c in self.frames if t == topic), ("", ""))
 
     def topic(self, name: str) -> TopicSummary | None:
         return next((t for t in self.topics if t.name == name), None)
@@ -170,18 +187,32 @@ def _contents(reader: Any, fmt: str) -> BagContents:
     return BagContents(fmt, topics, start, end)
 
 
+def _pose_frames(reader: Any) -> tuple[tuple[str, str, str], ...]:
+    """``(topic, frame_id, child_frame_id)`` from the first message of each pose topic."""
+    out = []
+    for conn in reader.connections:
+        if conn.msgtype not in POSE_TYPES or any(t == conn.topic for t, _, _ in out):
+            continue
+        for c, _, raw in reader.messages(connections=[conn]):
+            msg = reader.deserialize(raw, c.msgtype)
+            out.append((conn.topic, frame_name(msg.header.frame_id),
+                        frame_name(getattr(msg, "child_frame_id", "") or "")))
+            break
+    return tuple(out)
+
+
 def describe_bag(path: str | Path) -> BagContents:
-    """Topics (type, message count) and time span of a bag, without reading its messages."""
+    """Topics (type, message count), time span and pose topics' frames of a bag (the
+    first message of each pose topic is read; no other message)."""
     path = Path(path)
     fmt = bag_format(path) or "mcap"
     with _open_reader(path) as reader:
-        return _contents(reader, fmt)
+        return dataclasses.replace(_contents(reader, fmt), frames=_pose_frames(reader))
 
 
-def _stamp(msg: Any, record_ns: int) -> float:
+def _stamp(msg: Any) -> float:
+    """The header stamp in seconds; 0.0 when it is zero (see :mod:`gpocc.io.stamps`)."""
     stamp = msg.header.stamp
-    if stamp.sec == 0 and stamp.nanosec == 0:
-        return record_ns * 1e-9
     return stamp.sec + stamp.nanosec * 1e-9
 
 
@@ -211,7 +242,8 @@ def _check_scan_fields(path: Path, topic: str, msg: Any, t: float, n: int) -> No
 
 def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int) -> None:
     ranges = np.asarray(msg.ranges, dtype=float)
-    t = _stamp(msg, record_ns)
+    header = _stamp(msg)
+    t = header or record_ns * 1e-9
     _check_scan_fields(path, topic, msg, t, ranges.shape[0])
     geometry = (ranges.shape[0], float(msg.angle_min), float(msg.angle_increment))
     if acc.geometry is None:
@@ -225,7 +257,8 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
             f"{geometry[0]}, or a different angle_min/angle_increment) at "
             f"t={t:.3f} s; split the bag at that time"
         )
-    acc.stamps.append(t)
+    acc.stamps.append(header)
+    acc.log_times.append(record_ns * 1e-9)
     acc.ranges.append(ranges)
 
 
@@ -239,9 +272,9 @@ def interpolate_poses(
     """Poses and covariances at ``stamps``, interpolated between the bracketing poses.
 
     x and y are linear in time, yaw follows the shorter arc, the covariance is linear.
-    A stamp is served only when it equals a pose stamp, or lies between two poses at
-    most ``max_gap_s`` apart; outside the poses' time range, or inside a longer gap, it
-    is not.
+    A stamp is served only when it lies between two poses at most ``max_gap_s`` apart,
+    or within 1 us of a pose stamp (:func:`gpocc.io.timeline.brackets`); outside the
+    poses' time range, or inside a longer gap, it is not.
 
     Args:
         pose_stamps: (P,) seconds, strictly increasing.
@@ -272,7 +305,7 @@ def check_topics(path: Path, contents: BagContents, sensor: SensorConfig) -> Non
             f"but the bag has no TF topic; topics present: {contents.listing()}; set pose_topic "
             "to a pose topic")
     for role, name, types in (
-        ("scan_topic", sensor.scan_topic, (SCAN_TYPE,)),
+        ("scan_topic", sensor.scan_topic, SCAN_TYPES),
         ("pose_topic", sensor.pose_topic, tuple(POSE_TYPES)),
     ):
         if role == "pose_topic" and name == TF_POSE:
@@ -345,13 +378,16 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
         contents = _contents(reader, fmt)
         for sensor in sensors:
             check_topics(path, contents, sensor)
-        scan_acc = {s.scan_topic: _ScanTopic() for s in sensors}
+        clouds = {s.scan_topic for s in sensors
+                  if contents.topic(s.scan_topic).msgtype == CLOUD_TYPE}
+        scan_acc = {s.scan_topic: _ScanTopic() for s in sensors if s.scan_topic not in clouds}
         odom_for = {s.name: odometry_topic_for(contents, s) for s in sensors}
         pose_names = [s.pose_topic for s in sensors if s.pose_topic != TF_POSE]
         pose_names += [t for t in odom_for.values() if t is not None]
         pose_acc = {t: PoseCollector(path, t, contents.topic(t).msgtype) for t in pose_names}
-        tf_for = {s.name: tf_topics_for(contents, s.scan_topic) if s.position_from_tf else []
-                  for s in sensors}
+        # A cloud needs TF for the lidar's mount even when its position comes from a topic.
+        tf_for = {s.name: tf_topics_for(contents, s.scan_topic)
+                  if s.position_from_tf or s.scan_topic in clouds else [] for s in sensors}
         tf_acc = {t: TfCollector(path) for names in tf_for.values() for t in names}
         wanted = [c for c in reader.connections
                   if c.topic in scan_acc or c.topic in pose_acc or c.topic in tf_acc]
@@ -363,12 +399,31 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
                 pose_acc[conn.topic].add(msg, record_ns)
             if conn.topic in tf_acc:
                 tf_acc[conn.topic].add(msg, conn.topic, record_ns)
-    series = {topic: acc.build() for topic, acc in pose_acc.items()}
-    built = {topic: acc.build() for topic, acc in tf_acc.items()}
+        series = {topic: acc.build() for topic, acc in pose_acc.items()}
+        built = {topic: acc.build() for topic, acc in tf_acc.items()}
+        tfs = {s.name: merge_buffers([built[t] for t in tf_for[s.name]]) or None
+               for s in sensors}
+        # Clouds are projected as read, in a second pass once TF is known: a bag's clouds
+        # would not fit in memory.
+        cloud_acc = {s.scan_topic: CloudCollector(path, s, tfs[s.name]) for s in sensors
+                     if s.scan_topic in clouds}
+        wanted = [c for c in reader.connections if c.topic in cloud_acc]
+        for conn, record_ns, raw in (reader.messages(connections=wanted) if wanted else ()):
+            msg = reader.deserialize(raw, conn.msgtype)
+            # The header stamp, else the log time: a cloud is projected with the TF at
+            # its time as it is read, before the topic's clock could be judged whole.
+            cloud_acc[conn.topic].add(msg, _stamp(msg) or record_ns * 1e-9)
     batches = []
     for s in sensors:
-        tf: TfBuffer | None = merge_buffers([built[t] for t in tf_for[s.name]]) or None
+        tf: TfBuffer | None = tfs[s.name]
         odom = series.get(odom_for[s.name]) if odom_for[s.name] else None
+        if s.scan_topic in cloud_acc:
+            scans, tf, resolved, lines = cloud_acc[s.scan_topic].resolved(
+                series.get(s.pose_topic))
+            batch = laserpose.assemble(path, resolved, scans, tf, series.get(s.pose_topic), odom)
+            batches.append(replace(batch, sensor_config=resolved, provenance=replace(
+                batch.provenance, sensor_lines=lines)))
+            continue
         batches.append(laserpose.assemble(path, s, scan_acc[s.scan_topic], tf,
                                           series.get(s.pose_topic), odom))
     return batches
@@ -550,5 +605,8 @@ def write_bag(
     except GpoccError:
         raise
     except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise GpoccError(f"{path}: cannot write the bag: no space left on device; free "
+                             "some space there, or write it elsewhere") from None
         raise GpoccError(f"{path}: cannot write the bag ({_one_line(exc)}); check the folder "
                          "exists and is writable") from None

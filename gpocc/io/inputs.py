@@ -23,7 +23,7 @@ from pathlib import Path
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import autodetect, bags, carmen
-from gpocc.io.bags import SCAN_TYPE, BagContents, TopicSummary
+from gpocc.io.bags import BagContents, TopicSummary
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
 
@@ -47,6 +47,7 @@ class InputSummary:
     topics: tuple[TopicSummary, ...]
     start_s: float | None
     end_s: float | None
+    frames: tuple[tuple[str, str, str], ...] = ()  # see BagContents.frames
 
     @property
     def format_name(self) -> str:
@@ -110,7 +111,7 @@ def describe_input(path: str | Path) -> InputSummary:
         )
         return InputSummary(path, fmt, topics, contents.start_s, contents.end_s)
     bag = bags.describe_bag(path)
-    return InputSummary(path, fmt, bag.topics, bag.start_s, bag.end_s)
+    return InputSummary(path, fmt, bag.topics, bag.start_s, bag.end_s, bag.frames)
 
 
 def _matches(sensor: SensorConfig, path: Path) -> bool:
@@ -121,7 +122,7 @@ def _matches(sensor: SensorConfig, path: Path) -> bool:
 
 
 def _scan_topics(summary: InputSummary) -> list[str]:
-    return [t.name for t in summary.topics if t.msgtype == SCAN_TYPE]
+    return autodetect.scan_topics(summary.topics)
 
 
 def _only(path: Path, summary: InputSummary, names: list[str], what: str,
@@ -158,7 +159,8 @@ def default_sensor(summary: InputSummary) -> SensorConfig:
 
 
 def _contents(summary: InputSummary) -> BagContents:
-    return BagContents(summary.format, summary.topics, summary.start_s, summary.end_s)
+    return BagContents(summary.format, summary.topics, summary.start_s, summary.end_s,
+                       summary.frames)
 
 
 def _resolve_bag_sensor(summary: InputSummary, sensor: SensorConfig) -> SensorConfig:
@@ -201,7 +203,7 @@ def sensors_for_input(summary: InputSummary, config: Config) -> list[SensorConfi
                 "holds one laser; give each entry an inputs glob"
             )
         return chosen
-    contents = BagContents(summary.format, summary.topics, summary.start_s, summary.end_s)
+    contents = _contents(summary)
     resolved = []
     for sensor in applicable:
         if not sensor.inputs and sensor.scan_topic and contents.topic(sensor.scan_topic) is None:
@@ -234,7 +236,9 @@ def read_input(path: str | Path, config: Config,
         batches = [carmen.read_carmen(path, sensors[0])]
     else:
         batches = bags.read_bag(path, sensors)
-    return [replace(b, sensor_config=s) for b, s in zip(batches, sensors, strict=True)]
+    # A reader may resolve more (a point cloud's defaults and layout): its entry wins.
+    return [replace(b, sensor_config=b.sensor_config or s)
+            for b, s in zip(batches, sensors, strict=True)]
 
 
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:

@@ -7,6 +7,11 @@ sensor's ``mount`` in the config must stay zero. Without ``map`` the chain start
 ``odom`` with a warning that the map will drift. Without a TF chain, the pose topic's
 poses are interpolated to the scans (the config's ``mount`` then applies).
 
+A pose topic in the map frame (AMCL, SLAM, robot_localization's global Odometry) is the
+robot base's pose: when TF reaches the laser only from ``odom`` (which drifts) or not at
+all, the base pose comes from that topic and the static base -> laser mount from TF
+(:func:`mount_chain`), the covariance carried through the mount's lever arm.
+
 Without TF, a PoseWithCovarianceStamped ``pose_topic`` (AMCL at its motion-triggered
 cadence) anchors the robot's odometry topic in its namespace when there is one
 (:func:`anchored_poses`), so a slow robot keeps its scans.
@@ -20,6 +25,7 @@ map frame and carried from the robot body to the laser through the mount's lever
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,17 +35,21 @@ import numpy as np
 from gpocc.config import MountConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.poses import (
+    COVARIANCE_DIGITS,
     PoseSeries,
     check_covariances,
     covariance_at,
     move_covariances,
+    nonfinite_warning,
     rotate_covariances,
 )
 from gpocc.io.scans import Provenance, ScanBatch
+from gpocc.io.stamps import HEADER, Stamps, choose_stamps
 from gpocc.io.tf import Chain, TfBuffer
 from gpocc.io.timeline import blend_poses, brackets
 from gpocc.progress import log
 
+_ROUNDED = "PSD only within the rounding"
 #: A sensor losing more than this share of its scans gets a warning.
 SKIP_WARNING_SHARE = 0.10
 
@@ -48,8 +58,9 @@ SKIP_WARNING_SHARE = 0.10
 class ScanTopic:
     """One LaserScan topic's messages, as read (validated in gpocc.io.bags)."""
 
-    stamps: list[float] = field(default_factory=list)
+    stamps: list[float] = field(default_factory=list)  # header stamps, 0.0 when zero
     ranges: list[np.ndarray] = field(default_factory=list)
+    log_times: list[float] = field(default_factory=list)  # empty: time by ``stamps``
     geometry: tuple[int, float, float] | None = None
     range_limits: tuple[float, float] | None = None
     frame_id: str = ""
@@ -89,6 +100,35 @@ def find_chain(tf: TfBuffer, sensor: SensorConfig, laser_frame: str) -> tuple[Ch
     if bad:
         why.append("frames with two parents: " + "; ".join(bad))
     return None, "; ".join(why)
+
+
+def in_map_frame(frame: str, sensor: SensorConfig) -> bool:
+    """Whether ``frame`` is the sensor's map frame (as given, or under its namespace)."""
+    ns = namespace(sensor.scan_topic or "")
+    return bool(frame) and frame in _frame_candidates(sensor.map_frame, ns)
+
+
+def mount_chain(tf: TfBuffer, series: PoseSeries, laser_frame: str) -> Chain | None:
+    """The static TF chain from the frame a pose topic gives the pose of to the laser.
+
+    That frame is the pose's ``child_frame_id`` (Odometry) when TF knows it, else the top
+    of the laser's static subtree (``base_footprint`` for ``base_footprint -> base_link
+    -> laser``): AMCL and SLAM poses are the robot base's. None when there is no such
+    chain, or it is not all static (not a mount).
+    """
+    body = series.child_frame_id
+    if not body or body not in tf.frames():
+        body = laser_frame
+        edge = tf.edges.get(body)
+        while edge is not None and edge.static:
+            body = edge.parent
+            edge = tf.edges.get(body)
+    if body == laser_frame:
+        return None
+    chain = tf.chain(body, laser_frame)
+    if chain is None or not chain.steps or not all(e.static for e, _ in chain.steps):
+        return None
+    return chain
 
 
 def _skip_reasons(valid: np.ndarray, missing: np.ndarray) -> list[tuple[str, str, int]]:
@@ -140,6 +180,11 @@ def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
     check = check_covariances(series, path, sensor.covariance_sentinel,
                               sensor.repair_pose_covariance, "sensors[]")
     notes = []
+    if check.rounded:
+        notes.append(f"{check.rounded} covariances on {series.topic} {_ROUNDED} of "
+                     f"{COVARIANCE_DIGITS} significant digits: clipped to PSD")
+    if check.nonfinite:
+        log(f"warning: {path}: sensor '{sensor.name}': {nonfinite_warning(series.topic, check)}")
     if check.repaired:
         notes.append(f"{check.repaired} non-PSD covariances on {series.topic} repaired "
                      "(negative eigenvalues set to 0)")
@@ -158,7 +203,7 @@ def _covariances(path: Path, sensor: SensorConfig, series: PoseSeries | None,
         if link is not None:
             rot = tf.lookup(link, series.stamps, max_age_s)
             cov = rotate_covariances(cov, np.where(rot.valid, rot.poses[:, 2], 0.0))
-    check = type(check)(cov, check.known, check.unknown_reason, check.repaired)
+    check = dataclasses.replace(check, covariances=cov)
     at = covariance_at(stamps, series.stamps, check, fallback, max_age_s)
     source = f"{series.topic} (held or interpolated up to {age_key}={max_age_s:g} s)"
     unknown = int(np.count_nonzero(~check.known))
@@ -178,13 +223,15 @@ def interpolate_poses(
     poses: np.ndarray,
     stamps: np.ndarray,
     max_gap_s: float,
+    tolerance_s: float = 1e-6,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses at ``stamps``: x, y linear in time, yaw along the shorter arc.
 
-    A stamp is served when it equals a pose stamp, or lies between two poses at most
-    ``max_gap_s`` apart. Returns ``(poses (S, 3), valid (S,) bool)``.
+    A stamp is served when it lies between two poses at most ``max_gap_s`` apart, or
+    within ``tolerance_s`` of a pose (it takes that pose). Returns
+    ``(poses (S, 3), valid (S,) bool)``.
     """
-    at = brackets(pose_stamps, stamps, max_gap_s)
+    at = brackets(pose_stamps, stamps, max_gap_s, tolerance_s)
     return blend_poses(poses, at), at.served
 
 
@@ -202,7 +249,8 @@ def _inverse(a: np.ndarray) -> np.ndarray:
 
 
 def anchored_poses(fixes: PoseSeries, odom: PoseSeries, stamps: np.ndarray, max_gap_s: float,
-                   max_age_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                   max_age_s: float, tolerance_s: float = 1e-6,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Odometry anchored to sparse localisation fixes, as AMCL's ``map -> odom`` TF does.
 
     At each fix ``A_k`` (AMCL publishes only after 0.25 m or 0.2 rad of motion) the
@@ -214,12 +262,12 @@ def anchored_poses(fixes: PoseSeries, odom: PoseSeries, stamps: np.ndarray, max_
         ``(poses (S, 3), valid (S,), stale (S,))``, ``stale`` marking scans too far from a
         fix; None when no fix falls within the odometry.
     """
-    o_fix, ok = interpolate_poses(odom.stamps, odom.poses, fixes.stamps, max_gap_s)
+    o_fix, ok = interpolate_poses(odom.stamps, odom.poses, fixes.stamps, max_gap_s, tolerance_s)
     if not ok.any():
         return None
     t_fix = fixes.stamps[ok]
     correction = _compose(fixes.poses[ok], _inverse(o_fix[ok]))
-    o_scan, valid = interpolate_poses(odom.stamps, odom.poses, stamps, max_gap_s)
+    o_scan, valid = interpolate_poses(odom.stamps, odom.poses, stamps, max_gap_s, tolerance_s)
     i = np.clip(np.searchsorted(t_fix, stamps, side="right") - 1, 0, t_fix.size - 1)
     stale = np.abs(stamps - t_fix[i]) > max_age_s
     return _compose(correction[i], o_scan), valid & ~stale, stale
@@ -237,7 +285,12 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     if not scans.stamps:
         raise GpoccError(f"{path}: topic {scan_topic} has no messages; pick another scan_topic")
     assert scans.geometry is not None and scans.range_limits is not None
-    stamps = np.asarray(scans.stamps)
+    timing = (choose_stamps(np.asarray(scans.stamps), np.asarray(scans.log_times), False)
+              if len(scans.log_times) == len(scans.stamps) else
+              Stamps(np.asarray(scans.stamps, dtype=float), HEADER))
+    if timing.reason:
+        log(f"warning: {path}: {timing.warning(scan_topic)}")
+    stamps = timing.times
     order = np.argsort(stamps, kind="stable")
     stamps = stamps[order]
     ranges = np.stack(scans.ranges)[order]
@@ -247,6 +300,17 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     chain, why = (find_chain(tf, sensor, scans.frame_id)
                   if tf and sensor.position_from_tf and scans.frame_id else (None, ""))
     notes: list[str] = []
+    mount_tf = None
+    if (tf and sensor.position_from_tf and scans.frame_id and series is not None
+            and (chain is None or why) and in_map_frame(series.frame_id, sensor)):
+        # A map-frame pose topic (AMCL, robot_localization's global Odometry) beats TF
+        # from odom, which drifts; TF still gives the base -> laser mount.
+        mount_tf = mount_chain(tf, series, scans.frame_id)
+        if mount_tf is not None and chain is not None:
+            notes.append(f"TF reaches '{scans.frame_id}' only from '{chain.target}', which "
+                         f"drifts: poses from {series.topic} (frame '{series.frame_id}') "
+                         "with the mount from TF instead")
+            chain, why = None, ""
     skipped: list[tuple[str, str, int]] = []
     chain_text = ""
     if chain is not None:
@@ -299,7 +363,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         fused = None
         if odometry is not None and odometry.stamps.size and odometry.topic != series.topic:
             fused = anchored_poses(series, odometry, stamps, sensor.max_pose_gap_s,
-                                   sensor.max_covariance_age_s)
+                                   sensor.max_covariance_age_s, sensor.stamp_tolerance_s)
         if fused is not None:
             poses, valid, stale = fused
             gap = ~valid & ~stale
@@ -312,9 +376,10 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
             cov_age, age_key = sensor.max_covariance_age_s, "max_covariance_age_s"
         else:
             poses, valid = interpolate_poses(series.stamps, series.poses, stamps,
-                                             sensor.max_pose_gap_s)
+                                             sensor.max_pose_gap_s, sensor.stamp_tolerance_s)
             if not valid.all():
-                skipped = [(f"no pose on {series.topic} within max_pose_gap_s of the scan",
+                skipped = [(f"no pose on {series.topic} within stamp_tolerance_s of the "
+                            "scan, nor two poses around it within max_pose_gap_s",
                             "sensors[].max_pose_gap_s", int(np.count_nonzero(~valid)))]
             pose_source = f"topic {series.topic} ({series.msgtype.rsplit('/', 1)[-1]})"
             # The pose and its covariance come from the same messages: one time bound.
@@ -322,6 +387,23 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         cov = _covariances(path, sensor, series, stamps, None, None, cov_age, age_key, valid)
         covariances = cov.covariances
         has_cov = bool(cov.from_input[valid].any())
+        if mount_tf is not None:
+            if sensor.mount != MountConfig():
+                raise GpoccError(
+                    f"{path}: sensor '{sensor.name}': TF already gives the laser's mount "
+                    f"({mount_tf.describe()}), and the config sets sensors[].mount too; "
+                    "remove mount from that entry (or set position_from_tf: false)")
+            rel = tf.lookup(mount_tf, stamps, sensor.max_pose_gap_s)
+            laser = _compose(poses, rel.poses)
+            # The base's covariance carried to the laser through the mount's lever arm.
+            covariances = move_covariances(covariances, laser[:, :2] - poses[:, :2])
+            poses = laser
+            if rel.upside_down.any():
+                angles = -angles
+                notes.append(f"laser frame '{scans.frame_id}' is upside down: bearings "
+                             "mirrored")
+            chain_text = mount_tf.describe()
+            pose_source += f" with the mount TF {mount_tf.target} -> {mount_tf.source}"
     notes.extend(cov.notes)
     if series is not None and series.normalised_quaternions:
         notes.append(f"{series.normalised_quaternions} non-unit quaternions on {series.topic} "
@@ -350,15 +432,24 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         )
     n_skipped = int(np.count_nonzero(~valid))
     for note in notes:
+        if _ROUNDED in note:
+            continue  # rounding is no fault of the log: counted in `gpocc info` only
         log(f"note: {path}: sensor '{sensor.name}': {note}")
     if n_skipped > SKIP_WARNING_SHARE * stamps.size:
         reason, key, count = max(skipped, key=lambda r: r[2])
         log(f"warning: {path}: sensor '{sensor.name}': {n_skipped} of {stamps.size} scans "
             f"({100 * n_skipped / stamps.size:.0f}%) skipped, mostly ({count}) for {reason}; "
             f"raise {key} if the pose source is just slow")
+    elif n_skipped:  # never a scan lost without a word
+        for reason, key, count in skipped:
+            log(f"note: {path}: sensor '{sensor.name}': {count} of {stamps.size} scans "
+                f"skipped for {reason} (config key {key})")
+    clocks = [timing.describe(scan_topic)] + [
+        p.stamps_from for p in (series, odometry if chain is None else None)
+        if p is not None and p.stamps_from]
     provenance = Provenance(pose_source=pose_source, frame_chain=chain_text,
                             covariance_source=cov.source, skipped=tuple(skipped),
-                            notes=tuple(notes))
+                            notes=tuple(notes), stamps="; ".join(dict.fromkeys(clocks)))
     return ScanBatch(
         sensor=sensor.name,
         source=str(path),

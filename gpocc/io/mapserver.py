@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from gpocc.constants import FREE as CLASS_FREE
+from gpocc.constants import OCCUPIED as CLASS_OCCUPIED
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_path
@@ -59,9 +61,6 @@ def class_pixels(classes: np.ndarray) -> np.ndarray:
 
     Unsure (2) and no-data (255) cells become unknown: map_server has no other state.
     """
-    from gpocc.gp.classify import FREE as CLASS_FREE
-    from gpocc.gp.classify import OCCUPIED as CLASS_OCCUPIED
-
     c = np.asarray(classes)
     pixels = np.full(c.shape, UNKNOWN_PIXEL, dtype=np.uint8)
     pixels[c == CLASS_OCCUPIED] = OCCUPIED_PIXEL

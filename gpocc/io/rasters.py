@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from gpocc.constants import FREE, NO_DATA, OCCUPIED, UNSURE
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec, geotransform
 from gpocc.io.atomic import atomic_path
@@ -83,8 +84,6 @@ class Band:
 
 
 def _class_categories() -> tuple[Category, ...]:
-    from gpocc.gp.classify import FREE, NO_DATA, OCCUPIED, UNSURE
-
     # Free white, occupied black (as in map_server images), unsure amber, no data clear.
     return (Category(FREE, "free", (255, 255, 255, 255)),
             Category(OCCUPIED, "occupied", (0, 0, 0, 255)),

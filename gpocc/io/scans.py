@@ -32,6 +32,9 @@ class Provenance:
         covariance_source: e.g. ``/amcl_pose (held up to 30 s)`` or ``config``.
         skipped: (reason, config key, count) of dropped scans.
         notes: counted repairs and fallbacks.
+        stamps: which clock times each topic used (``/scan: header stamps; ...``).
+        sensor_lines: what the reader saw of the sensor, for ``gpocc info`` (a point
+            cloud's points, fields, rings, heights and equivalent scan).
     """
 
     pose_source: str
@@ -39,6 +42,8 @@ class Provenance:
     covariance_source: str = ""
     skipped: tuple[tuple[str, str, int], ...] = ()
     notes: tuple[str, ...] = field(default=())
+    stamps: str = ""
+    sensor_lines: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gpocc.config import ModelConfig
-from gpocc.gp.local import LocalProblem, NeighbourIndex, predict_local
+from gpocc.gp.local import LocalProblem, NeighbourIndex, predict_locals
 from gpocc.gp.model import GPModel
 from gpocc.gridspec import GridSpec
 
@@ -188,22 +188,38 @@ def predict_anchor(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice
 
     The footprint never depends on how the map is tiled, so neither do the values.
     """
-    block, weight = lattice.footprint(anchor)
-    window = lattice.spec.window(block.row0, block.col0, block.rows, block.cols)
-    shape = (block.rows, block.cols)
-    wanted = np.ones(shape, dtype=bool) if anchor.inside is None else anchor.inside
-    if wanted.shape != shape:
-        raise ValueError(f"anchor mask {wanted.shape} does not match its footprint {shape}")
-    queries = np.column_stack(window.cell_centres_at(*np.nonzero(wanted)))
     if problem is None:
         problem = anchor_problems(model, index, lattice, [anchor])[0]
-    pred = predict_local(model.kernel, model.noise_variance, problem, queries, model.level)
-    layers = []
-    for values in (pred.mean, pred.variance, pred.prior_variance):
-        layer = np.zeros(shape)
-        layer[wanted] = values
-        layers.append(layer)
-    return AnchorResult(anchor, block, weight, *layers)
+    return predict_anchors(model, lattice, [anchor], [problem])[0]
+
+
+def predict_anchors(model: GPModel, lattice: AnchorLattice, anchors: list[Anchor],
+                    problems: list[LocalProblem]) -> list[AnchorResult]:
+    """:func:`predict_anchor` of each of ``anchors`` from its ``problems`` entry, as one
+    batch of local predictions (:func:`gpocc.gp.local.predict_locals`)."""
+    footprints, queries = [], []
+    for anchor in anchors:
+        block, weight = lattice.footprint(anchor)
+        window = lattice.spec.window(block.row0, block.col0, block.rows, block.cols)
+        shape = (block.rows, block.cols)
+        wanted = np.ones(shape, dtype=bool) if anchor.inside is None else anchor.inside
+        if wanted.shape != shape:
+            raise ValueError(f"anchor mask {wanted.shape} does not match its footprint "
+                             f"{shape}")
+        footprints.append((block, weight, wanted))
+        queries.append(np.column_stack(window.cell_centres_at(*np.nonzero(wanted))))
+    predictions = predict_locals(model.kernel, model.noise_variance, problems, queries,
+                                 model.level, model.config.model.backend)
+    results = []
+    for anchor, (block, weight, wanted), pred in zip(anchors, footprints, predictions,
+                                                     strict=True):
+        layers = []
+        for values in (pred.mean, pred.variance, pred.prior_variance):
+            layer = np.zeros(wanted.shape)
+            layer[wanted] = values
+            layers.append(layer)
+        results.append(AnchorResult(anchor, block, weight, *layers))
+    return results
 
 
 def anchor_problems(model: GPModel, index: NeighbourIndex, lattice: AnchorLattice,

@@ -17,7 +17,6 @@ from collections.abc import Callable, Iterator
 from contextlib import nullcontext
 
 from gpocc.blas import single_threaded_blas
-from gpocc.errors import GpoccError
 from gpocc.gp.local import NeighbourIndex, predict_local
 from gpocc.gp.model import GPModel
 from gpocc.mapping.blocks import (
@@ -25,9 +24,9 @@ from gpocc.mapping.blocks import (
     AnchorLattice,
     AnchorResult,
     anchor_problems,
-    predict_anchor,
+    predict_anchors,
 )
-from gpocc.parallel import watched, worker_pool
+from gpocc.parallel import dask_client, watched, worker_pool
 
 _worker_state: dict[str, object] = {}
 
@@ -55,9 +54,8 @@ def compute_chunk(model: GPModel, lattice: AnchorLattice,
     # (it walks the loaded libraries), a fifth of an anchor, so they skip it.
     limit = nullcontext() if _worker_state.get("single_threaded") else single_threaded_blas()
     with limit:
-        problems = anchor_problems(model, index, lattice, chunk)
-        return [predict_anchor(model, index, lattice, anchor, problem)
-                for anchor, problem in zip(chunk, problems, strict=True)]
+        return predict_anchors(model, lattice, chunk,
+                               anchor_problems(model, index, lattice, chunk))
 
 
 def _init_worker(model: GPModel) -> None:
@@ -78,7 +76,8 @@ def warm_up(model: GPModel) -> None:
     index = _index_for(model)
     centre = model.samples.means[0]
     problem = index.problem(centre, model.config.model.neighbours)
-    predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level)
+    predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level,
+                  model.config.model.backend)
 
 
 def _compute_in_worker(lattice: AnchorLattice, chunk: list[Anchor]) -> list[AnchorResult]:
@@ -142,19 +141,9 @@ def anchor_executor(model: GPModel, workers: int = 1, scheduler: str | None = No
     if anchors is not None:
         workers = min(workers, -(-anchors // ANCHORS_PER_CHUNK))
     if scheduler:
-        from distributed import Client
-
-        try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError, ValueError) as exc:  # ValueError: a malformed address
-            raise GpoccError(
-                f"cannot reach the Dask scheduler at {scheduler} ({exc}); check the address"
-            ) from None
-        try:
+        with dask_client(scheduler) as client:
             yield AnchorExecutor(model, client=client,
                                  model_future=client.scatter(model, broadcast=True))
-        finally:
-            client.close()
         return
     if workers <= 1:
         yield AnchorExecutor(model)

@@ -24,7 +24,8 @@ import numpy as np
 
 import gpocc
 from gpocc.config import Config
-from gpocc.gp.classify import NO_DATA, class_counts
+from gpocc.constants import METADATA_FILE, NO_DATA
+from gpocc.gp.classify import class_counts
 from gpocc.gridspec import GridSpec, georef_metadata
 from gpocc.io.atomic import atomic_path
 from gpocc.io.mapserver import class_pixels, tile_offset, write_map_server_tiles
@@ -286,5 +287,5 @@ def folder_metadata(method: str, spec: GridSpec, config: Config, counts: dict[st
 
 def write_metadata(out_dir: Path, meta: dict[str, Any]) -> None:
     """Write ``metadata.json`` (from :func:`folder_metadata`) atomically."""
-    with atomic_path(out_dir / "metadata.json") as tmp:
+    with atomic_path(out_dir / METADATA_FILE) as tmp:
         tmp.write_text(json.dumps(meta, indent=2) + "\n")

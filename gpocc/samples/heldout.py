@@ -1,4 +1,5 @@
-"""Labelled points from held-out scans: occupied at each hit, free along each beam.
+"""Labelled points from held-out scans: occupied at each hit, free along each beam,
+and free just in front of each hit (the near-wall band).
 
 The points a user checks a map against: ``gpocc split`` makes them the ground truth of
 held-out scans (:mod:`gpocc.evaluation.split`), and with ``model.training.
@@ -23,6 +24,13 @@ from gpocc.samples.sampleset import has_both_labels
 
 #: Free points start this far from the laser and stop this far short of a hit, metres.
 FREE_MARGIN_M = 0.1
+#: Near-wall free points lie this far in front of a hit, metres: uniform in
+#: ``[r - NEAR_WALL_BAND_M[1], r - NEAR_WALL_BAND_M[0]]`` for a hit at range ``r``. Free
+#: points along the whole beam rarely fall there, so only these test whether a map
+#: paints the space just in front of a wall occupied (a thick wall).
+NEAR_WALL_BAND_M = (0.05, 0.3)
+#: The kinds of labelled points, as written in ``heldout.csv``'s ``kind`` column.
+HIT, FREE, NEAR_WALL = "hit", "free", "near-wall"
 
 
 def heldout_mask(n_scans: int, every: int) -> np.ndarray:
@@ -105,6 +113,53 @@ def labelled_points(
     scans = np.concatenate([np.nonzero(hit)[0], np.nonzero(keep)[0]])
     distances = np.concatenate([hit_r[hit], free_d[keep]])
     return points, labels, scans, distances
+
+
+def near_wall_points(
+    batch: ScanBatch, sensor: SensorConfig, per_beam: int, rng: np.random.Generator,
+    band: tuple[float, float] = NEAR_WALL_BAND_M,
+) -> np.ndarray:
+    """Free points just in front of each hit: ``per_beam`` per hit beam, at distances
+    uniform in ``[r - band[1], r - band[0]]`` (``r`` its range), the interval clipped to
+    start at least :data:`FREE_MARGIN_M` from the laser; a hit too close for the clipped
+    interval gives none. No-return and invalid beams give none (they have no wall).
+
+    Returns:
+        (N, 2) metres, map frame, in scan, beam, draw order.
+    """
+    near, far = band
+    if not 0.0 <= near < far:
+        raise GpoccError(f"the near-wall band must satisfy 0 <= near < far, got {band}")
+    r = batch.ranges
+    hit = beam.classify_beams(r, batch.range_min, batch.range_max).hit
+    hit_r = np.where(hit, r, 0.0)
+    start = np.maximum(hit_r - far, FREE_MARGIN_M)
+    end = hit_r - near
+    ok = hit & (end > start)
+    u = rng.random((batch.n_scans, batch.n_beams, per_beam))
+    d = start[:, :, None] + u * (end - start)[:, :, None]
+    keep = np.broadcast_to(ok[:, :, None], d.shape)
+    points = beam_points(batch.poses, batch.angles, np.where(keep, d, 0.0), sensor)[keep]
+    return points.reshape(-1, 2)
+
+
+def protocol_points(
+    batch: ScanBatch, sensor: SensorConfig, free_per_beam: int, near_wall_per_beam: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three kinds of held-out points of ``batch``'s scans: hits and free points along
+    the beams (:func:`labelled_points`, drawn first, so their draws do not depend on
+    ``near_wall_per_beam``), then near-wall free points (:func:`near_wall_points`).
+
+    Returns:
+        ``(points, labels, kinds)``: (N, 2) metres, (N,) int8 (1 occupied, 0 free) and
+        (N,) str (:data:`HIT`, :data:`FREE` or :data:`NEAR_WALL`).
+    """
+    points, labels = labelled_points(batch, sensor, free_per_beam, rng)
+    near = near_wall_points(batch, sensor, near_wall_per_beam, rng)
+    kinds = np.concatenate([np.where(labels == 1, HIT, FREE), np.full(len(near), NEAR_WALL)])
+    return (np.concatenate([points, near]),
+            np.concatenate([labels, np.zeros(len(near), dtype=np.int8)]), kinds)
 
 
 @dataclass(frozen=True)

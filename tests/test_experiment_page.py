@@ -1,0 +1,86 @@
+"""bench/experiment.py's generated results page from a constructed run."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))
+import experiment  # noqa: E402
+
+
+def _scores(rng: np.random.Generator) -> dict[str, float]:
+    return {"auc": float(rng.uniform(0.8, 1.0)), "fpr_at_tpr97": float(rng.uniform(0, 1)),
+            "brier": float(rng.uniform(0, 0.3)), "log_loss": float(rng.uniform(0, 1)),
+            "ece": float(rng.uniform(0, 0.2)), "coverage": 1.0}
+
+
+def _run(methods: tuple[str, ...]) -> dict:
+    rng = np.random.default_rng(0)
+    cases = []
+    for i in range(5):
+        protocols = experiment.HELDOUT_PROTOCOLS + (("cells",) if i < 3 else ())
+        cases.append({"case": f"case {i}", "kind": "sim" if i < 3 else "real",
+                      "scores": {p: {m: _scores(rng) for m in methods} for p in protocols}})
+    return {"stamp": {"date": "2026-01-01 00:00 UTC", "commit": "abc1234",
+                      "machine": "CPU X, 2 logical cores (2 usable), Linux",
+                      "python": "3.11.7"},
+            "variant": "defaults", "seed": 0, "quick": False, "work": "out/experiment",
+            "cases": cases, "loop": None,
+            "commands": [f"gpocc split {experiment.ROOT}/data/x.mcap --every 10"]}
+
+
+def test_summary_counts_wins_per_protocol_and_the_page_is_stamped():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    text = experiment.page(run)
+    assert "commit `abc1234`" in text and "CPU X" in text and "make experiment" in text
+    assert "(left out in this run)" in text and "| octomap |" not in text
+    assert "gpocc split data/x.mcap --every 10" in text  # paths relative to the repository
+    for protocol in ("union", "cells"):
+        rows = [c["scores"][protocol] for c in run["cases"] if protocol in c["scores"]]
+        on = np.array([r["gp-input-noise"]["auc"] for r in rows])
+        off = np.array([r["gp-no-input-noise"]["auc"] for r in rows])
+        brier = np.array([r["gp-input-noise"]["brier"] - r["gp-no-input-noise"]["brier"]
+                          for r in rows])
+        line = next(x for x in text.splitlines()
+                    if x.startswith(f"| {protocol} | gp-input-noise vs gp-no-input-noise |"))
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        assert cells[2] == f"{(on > off).sum()}/{len(rows)}"
+        assert cells[3] == f"{(on - off).mean():+.4f}"
+        assert cells[4] == f"{(on - off).min():+.4f}"
+        assert cells[6] == f"{(brier < 0).sum()}/{len(rows)}"
+        assert f"## Protocol `{protocol}`" in text
+
+
+def test_octomap_rows_appear_when_the_run_has_them():
+    text = experiment.page(_run(experiment.METHODS))
+    assert "| union | gp-input-noise vs octomap |" in text
+    assert "(left out in this run)" not in text
+
+
+def test_family_rows_count_wins_and_check_the_table_two_order():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    families = ("hall", "hall", "offices")
+    for case, family in zip(run["cases"][:3], families, strict=True):
+        case["family"] = family
+    text = experiment.page(run)
+    assert "## By world family" in text
+    hall = [c["scores"]["cells"] for c in run["cases"][:2]]
+    diff = np.array([h["gp-input-noise"]["auc"] - h["gp-no-input-noise"]["auc"] for h in hall])
+    mean = {m: np.mean([h[m]["auc"] for h in hall])
+            for m in ("gp-input-noise", "gp-no-input-noise", "grid")}
+    order = mean["gp-input-noise"] > mean["gp-no-input-noise"] > mean["grid"]
+    line = next(x for x in text.splitlines() if x.startswith("| hall | 2 | cells |"))
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[3] == f"{(diff > 0).sum()}/2"
+    assert cells[4] == f"{diff.min():+.4f}"
+    assert cells[7].split(" / ")[0] == ("yes" if order else "no")
+
+
+def test_world_families():
+    assert [experiment.world_family(w) for w in
+            ("default", "office", "grown-3", "hall-4", "clutter-0", "offices-12")] == [
+        "hand-drawn", "hand-drawn", "grown", "hall", "clutter", "offices"]
+    assert len(experiment.WORLDS) >= 20
