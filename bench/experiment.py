@@ -66,7 +66,7 @@ REAL_LEVELS = ((0.02, 0.5), (0.08, 1.5), (0.15, 3.0))
 STRETCH_SCANS = 50
 HELD_OUT_EVERY = 10
 RESOLUTION = "0.1"
-METHODS = ("grid", "octomap", "gp-no-input-noise", "gp-input-noise")
+METHODS = ("grid", "octomap", "bhm", "gp-no-input-noise", "gp-input-noise")
 HELDOUT_PROTOCOLS = ("hits+free", "hits+near-wall", "union")
 CELL_PROTOCOLS = ("cells", "cells-noisy-only")
 PROTOCOLS = (*HELDOUT_PROTOCOLS, *CELL_PROTOCOLS)
@@ -172,11 +172,13 @@ def gp_map(inputs: list[Path], config: Path, noise: str, folder: Path,
     return time.perf_counter() - started
 
 
-def grid_map(inputs: list[Path], config: Path, folder: Path, bounds: list[str] | None) -> None:
+def grid_map(inputs: list[Path], config: Path, folder: Path, bounds: list[str] | None,
+             command: str = "grid") -> None:
+    """A baseline's map folder (``gpocc grid`` or ``gpocc bhm``), made once."""
     if (folder / "probability.tif").is_file():
         return
     extra = ["--bounds", *bounds] if bounds else []
-    gpocc("grid", *inputs, "--config", config, "--resolution", RESOLUTION, "--out", folder,
+    gpocc(command, *inputs, "--config", config, "--resolution", RESOLUTION, "--out", folder,
           "--force", *extra)
 
 
@@ -216,11 +218,12 @@ def noisy_only_truth(sim: Path, world: str, seed: int) -> Path:
 
 def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
                 shared: Path, bounds: list[str] | None) -> tuple[dict[str, Path], dict]:
-    """Every method's map folder on ``inputs``: the grid and OctoMap (shared between
+    """Every method's map folder on ``inputs``: the grid, BHM and OctoMap (shared between
     variants, in ``shared``) and both GPs (in ``vdir``); and the GPs' wall seconds."""
     vdir.mkdir(parents=True, exist_ok=True)
     grid_map(inputs, base_config, shared / "grid", bounds)
-    maps = {"grid": shared / "grid"}
+    grid_map(inputs, base_config, shared / "bhm", bounds, "bhm")
+    maps = {"grid": shared / "grid", "bhm": shared / "bhm"}
     if octomap_row(inputs, base_config, shared / "octomap", shared / "grid"):
         maps["octomap"] = shared / "octomap"
     config = with_overrides(base_config, VARIANTS[variant], vdir / "config.yaml")
@@ -399,7 +402,7 @@ def summary_table(cases: list[dict]) -> list[str]:
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     methods = _methods(cases)
     pairs = [("gp-input-noise", "gp-no-input-noise")] + [
-        ("gp-input-noise", m) for m in ("grid", "octomap") if m in methods]
+        ("gp-input-noise", m) for m in ("grid", "octomap", "bhm") if m in methods]
     for protocol in PROTOCOLS:
         for a, b in pairs:
             line = comparison(cases, protocol, a, b)
@@ -482,7 +485,8 @@ def page(run: dict) -> str:
         "",
         "Methods: `grid` (`gpocc grid`, log-odds), `octomap` (pyoctomap, the same scans "
         "ray-cast at the same resolution, its occupancy probability per cell; unknown cells "
-        "score p = 0.5), `gp-no-input-noise` and `gp-input-noise` (`gpocc train "
+        "score p = 0.5), `bhm` (`gpocc bhm`, a Bayesian Hilbert map with gpocc's "
+        "defaults), `gp-no-input-noise` and `gp-input-noise` (`gpocc train "
         "--input-noise off|on`, `gpocc map`). Every map at "
         f"{RESOLUTION} m, trained on the same scans.",
         "",
