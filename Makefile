@@ -58,8 +58,10 @@ $(BENCH_STAMP): $(KERNELS_STAMP)
 	$(BIN)/python -m pip install -q -e '.[test,bench]'
 	touch $(BENCH_STAMP)
 
+# The benchmark suite (bench/run_bench.py): runs every registered benchmark and writes
+# docs/benchmarks.md. One benchmark: .venv/bin/python -m bench.run_bench --only NAME --out -
 bench: $(BENCH_STAMP) bytecode
-	$(BIN)/python bench/run_bench.py
+	$(BIN)/python -m bench.run_bench
 
 # The bench extra gives the suite its OctoMap rows (left out with a note without it).
 experiment: $(BENCH_STAMP) bytecode

@@ -11,7 +11,7 @@ from setuptools.command.build_ext import build_ext
 # and blends) without changing a result. -O3: their loops are the map's and the
 # training's hot path. -ffp-contract=fast: a * b + c becomes one fused multiply-add (one
 # rounding instead of two) where the CPU has FMA; -std=c11 alone turns contraction off,
-# and a map anchor's covariances took 25% longer (docs/benchmarks.md).
+# and a map anchor's covariances took 25% longer (measured in commit dc508e1).
 FLAGS = ["-O3", "-fno-math-errno", "-fno-trapping-math", "-ffinite-math-only",
          "-fno-signed-zeros", "-std=c11", "-ffp-contract=fast"]
 #: MSVC's spelling of the same intent; it has no finite-math-only short of /fp:fast,

@@ -6,22 +6,18 @@ site, plus a config with one sensor entry per source log. 4 x 910 + 4791 = 8431 
 five buildings. The copies share nothing but the site frame: each is its own input file,
 so scan ids, timestamps and sensors stay per building.
 
-Run ``.venv/bin/python bench/campus.py OUT_DIR`` to write the files for a manual run.
+Run ``.venv/bin/python -m bench.campus OUT_DIR`` to write the files for a manual run.
 """
 
 from __future__ import annotations
 
 import math
-import os
 import sys
 from pathlib import Path
 
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("GPOCC_CARMEN_DIR", ROOT.parent / "shared" / "data" / "carmen"))
-INTEL = DATA / "intel.gfs.log"
-FREIBURG = DATA / "freiburg-079-corrected.log"
+from .paths import FREIBURG, FREIBURG_CONFIG, INTEL, INTEL_CONFIG
 
 # (source, file name, yaw rad, dx m, dy m): Intel's poses span about x -9..17, y -22..4 and
 # Freiburg's x -24..12, y -8..7 (endpoints reach ~10 m further), so these centres keep the
@@ -65,8 +61,7 @@ def write_campus(folder: Path) -> tuple[list[Path], Path, int]:
         total += transform_log(source, path, yaw, dx, dy)
         logs.append(path)
     config = {}
-    for base, name in ((ROOT / "configs" / "carmen_intel.yaml", "intel"),
-                       (ROOT / "configs" / "carmen_freiburg.yaml", "freiburg")):
+    for base, name in ((INTEL_CONFIG, "intel"), (FREIBURG_CONFIG, "freiburg")):
         data = yaml.safe_load(base.read_text())
         sensor = data["sensors"][0]
         sensor["name"] = name
@@ -83,6 +78,6 @@ def write_campus(folder: Path) -> tuple[list[Path], Path, int]:
 
 if __name__ == "__main__":
     if len(sys.argv) != 2:
-        raise SystemExit("usage: bench/campus.py OUT_DIR")
+        raise SystemExit("usage: python -m bench.campus OUT_DIR")
     logs, cfg, scans = write_campus(Path(sys.argv[1]))
     print(f"{scans} scans in {len(logs)} logs; config {cfg}")

@@ -50,7 +50,11 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 GPOCC = [sys.executable, "-m", "gpocc"]
-WORLDS = ("default", "office", "warehouse", "grown-1", "grown-2", "grown-3")
+#: Worlds of two generators: the hand-drawn and grown corridor buildings, and five of
+#: each family of the second generator (:mod:`gpocc.evaluation.families`).
+WORLDS = ("default", "office", "warehouse", "grown-1", "grown-2", "grown-3",
+          *(f"{family}-{seed}" for family in ("offices", "hall", "clutter")
+            for seed in range(5)))
 #: name -> (log file under the CARMEN folder, config under configs/).
 REAL_LOGS = {"intel": ("intel.gfs.log", "carmen_intel.yaml"),
              "freiburg-079": ("freiburg-079-corrected.log", "carmen_freiburg.yaml")}
@@ -62,7 +66,7 @@ REAL_LEVELS = ((0.02, 0.5), (0.08, 1.5), (0.15, 3.0))
 STRETCH_SCANS = 50
 HELD_OUT_EVERY = 10
 RESOLUTION = "0.1"
-METHODS = ("grid", "octomap", "gp-no-input-noise", "gp-input-noise")
+METHODS = ("grid", "octomap", "bhm", "gp-no-input-noise", "gp-input-noise")
 HELDOUT_PROTOCOLS = ("hits+free", "hits+near-wall", "union")
 CELL_PROTOCOLS = ("cells", "cells-noisy-only")
 PROTOCOLS = (*HELDOUT_PROTOCOLS, *CELL_PROTOCOLS)
@@ -168,11 +172,13 @@ def gp_map(inputs: list[Path], config: Path, noise: str, folder: Path,
     return time.perf_counter() - started
 
 
-def grid_map(inputs: list[Path], config: Path, folder: Path, bounds: list[str] | None) -> None:
+def grid_map(inputs: list[Path], config: Path, folder: Path, bounds: list[str] | None,
+             command: str = "grid") -> None:
+    """A baseline's map folder (``gpocc grid`` or ``gpocc bhm``), made once."""
     if (folder / "probability.tif").is_file():
         return
     extra = ["--bounds", *bounds] if bounds else []
-    gpocc("grid", *inputs, "--config", config, "--resolution", RESOLUTION, "--out", folder,
+    gpocc(command, *inputs, "--config", config, "--resolution", RESOLUTION, "--out", folder,
           "--force", *extra)
 
 
@@ -212,11 +218,12 @@ def noisy_only_truth(sim: Path, world: str, seed: int) -> Path:
 
 def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
                 shared: Path, bounds: list[str] | None) -> tuple[dict[str, Path], dict]:
-    """Every method's map folder on ``inputs``: the grid and OctoMap (shared between
+    """Every method's map folder on ``inputs``: the grid, BHM and OctoMap (shared between
     variants, in ``shared``) and both GPs (in ``vdir``); and the GPs' wall seconds."""
     vdir.mkdir(parents=True, exist_ok=True)
     grid_map(inputs, base_config, shared / "grid", bounds)
-    maps = {"grid": shared / "grid"}
+    grid_map(inputs, base_config, shared / "bhm", bounds, "bhm")
+    maps = {"grid": shared / "grid", "bhm": shared / "bhm"}
     if octomap_row(inputs, base_config, shared / "octomap", shared / "grid"):
         maps["octomap"] = shared / "octomap"
     config = with_overrides(base_config, VARIANTS[variant], vdir / "config.yaml")
@@ -251,8 +258,15 @@ def run_sim(work: Path, variant: str, worlds: list[str], seed: int) -> list[dict
         result["cells-noisy-only"] = evaluate(maps, region,
                                               vdir / "evaluation-cells-noisy-only")["all"]
         cases.append({"case": f"{world} (seed {seed})", "kind": "sim", "scores": result,
-                      "gp_seconds": seconds})
+                      "family": world_family(world), "gp_seconds": seconds})
     return cases
+
+
+def world_family(world: str) -> str:
+    """The generator family a world belongs to: ``hand-drawn`` (default, office,
+    warehouse), ``grown``, or a family of :mod:`gpocc.evaluation.families`."""
+    head = world.rsplit("-", 1)[0] if world[-1:].isdigit() else world
+    return head if head in ("grown", "offices", "hall", "clutter") else "hand-drawn"
 
 
 def perturbed_training_bag(split_dir: Path, seed: int) -> Path:
@@ -388,12 +402,48 @@ def summary_table(cases: list[dict]) -> list[str]:
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     methods = _methods(cases)
     pairs = [("gp-input-noise", "gp-no-input-noise")] + [
-        ("gp-input-noise", m) for m in ("grid", "octomap") if m in methods]
+        ("gp-input-noise", m) for m in ("grid", "octomap", "bhm") if m in methods]
     for protocol in PROTOCOLS:
         for a, b in pairs:
             line = comparison(cases, protocol, a, b)
             if line:
                 lines.append(line)
+    return lines
+
+
+def family_table(cases: list[dict]) -> list[str]:
+    """Per world family: input noise against none and the grid (wins, worst AUC
+    difference), and whether the mean AUC and FPR@TPR0.97 follow the method paper's
+    Table II ordering (input noise > no input noise > grid), on ``cells`` and ``union``."""
+    families = sorted({c["family"] for c in cases if c.get("family")})
+    if not families:
+        return []
+    lines = ["| family | worlds | protocol | AUC wins vs no input noise | worst AUC diff | "
+             "Brier wins | AUC wins vs grid | Table II order (AUC / FPR@TPR0.97) |",
+             "|---|---:|---|---:|---:|---:|---:|---|"]
+    for family in families:
+        rows = [c for c in cases if c.get("family") == family]
+        for protocol in ("cells", "union"):
+            have = [c["scores"][protocol] for c in rows if protocol in c["scores"]]
+            if not have:
+                continue
+            a = np.array([h["gp-input-noise"]["auc"] - h["gp-no-input-noise"]["auc"]
+                          for h in have])
+            brier = np.array([h["gp-input-noise"]["brier"] - h["gp-no-input-noise"]["brier"]
+                              for h in have])
+            g = np.array([h["gp-input-noise"]["auc"] - h["grid"]["auc"] for h in have])
+            mean = {m: (np.mean([h[m]["auc"] for h in have]),
+                        np.mean([h[m]["fpr_at_tpr97"] for h in have]))
+                    for m in ("gp-input-noise", "gp-no-input-noise", "grid")}
+            auc_order = (mean["gp-input-noise"][0] > mean["gp-no-input-noise"][0]
+                         > mean["grid"][0])
+            fpr_order = (mean["gp-input-noise"][1] < mean["gp-no-input-noise"][1]
+                         < mean["grid"][1])
+            lines.append(
+                f"| {family} | {len(have)} | {protocol} | {int((a > 0).sum())}/{a.size} | "
+                f"{a.min():+.4f} | {int((brier < 0).sum())}/{brier.size} | "
+                f"{int((g > 0).sum())}/{g.size} | "
+                f"{'yes' if auc_order else 'no'} / {'yes' if fpr_order else 'no'} |")
     return lines
 
 
@@ -435,7 +485,8 @@ def page(run: dict) -> str:
         "",
         "Methods: `grid` (`gpocc grid`, log-odds), `octomap` (pyoctomap, the same scans "
         "ray-cast at the same resolution, its occupancy probability per cell; unknown cells "
-        "score p = 0.5), `gp-no-input-noise` and `gp-input-noise` (`gpocc train "
+        "score p = 0.5), `bhm` (`gpocc bhm`, a Bayesian Hilbert map with gpocc's "
+        "defaults), `gp-no-input-noise` and `gp-input-noise` (`gpocc train "
         "--input-noise off|on`, `gpocc map`). Every map at "
         f"{RESOLUTION} m, trained on the same scans.",
         "",
@@ -464,6 +515,13 @@ def page(run: dict) -> str:
         *summary_table(cases),
         "",
     ]
+    by_family = family_table(cases)
+    if by_family:
+        lines += ["## By world family", "",
+                  "Simulated worlds by generator family (the second generator's `offices`, "
+                  "`hall` and `clutter` draw their platforms' noise around Table I's): "
+                  "`gp-input-noise` against `gp-no-input-noise` and `grid`; Table II order "
+                  "compares the family's mean AUC and FPR@TPR0.97.", "", *by_family, ""]
     for protocol in PROTOCOLS:
         table = protocol_table(cases, protocol)
         if table:

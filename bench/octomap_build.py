@@ -1,6 +1,6 @@
 """The OctoMap baseline of ``make bench``: build an OctoMap tree from the same scans.
 
-Run ``.venv/bin/python bench/octomap_build.py --config CONFIG --resolution 0.1 LOG...``
+Run ``.venv/bin/python -m bench.octomap_build --config CONFIG --resolution 0.1 LOG...``
 (needs the ``bench`` extra: pyoctomap). The logs are read with gpocc's own reader (the
 same read code and time as gpocc's), every scan is inserted as a planar point cloud
 (z = 0) from its laser pose with ray casting of the free space, and the tree's leaves are
@@ -10,7 +10,7 @@ gpocc's samples do) by passing a point that far with a ``max_range`` just short 
 CARMEN poses are the laser's pose (mount offset zero), which is what every bench input is.
 
 Prints ``read`` and ``insert`` seconds and the tree size; wall, CPU and peak memory are
-measured from outside by ``run_bench.py``, like every other row.
+measured from outside (``bench/harness.py``), like every other row.
 """
 
 from __future__ import annotations

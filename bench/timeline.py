@@ -1,8 +1,8 @@
 """Where a command's wall time goes: cores in use per process over time, with its log lines.
 
-Usage: ``.venv/bin/python bench/timeline.py [--bin SECONDS] -- COMMAND...``, e.g.::
+Usage: ``.venv/bin/python -m bench.timeline [--bin SECONDS] -- COMMAND...``, e.g.::
 
-    .venv/bin/python bench/timeline.py -- .venv/bin/gpocc build \\
+    .venv/bin/python -m bench.timeline -- .venv/bin/gpocc build \\
         ../shared/data/carmen/intel.gfs.log --config configs/carmen_intel.yaml \\
         --resolution 0.1 --out /tmp/intel-map --force
 
@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 
-from proctree import process_tree
+from .harness import process_tree
 
 _TICKS = os.sysconf("SC_CLK_TCK")
 

@@ -6,7 +6,9 @@
  * kernels whose import and first call cost 0.5-0.9 s of every command's start (numba's
  * typing and lowering registries load on the first call in each process); loading
  * this library takes about a millisecond. The loops, their order of summation and
- * their formulas are those of the numba versions (docs/benchmarks.md, session 14).
+ * their formulas are those of the numba versions they replaced (commit b5aee9e);
+ * docs/benchmarks.md, 'Expected kernels: compiled loops against numpy', compares them
+ * with the numpy quadrature.
  *
  * Each exported loop is compiled twice (GCC's target_clones on x86-64): for x86-64-v3
  * (AVX2 and FMA: with setup.py's -ffp-contract=fast, a * b + c becomes one fused

@@ -2,8 +2,9 @@
 
 Every linear-algebra call in gpocc is on a local problem of a few hundred samples. There,
 a multi-threaded BLAS spends its time waking and synchronising threads: a 160 x 160
-Cholesky took 75 ms with OpenBLAS's default threads against 0.3 ms with one
-(docs/benchmarks.md). gpocc parallelises over processes instead (map blocks).
+Cholesky took 75 ms with OpenBLAS's default threads against 0.3 ms with one, on a loaded
+machine (docs/benchmarks.md, 'BLAS threads on small matrices', measures it on yours).
+gpocc parallelises over processes instead (map blocks).
 """
 
 from __future__ import annotations

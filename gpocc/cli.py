@@ -38,6 +38,7 @@ COMMANDS: tuple[tuple[str, str], ...] = (
     ("map", "gpocc.commands.map:map_command"),
     ("build", "gpocc.commands.build:build"),
     ("grid", "gpocc.commands.grid:grid_command"),
+    ("bhm", "gpocc.commands.bhm:bhm_command"),
     ("evaluate", "gpocc.commands.evaluate:evaluate"),
     ("split", "gpocc.commands.split:split"),
     ("simulate", "gpocc.commands.simulate:simulate_command"),

@@ -7,7 +7,7 @@ the ctypes signature and a keyword-argument binding (:class:`_Function`) that ch
 every array's dtype, C order, writability and finiteness are made from it, and each
 wrapper below checks the shapes C indexes with. Loading the library takes about a
 millisecond; numba, which they replace, cost 0.5-0.9 s of every process's start
-(docs/benchmarks.md).
+(measured in commit b5aee9e, which replaced it).
 """
 
 from __future__ import annotations

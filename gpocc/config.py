@@ -71,6 +71,16 @@ class SensorConfig:
     covariance_sentinel: float = 1e3
     max_covariance_age_s: float = 30.0
     repair_pose_covariance: bool = False
+    # 3-D lidars (scan_topic a sensor_msgs/PointCloud2; gpocc.io.cloudread): returns
+    # between the heights height_band_m above the floor are obstacles; the floor is
+    # base_height_m below the base frame's origin (0: the base frame is on the floor, as
+    # REP 105's base_footprint). Bearings are binned at horizontal_resolution_deg (null:
+    # from the cloud's layout). base_frame: the frame whose x-y plane is the ground
+    # plane (null: the frame TF moves the robot by, e.g. base_footprint).
+    height_band_m: tuple[float, float] = (0.1, 2.0)
+    base_height_m: float = 0.0
+    horizontal_resolution_deg: float | None = None
+    base_frame: str | None = None
 
     @property
     def bearing_variance_rad2(self) -> float:
@@ -123,7 +133,8 @@ class SamplesConfig:
     published). With ``patch_centres: hits``, 0.05 (default) gave a better held-out Brier
     score on both real logs, dense and sparse, at two seeds, and a higher AUC in all 8
     cases of the experiment suite; alone (with the older patches) its results were mixed
-    (docs/results.md, session 6).
+    (``bench/experiment.py`` variants ``clearance-0.05`` and ``hit-patches-clearance-0.05``;
+    commit 3198d15).
 
     ``free_range_variance``: free samples of a beam that hit carry that beam's range
     variance, like its hit (false: free samples carry no range variance, as published);
@@ -167,13 +178,14 @@ class TrainingConfig:
     samples (spatially stratified), each centred at the origin as at inference.
     ``patch_centres``: ``hits`` (default) draws the centres from the occupied samples, so
     every patch holds a boundary; ``samples`` (as before) from all samples, where a draw
-    of mostly open space can learn a kernel far too smooth for the walls (docs/results.md,
-    session 6: Freiburg held-out AUC 0.937-0.942 in 2 of 6 runs). The classifier is fitted
+    of mostly open space can learn a kernel far too smooth for the walls (Freiburg held-out
+    AUC 0.937-0.942 in 2 of 6 runs; commit 3198d15). The classifier is fitted
     on the same patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
-    (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations,
-    docs/benchmarks.md, seventh session; its job is to leave a start whose covariance is
-    not positive definite, where L-BFGS-B alone stays); then L-BFGS-B for at most
+    (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations;
+    docs/benchmarks.md, 'Annealing budget of hyperparameter learning', re-measures it on
+    the real logs; its job is to leave a start whose covariance is not positive definite,
+    where L-BFGS-B alone stays); then L-BFGS-B for at most
     ``lbfgs_maxiter`` iterations, within ``log_bounds_width``
     (natural log) of the initial values. The label-noise variance is kept at or above
     ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
@@ -337,6 +349,39 @@ class InputConfig:
 
 
 @dataclass(frozen=True)
+class BHMConfig:
+    """Bayesian Hilbert map baseline (Senanayake and Ramos, CoRL 2017): gpocc.baselines.bhm.
+
+    Features: a bias and squared-exponential kernels ``exp(-gamma d^2)`` (``gamma`` in
+    1/m^2) centred on a square lattice of inducing points ``inducing_spacing_m`` apart,
+    cut to zero beyond ``3 / sqrt(gamma)`` (where a kernel is below 1.3e-4). Training
+    points: each hit (occupied) and free points every ``free_spacing_m`` along each beam
+    up to ``hit_gap_m`` before its hit (a no-return beam: up to its free extent),
+    counted per label in squares of ``sample_cell_m`` (0: every point kept on its own;
+    a count weights its point's likelihood exactly as that many repeated points would).
+    The weights' prior is N(0, 1 / prior_precision) each; ``em_iterations`` EM passes of
+    the variational (Jaakkola-Jordan) update; ``mean_update``: ``coupled`` (the
+    factorised posterior's exact means, default) or ``diagonal`` (the paper's per-weight
+    shortcut, overconfident where features overlap: held-out AUC 0.50 on Intel). Defaults
+    were tuned lightly on one held-out real log only (Intel, every 10th scan held out,
+    predicted at the held-out points): 0.25 m and gamma 25 gave AUC 0.994, Brier 0.034,
+    against 0.981 and 0.065 at 0.5 m and gamma 6; 10 EM passes against 3 gained 0.004
+    in AUC, 20 another 0.0004. Prior precision 0.01 had the higher evidence bound and
+    scored better at the points (AUC 0.995, Brier 0.031) but worse on the 0.1 m map
+    `gpocc evaluate` reads (Brier 0.051 against 0.047) and fitted twice as slowly.
+    """
+
+    inducing_spacing_m: float = 0.25
+    gamma: float = 25.0
+    prior_precision: float = 0.1
+    em_iterations: int = 10
+    free_spacing_m: float = 0.2
+    hit_gap_m: float = 0.05
+    sample_cell_m: float = 0.05
+    mean_update: str = "coupled"
+
+
+@dataclass(frozen=True)
 class Config:
     """A whole job's configuration."""
 
@@ -348,6 +393,7 @@ class Config:
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)
     map: MapConfig = field(default_factory=MapConfig)
     grid: GridConfig = field(default_factory=GridConfig)
+    bhm: BHMConfig = field(default_factory=BHMConfig)
 
 
 # --------------------------------------------------------------------------- loading
@@ -383,7 +429,7 @@ _Loader.add_implicit_resolver(
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "free_clearance_m", "stamp_tolerance_s",
+    "free_clearance_m", "sample_cell_m", "stamp_tolerance_s",
     "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }
@@ -393,8 +439,10 @@ _POSITIVE_KEYS = {
     "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
     "max_variance_ratio", "max_pgm_pixels", "covariance_sentinel",
     "min_input_noise_scale", "max_input_noise_scale", "calibration_blocks",
+    "horizontal_resolution_deg",
     "calibration_max_position_std_m",
     "weight_variance", "bias_variance", "max_cells",
+    "inducing_spacing_m", "gamma", "prior_precision", "em_iterations",
 }
 
 
@@ -521,6 +569,14 @@ def _validate(config: Config, source: str) -> Config:
             raise GpoccError(
                 f"{source}: key '{key}' is not positive semi-definite; fix its off-diagonals"
             )
+        low, high = sensor.height_band_m
+        if not low < high:
+            raise GpoccError(f"{source}: key 'sensors[{i}].height_band_m' must be [min, max] "
+                             f"heights above the floor with min < max, got {[low, high]}")
+        res = sensor.horizontal_resolution_deg
+        if res is not None and not 0.01 <= res <= 10.0:
+            raise GpoccError(f"{source}: key 'sensors[{i}].horizontal_resolution_deg' must be "
+                             f"in [0.01, 10] degrees, got {res}")
         if sensor.range_min_m is not None and sensor.range_max_m is not None:
             if sensor.range_min_m >= sensor.range_max_m:
                 raise GpoccError(f"{source}: key 'sensors[{i}].range_min_m' must be < range_max_m")
@@ -595,12 +651,35 @@ def _validate(config: Config, source: str) -> Config:
             f"clamp_min < 0 < clamp_max, got {g.log_odds_free}, {g.log_odds_occupied}, "
             f"{g.clamp_min}, {g.clamp_max}"
         )
+    _validate_bhm(config.bhm, source)
     if config.model.quadrature_level > 10:
         raise GpoccError(f"{source}: key 'model.quadrature_level' must be at most 10")
     if not 0.0 < config.model.blend_overlap <= 1.0:
         raise GpoccError(f"{source}: key 'model.blend_overlap' must be above 0 and at most 1 "
                          f"(1: bilinear across whole blocks), got {config.model.blend_overlap}")
     return config
+
+
+#: Most inducing points one training point or map cell may see (features are local).
+_MAX_BHM_NEIGHBOURS = 441
+
+
+def _validate_bhm(b: BHMConfig, source: str) -> None:
+    if b.mean_update not in ("coupled", "diagonal"):
+        raise GpoccError(f"{source}: key 'bhm.mean_update' must be 'coupled' or 'diagonal', "
+                         f"got {b.mean_update!r}")
+    reach = 3.0 / math.sqrt(b.gamma)
+    if reach < b.inducing_spacing_m:
+        raise GpoccError(
+            f"{source}: key 'bhm.gamma' ({b.gamma:g} 1/m^2) makes each feature reach "
+            f"{reach:.3g} m, less than bhm.inducing_spacing_m ({b.inducing_spacing_m:g} m): "
+            f"points between inducing points would see no feature; lower gamma to at most "
+            f"{9.0 / b.inducing_spacing_m**2:.3g} or the spacing")
+    if (2 * math.ceil(reach / b.inducing_spacing_m) + 1) ** 2 > _MAX_BHM_NEIGHBOURS:
+        raise GpoccError(
+            f"{source}: key 'bhm.gamma' ({b.gamma:g} 1/m^2) makes each feature reach "
+            f"{reach:.3g} m, over {_MAX_BHM_NEIGHBOURS} inducing points "
+            f"{b.inducing_spacing_m:g} m apart; raise gamma or bhm.inducing_spacing_m")
 
 
 def config_from_dict(data: dict[str, Any] | None, source: str = "<config>") -> Config:

@@ -19,8 +19,8 @@ ENV_MAX_CELLS = "GPOCC_MAX_CELLS"
 
 #: Samples one scan may give (hits plus free samples along its beams); a 1080-beam
 #: scan at 30 m and 0.4 m spacing gives about 81 000. Sample building holds a scan's
-#: sigma points at once (about 2.5 kB a sample, docs/benchmarks.md), so this bounds it
-#: near 2.5 GB.
+#: sigma points at once (docs/benchmarks.md, 'Memory per training sample', gives the
+#: bytes per sample), so this bounds that memory.
 MAX_SAMPLES_PER_SCAN = 1_000_000
 
 #: Labelled points ``gpocc split`` may hold out (24 bytes each, plus the random draws).

@@ -288,3 +288,25 @@ def cov6(x: float, y: float, yaw: float, xy: float = 0.0, z_and_tilt: float = 1e
     c = np.diag([x, y, z_and_tilt, z_and_tilt, z_and_tilt, yaw])
     c[0, 1] = c[1, 0] = xy
     return c
+
+
+def heldout_grid_auc(batch) -> float:
+    """AUC of a log-odds grid built from 4 of 5 scans of ``batch`` (a ScanBatch), on the
+    held-out 5th scans' points: how two readings of one run are compared."""
+    from sklearn.metrics import roc_auc_score
+
+    from gpocc.baselines.grid import observed_extent, occupancy_grid
+    from gpocc.config import Config, SensorConfig
+    from gpocc.evaluation.split import split_batch
+    from gpocc.gridspec import GridSpec
+
+    config = Config()
+    split = split_batch(batch, SensorConfig(name=batch.sensor), every=5,
+                        rng=np.random.default_rng(0))
+    spec = GridSpec.from_bounds(*observed_extent([split.train], config), 0.1)
+    grid = occupancy_grid([split.train], config, spec)
+    row, col, inside = spec.index_of(split.points)
+    scores = grid.probability[row[inside], col[inside]]
+    seen = np.isfinite(scores)  # cells no training beam reached have no probability
+    assert seen.mean() > 0.8
+    return float(roc_auc_score(split.labels[inside][seen], scores[seen]))

@@ -58,3 +58,29 @@ def test_octomap_rows_appear_when_the_run_has_them():
     text = experiment.page(_run(experiment.METHODS))
     assert "| union | gp-input-noise vs octomap |" in text
     assert "(left out in this run)" not in text
+
+
+def test_family_rows_count_wins_and_check_the_table_two_order():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    families = ("hall", "hall", "offices")
+    for case, family in zip(run["cases"][:3], families, strict=True):
+        case["family"] = family
+    text = experiment.page(run)
+    assert "## By world family" in text
+    hall = [c["scores"]["cells"] for c in run["cases"][:2]]
+    diff = np.array([h["gp-input-noise"]["auc"] - h["gp-no-input-noise"]["auc"] for h in hall])
+    mean = {m: np.mean([h[m]["auc"] for h in hall])
+            for m in ("gp-input-noise", "gp-no-input-noise", "grid")}
+    order = mean["gp-input-noise"] > mean["gp-no-input-noise"] > mean["grid"]
+    line = next(x for x in text.splitlines() if x.startswith("| hall | 2 | cells |"))
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[3] == f"{(diff > 0).sum()}/2"
+    assert cells[4] == f"{diff.min():+.4f}"
+    assert cells[7].split(" / ")[0] == ("yes" if order else "no")
+
+
+def test_world_families():
+    assert [experiment.world_family(w) for w in
+            ("default", "office", "grown-3", "hall-4", "clutter-0", "offices-12")] == [
+        "hand-drawn", "hand-drawn", "grown", "hall", "clutter", "offices"]
+    assert len(experiment.WORLDS) >= 20

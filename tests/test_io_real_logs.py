@@ -24,6 +24,7 @@ from rosbag_scenes import (
     Route,
     add_robot,
     cov6,
+    heldout_grid_auc,
     quat,
 )
 from test_io_tf import assert_covariances, lever_oracle
@@ -70,25 +71,6 @@ def clean_twin(robot: Robot) -> ScanBatch:
                      range_min=0.05, range_max=laser.max_range, has_pose_covariance=False)
 
 
-def heldout_auc(batch: ScanBatch) -> float:
-    """AUC of a log-odds grid from 4 of 5 scans on the held-out 5th scans' points."""
-    from sklearn.metrics import roc_auc_score
-
-    from gpocc.baselines.grid import observed_extent, occupancy_grid
-    from gpocc.evaluation.split import split_batch
-    from gpocc.gridspec import GridSpec
-
-    config = Config()
-    split = split_batch(batch, SensorConfig(name=batch.sensor), every=5,
-                        rng=np.random.default_rng(0))
-    spec = GridSpec.from_bounds(*observed_extent([split.train], config), 0.1)
-    grid = occupancy_grid([split.train], config, spec)
-    row, col, inside = spec.index_of(split.points)
-    scores = grid.probability[row[inside], col[inside]]
-    seen = np.isfinite(scores)
-    return float(roc_auc_score(split.labels[inside][seen], scores[seen]))
-
-
 def assert_like_clean_twin(batch: ScanBatch, robot: Robot) -> None:
     """Same scans, laser poses within 1 mm (2.5 mm with a receive-time clock) of the
     truth, held-out AUC within 0.005 of the clean twin's."""
@@ -97,7 +79,7 @@ def assert_like_clean_twin(batch: ScanBatch, robot: Robot) -> None:
     truth = clean.poses
     assert np.abs(batch.poses[:, :2] - truth[:, :2]).max() < 3e-3
     assert np.abs(np.angle(np.exp(1j * (batch.poses[:, 2] - truth[:, 2])))).max() < 3e-3
-    clean_auc, auc = heldout_auc(clean), heldout_auc(batch)
+    clean_auc, auc = heldout_grid_auc(clean), heldout_grid_auc(batch)
     assert clean_auc > 0.9
     assert abs(auc - clean_auc) <= 0.005, (auc, clean_auc)
 

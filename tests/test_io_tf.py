@@ -23,6 +23,7 @@ from rosbag_scenes import (
     amcl_stamps,
     compose,
     cov6,
+    heldout_grid_auc,
     inverse,
     quat,
 )
@@ -329,26 +330,6 @@ def test_config_mount_on_top_of_tf_is_an_error(tmp_path: Path) -> None:
         read_inputs([path], config)
 
 
-def _heldout_auc(batch: ScanBatch) -> float:
-    """AUC of a log-odds grid built from 4 of 5 scans, on the held-out 5th scans' points."""
-    from sklearn.metrics import roc_auc_score
-
-    from gpocc.baselines.grid import observed_extent, occupancy_grid
-    from gpocc.evaluation.split import split_batch
-    from gpocc.gridspec import GridSpec
-
-    config = Config()
-    split = split_batch(batch, SensorConfig(name=batch.sensor), every=5,
-                        rng=np.random.default_rng(0))
-    spec = GridSpec.from_bounds(*observed_extent([split.train], config), 0.1)
-    grid = occupancy_grid([split.train], config, spec)
-    row, col, inside = spec.index_of(split.points)
-    scores = grid.probability[row[inside], col[inside]]
-    seen = np.isfinite(scores)  # cells no training beam reached have no probability
-    assert seen.mean() > 0.8
-    return float(roc_auc_score(split.labels[inside][seen], scores[seen]))
-
-
 def test_heldout_auc_of_the_tf_bag_matches_the_clean_bag(tmp_path: Path) -> None:
     from gpocc.io.bags import write_bag
 
@@ -360,7 +341,7 @@ def test_heldout_auc_of_the_tf_bag_matches_the_clean_bag(tmp_path: Path) -> None
     clean = clean_batch(tf_batch, robot, robot.lasers[0])
     write_bag(tmp_path / "clean.mcap", [clean], [("/scan", "/pose")], "mcap")
     [clean_read] = read_inputs([tmp_path / "clean.mcap"], Config())
-    clean_auc, tf_auc = _heldout_auc(clean_read), _heldout_auc(tf_batch)
+    clean_auc, tf_auc = heldout_grid_auc(clean_read), heldout_grid_auc(tf_batch)
     assert clean_auc > 0.9
     assert abs(tf_auc - clean_auc) <= 0.005
     # Mapping in the odometry frame instead (what gpocc did before TF) is measurably worse.
@@ -368,7 +349,7 @@ def test_heldout_auc_of_the_tf_bag_matches_the_clean_bag(tmp_path: Path) -> None
         tf_batch, poses=compose(compose(inverse(robot.correction(tf_batch.stamps - T0)),
                                         robot.route.base(tf_batch.stamps - T0)),
                                 np.asarray(robot.lasers[0].mount)))
-    odom_auc = _heldout_auc(odom)
+    odom_auc = heldout_grid_auc(odom)
     print(f"held-out AUC: clean {clean_auc:.4f}, TF {tf_auc:.4f}, odometry frame {odom_auc:.4f}")
     assert odom_auc < clean_auc - 0.05
 

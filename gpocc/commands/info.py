@@ -88,6 +88,7 @@ def provenance_lines(batches: Sequence[ScanBatch]) -> list[str]:
             lines.append(f"      stamps: {p.stamps}")
         lines += [f"      skipped {n}: {why} (config key {key})" for why, key, n in p.skipped]
         lines += [f"      note: {note}" for note in p.notes]
+        lines += [f"      {line}" for line in p.sensor_lines]
     return lines
 
 

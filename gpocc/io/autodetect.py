@@ -1,7 +1,8 @@
 """Sensors of a bag when the config names none: one per laser, paired by namespace.
 
 Every LaserScan topic becomes a sensor named after the topic (``/robot1/scan`` ->
-``robot1/scan``). Its pose topic is looked for in its own namespace first, then in each
+``robot1/scan``); a bag without any takes its PointCloud2 topics (3-D lidars)
+instead. Its pose topic is looked for in its own namespace first, then in each
 enclosing one up to the root (``/robot1/front/scan`` looks in ``/robot1/front``, ``/robot1``,
 ``/``), so namespaced robots pair with their own topics and several lasers of one robot
 share its pose. The usual multi-level names count as one name: ``/odometry/filtered``,
@@ -22,9 +23,11 @@ ready-to-paste ``sensors:`` entry. A laser with no pose topic but TF takes ``pos
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
-from gpocc.io.bags import SCAN_TYPE, TF_POSE, BagContents, tf_topics_for
+from gpocc.io.bags import SCAN_TYPES, TF_POSE, BagContents, TopicSummary, tf_topics_for
 from gpocc.io.laserpose import namespace
 from gpocc.io.poses import POSE_TYPES
 from gpocc.io.tf import TF_TYPES
@@ -41,6 +44,14 @@ def sensor_name(scan_topic: str) -> str:
 
 def _in_scope(pose_ns: str, scan_ns: str) -> bool:
     return not pose_ns or pose_ns == scan_ns or scan_ns.startswith(pose_ns + "/")
+
+
+def scan_topics(topics: Sequence[TopicSummary]) -> list[str]:
+    """The topics that become sensors without a config: every LaserScan topic, or when
+    there is none every PointCloud2 topic (a 3-D lidar; a depth camera's cloud beside a
+    laser is not picked up unless named in the config)."""
+    lasers = [t.name for t in topics if t.msgtype == SCAN_TYPES[0]]
+    return lasers or [t.name for t in topics if t.msgtype in SCAN_TYPES[1:]]
 
 
 def _is_map(frame: str) -> bool:
@@ -63,7 +74,7 @@ def pose_namespace(contents: BagContents, topic: str, msgtype: str) -> str:
         by_frame = child.rpartition("/")[0]
         if by_frame:
             return by_frame
-        scans = [namespace(t.name) for t in contents.topics if t.msgtype == SCAN_TYPE]
+        scans = [namespace(t.name) for t in contents.topics if t.msgtype in SCAN_TYPES]
         parts = by_name.split("/") if by_name else []
         for k in range(len(parts), 0, -1):
             prefix = "/".join(parts[:k])
@@ -153,11 +164,12 @@ def detect_sensors(contents: BagContents, path: object) -> list[SensorConfig]:
         GpoccError: no LaserScan topic, or a laser whose pose source cannot be chosen;
             the message ends with a ``sensors:`` line for every laser, ready to paste.
     """
-    scans = [t.name for t in contents.topics if t.msgtype == SCAN_TYPE]
+    scans = scan_topics(contents.topics)
     if not scans:
         raise GpoccError(
             f"{path}: cannot choose the LaserScan topic (found: none; all topics: "
-            f"{contents.listing()}); record a sensor_msgs/LaserScan topic")
+            f"{contents.listing()}); record a sensor_msgs/LaserScan or PointCloud2 topic, "
+            "or set sensors[].scan_topic")
     sensors, problems = [], []
     for scan in scans:
         try:

@@ -26,7 +26,7 @@ import math
 import os
 import tempfile
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,14 +37,19 @@ from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import laserpose
 from gpocc.io.atomic import atomic_directory, atomic_path, check_can_write
+from gpocc.io.cloudread import CloudCollector
 from gpocc.io.laserpose import ScanTopic as _ScanTopic
 from gpocc.io.laserpose import namespace
+from gpocc.io.pointcloud import CLOUD_TYPE
 from gpocc.io.poses import POSE_TYPES, XY_YAW, PoseCollector
 from gpocc.io.scans import ScanBatch
 from gpocc.io.tf import TF_TYPES, TfBuffer, TfCollector, frame_name, merge_buffers
 from gpocc.io.timeline import blend_poses, brackets
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+#: Message types a sensor's ``scan_topic`` may have: a planar laser or a 3-D lidar's cloud
+#: (projected into one scan per cloud, :mod:`gpocc.io.cloudread`).
+SCAN_TYPES = (SCAN_TYPE, CLOUD_TYPE)
 #: ``pose_topic`` value meaning: positions from TF only, covariance from the config.
 TF_POSE = "/tf"
 #: ``write_bag`` formats; also what ``bag_format`` reports.
@@ -300,7 +305,7 @@ def check_topics(path: Path, contents: BagContents, sensor: SensorConfig) -> Non
             f"but the bag has no TF topic; topics present: {contents.listing()}; set pose_topic "
             "to a pose topic")
     for role, name, types in (
-        ("scan_topic", sensor.scan_topic, (SCAN_TYPE,)),
+        ("scan_topic", sensor.scan_topic, SCAN_TYPES),
         ("pose_topic", sensor.pose_topic, tuple(POSE_TYPES)),
     ):
         if role == "pose_topic" and name == TF_POSE:
@@ -373,13 +378,16 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
         contents = _contents(reader, fmt)
         for sensor in sensors:
             check_topics(path, contents, sensor)
-        scan_acc = {s.scan_topic: _ScanTopic() for s in sensors}
+        clouds = {s.scan_topic for s in sensors
+                  if contents.topic(s.scan_topic).msgtype == CLOUD_TYPE}
+        scan_acc = {s.scan_topic: _ScanTopic() for s in sensors if s.scan_topic not in clouds}
         odom_for = {s.name: odometry_topic_for(contents, s) for s in sensors}
         pose_names = [s.pose_topic for s in sensors if s.pose_topic != TF_POSE]
         pose_names += [t for t in odom_for.values() if t is not None]
         pose_acc = {t: PoseCollector(path, t, contents.topic(t).msgtype) for t in pose_names}
-        tf_for = {s.name: tf_topics_for(contents, s.scan_topic) if s.position_from_tf else []
-                  for s in sensors}
+        # A cloud needs TF for the lidar's mount even when its position comes from a topic.
+        tf_for = {s.name: tf_topics_for(contents, s.scan_topic)
+                  if s.position_from_tf or s.scan_topic in clouds else [] for s in sensors}
         tf_acc = {t: TfCollector(path) for names in tf_for.values() for t in names}
         wanted = [c for c in reader.connections
                   if c.topic in scan_acc or c.topic in pose_acc or c.topic in tf_acc]
@@ -391,12 +399,31 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
                 pose_acc[conn.topic].add(msg, record_ns)
             if conn.topic in tf_acc:
                 tf_acc[conn.topic].add(msg, conn.topic, record_ns)
-    series = {topic: acc.build() for topic, acc in pose_acc.items()}
-    built = {topic: acc.build() for topic, acc in tf_acc.items()}
+        series = {topic: acc.build() for topic, acc in pose_acc.items()}
+        built = {topic: acc.build() for topic, acc in tf_acc.items()}
+        tfs = {s.name: merge_buffers([built[t] for t in tf_for[s.name]]) or None
+               for s in sensors}
+        # Clouds are projected as read, in a second pass once TF is known: a bag's clouds
+        # would not fit in memory.
+        cloud_acc = {s.scan_topic: CloudCollector(path, s, tfs[s.name]) for s in sensors
+                     if s.scan_topic in clouds}
+        wanted = [c for c in reader.connections if c.topic in cloud_acc]
+        for conn, record_ns, raw in (reader.messages(connections=wanted) if wanted else ()):
+            msg = reader.deserialize(raw, conn.msgtype)
+            # The header stamp, else the log time: a cloud is projected with the TF at
+            # its time as it is read, before the topic's clock could be judged whole.
+            cloud_acc[conn.topic].add(msg, _stamp(msg) or record_ns * 1e-9)
     batches = []
     for s in sensors:
-        tf: TfBuffer | None = merge_buffers([built[t] for t in tf_for[s.name]]) or None
+        tf: TfBuffer | None = tfs[s.name]
         odom = series.get(odom_for[s.name]) if odom_for[s.name] else None
+        if s.scan_topic in cloud_acc:
+            scans, tf, resolved, lines = cloud_acc[s.scan_topic].resolved(
+                series.get(s.pose_topic))
+            batch = laserpose.assemble(path, resolved, scans, tf, series.get(s.pose_topic), odom)
+            batches.append(replace(batch, sensor_config=resolved, provenance=replace(
+                batch.provenance, sensor_lines=lines)))
+            continue
         batches.append(laserpose.assemble(path, s, scan_acc[s.scan_topic], tf,
                                           series.get(s.pose_topic), odom))
     return batches

@@ -23,7 +23,7 @@ from pathlib import Path
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import autodetect, bags, carmen
-from gpocc.io.bags import SCAN_TYPE, BagContents, TopicSummary
+from gpocc.io.bags import BagContents, TopicSummary
 from gpocc.io.frames import input_transform, transform_batch
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
@@ -123,7 +123,7 @@ def _matches(sensor: SensorConfig, path: Path) -> bool:
 
 
 def _scan_topics(summary: InputSummary) -> list[str]:
-    return [t.name for t in summary.topics if t.msgtype == SCAN_TYPE]
+    return autodetect.scan_topics(summary.topics)
 
 
 def _only(path: Path, summary: InputSummary, names: list[str], what: str,
@@ -237,9 +237,10 @@ def read_input(path: str | Path, config: Config,
         batches = [carmen.read_carmen(path, sensors[0])]
     else:
         batches = bags.read_bag(path, sensors)
+    # A reader may resolve more (a point cloud's defaults and layout): its entry wins.
     # A recording made in another map frame: its poses moved into the job's (config inputs).
     transform = input_transform(path, config)
-    return [transform_batch(replace(b, sensor_config=s), transform)
+    return [transform_batch(replace(b, sensor_config=b.sensor_config or s), transform)
             for b, s in zip(batches, sensors, strict=True)]
 
 

@@ -33,6 +33,8 @@ class Provenance:
         skipped: (reason, config key, count) of dropped scans.
         notes: counted repairs and fallbacks.
         stamps: which clock times each topic used (``/scan: header stamps; ...``).
+        sensor_lines: what the reader saw of the sensor, for ``gpocc info`` (a point
+            cloud's points, fields, rings, heights and equivalent scan).
     """
 
     pose_source: str
@@ -41,6 +43,7 @@ class Provenance:
     skipped: tuple[tuple[str, str, int], ...] = ()
     notes: tuple[str, ...] = field(default=())
     stamps: str = ""
+    sensor_lines: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

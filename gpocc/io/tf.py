@@ -259,6 +259,23 @@ class TfBuffer:
     def lookup(self, chain: Chain, stamps: np.ndarray, max_gap_s: float,
                start: int = 0, stop: int | None = None) -> Lookup:
         """``chain.steps[start:stop]`` composed at ``stamps`` (S,) seconds."""
+        trans, quat, valid, missing = self.transforms(chain, stamps, max_gap_s, start, stop)
+        poses = np.column_stack([trans[:, 0], trans[:, 1], yaw_of(quat)])
+        # The rotated z axis pointing down: the scan turns clockwise in the map.
+        up_z = 1.0 - 2.0 * (quat[:, 0] ** 2 + quat[:, 1] ** 2)
+        return Lookup(poses, valid, missing, up_z < 0)
+
+    def transforms(self, chain: Chain, stamps: np.ndarray, max_gap_s: float,
+                   start: int = 0, stop: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The full 3-D transforms of ``chain.steps[start:stop]`` at ``stamps`` (S,) s.
+
+        Returns:
+            ``(translations (S, 3) m, unit quaternions (S, 4) (x, y, z, w), valid (S,),
+            missing (S,))``: a point ``p`` in ``chain.source`` is
+            ``quat_rotate(q, p) + t`` in ``chain.target``; ``missing`` as in
+            :class:`Lookup`.
+        """
         s = stamps.shape[0]
         trans = np.zeros((s, 3))
         quat = np.tile([0.0, 0.0, 0.0, 1.0], (s, 1))
@@ -274,10 +291,7 @@ class TfBuffer:
             missing = np.where(valid & ~ok, edge.label(), missing)
             valid &= ok
         quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
-        poses = np.column_stack([trans[:, 0], trans[:, 1], yaw_of(quat)])
-        # The rotated z axis pointing down: the scan turns clockwise in the map.
-        up_z = 1.0 - 2.0 * (quat[:, 0] ** 2 + quat[:, 1] ** 2)
-        return Lookup(poses, valid, missing, up_z < 0)
+        return trans, quat, valid, missing
 
 
 @dataclass

@@ -223,7 +223,7 @@ def clear_free_near_hits(samples: SampleSet, radius_m: float) -> SampleSet:
     A beam that grazes a wall leaves free samples a few centimetres from that wall's
     hits, closer than the map resolves. With both labels that close, the latent mean
     crosses zero on the wall surface itself and hits seen later come out free (measured
-    on held-out scans of real logs: docs/results.md, session 6). It runs on the thinned
+    on held-out scans of real logs; commit 3198d15). It runs on the thinned
     set (the measured setting, and the cheap one: thinning happens as chunks stream in),
     so it compares against the hits thinning kept. With ``classifier_offset: beams`` the
     calibration scans' hits have cleared free samples of other scans too, which makes

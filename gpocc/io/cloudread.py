@@ -1,0 +1,337 @@
+"""A PointCloud2 topic as a planar laser: one scan per cloud, posed like a LaserScan.
+
+Each cloud is decoded (:mod:`gpocc.io.pointcloud`), moved into the robot's base frame
+with the full 3-D TF ``base <- lidar`` at its stamp, and projected into one scan around
+the lidar's origin on the ground plane (:mod:`gpocc.io.cloudscan`). The projected scans
+get a frame of their own, ``<lidar frame>:plane``: the lidar's origin dropped onto the
+base frame's x-y plane, with the base frame's axes. It is added to the TF buffer as a
+child of the base frame, so :func:`gpocc.io.laserpose.assemble` poses these scans exactly
+as it poses a LaserScan (TF chain from ``map``, pose covariance carried through the
+lever arm; or a pose topic with the offset as the sensor's ``mount``).
+
+The base frame is ``sensors[].base_frame`` when set, else the frame the last moving TF
+edge of the chain ``map -> lidar`` moves (``base_footprint`` or ``base_link``), else
+``base_footprint`` or ``base_link`` when TF reaches the lidar from it.
+
+Defaults of a 3-D lidar (used unless the config sets the key): ``range_min_m`` 0.3 m
+(returns nearer than that horizontally are the robot's own body), ``range_max_m``
+100 m, ``range_variance_m2`` 0.0009 (3 cm, the accuracy VLP-16, Ouster OS1 and Hesai
+XT datasheets give), ``bearing_variance_deg2`` 0.01 plus the bearing bin's width^2 / 12
+(the hit lies anywhere in its bin). The horizontal resolution comes from the layout:
+the width of an organised cloud, else the fullest ring's returns; else 0.4 degrees.
+
+A bin with no return at any height is a no-return only when the cloud's returns cover
+at least :data:`FULL_TURN_SHARE` of the bins (a spinning lidar: a silent direction saw
+nothing in range); for a sensor with a narrower field of view such bins are invalid (no
+information), so a camera's or a masked lidar's blind sector is never cleared.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpocc.config import MountConfig, SensorConfig
+from gpocc.errors import GpoccError
+from gpocc.io.cloudscan import height_histogram, rotation_matrix, scan_from_cloud
+from gpocc.io.laserpose import ScanTopic, find_chain, in_map_frame, mount_chain
+from gpocc.io.pointcloud import Cloud, decode_cloud, horizontal_bins, ring_count
+from gpocc.io.poses import PoseSeries
+from gpocc.io.tf import Chain, Edge, TfBuffer, frame_name, quat_multiply, yaw_of
+
+CLOUD_RANGE_MIN_M = 0.3
+CLOUD_RANGE_MAX_M = 100.0
+CLOUD_RANGE_VARIANCE_M2 = 0.0009
+CLOUD_BEARING_VARIANCE_DEG2 = 0.01
+DEFAULT_RESOLUTION_DEG = 0.4
+#: Bin counts from a layout are kept within these (a 10-degree to a 0.09-degree step).
+MIN_BINS, MAX_BINS = 36, 4096
+#: Share of bins with a return (any height) above which a cloud is a full turn.
+FULL_TURN_SHARE = 0.9
+#: Base-frame heights (m) of the fine histogram that finds the floor's peak.
+FLOOR_EDGES = np.round(np.arange(-3.01, 0.51, 0.02), 2)  # centres on even centimetres
+#: The floor's peak must hold this share of the returns to be named in ``gpocc info``.
+FLOOR_SHARE = 0.05
+#: Heights above the floor (m) of the ``gpocc info`` histogram's bin edges.
+HISTOGRAM_EDGES = np.array([-0.5, -0.1, 0.1, 0.3, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0])
+
+
+def plane_frame(frame: str) -> str:
+    return f"{frame}:plane"
+
+
+@dataclass
+class CloudStats:
+    """What ``gpocc info`` says about a cloud topic, accumulated as clouds are read."""
+
+    clouds: int = 0
+    points: list[int] = field(default_factory=list)
+    returns: int = 0
+    kept: int = 0
+    rings: int | None = None
+    fields: tuple[str, ...] = ()
+    layout: str = ""
+    histogram: np.ndarray = field(default_factory=lambda: np.zeros(HISTOGRAM_EDGES.size + 1,
+                                                                   np.int64))
+    hit_bins: int = 0
+    fine: np.ndarray = field(default_factory=lambda: np.zeros(FLOOR_EDGES.size + 1, np.int64))
+    has_time: bool = False
+
+
+@dataclass
+class CloudCollector:
+    """Projects the clouds of one PointCloud2 topic as they are read (TF known first).
+
+    Args:
+        path: the bag, for messages.
+        sensor: the config entry; ``scan_topic`` is the cloud topic.
+        tf: the bag's TF for this sensor (may be empty).
+    """
+
+    path: Path
+    sensor: SensorConfig
+    tf: TfBuffer | None
+    scans: ScanTopic = field(default_factory=ScanTopic)
+    stats: CloudStats = field(default_factory=CloudStats)
+    base: str = ""
+    inner: Chain | None = None
+    outer: Chain | None = None
+    bins: int = 0
+    bins_source: str = ""
+    origins: list[np.ndarray] = field(default_factory=list)
+    unposed: int = 0
+
+    @property
+    def topic(self) -> str:
+        return self.sensor.scan_topic or ""
+
+    @property
+    def band_base(self) -> tuple[float, float]:
+        """The height band in base-frame z, metres."""
+        low, high = self.sensor.height_band_m
+        return low - self.sensor.base_height_m, high - self.sensor.base_height_m
+
+    @property
+    def range_min(self) -> float:
+        s = self.sensor.range_min_m
+        return CLOUD_RANGE_MIN_M if s is None else float(s)
+
+    def _start(self, frame: str, cloud: Cloud) -> None:
+        """Base frame, the chain base -> lidar and the bin count, from the first cloud."""
+        sensor, tf = self.sensor, self.tf
+        where = f"{self.path}: topic {self.topic}"
+        if not tf or frame not in tf.frames():
+            raise GpoccError(
+                f"{where}: TF has no frame '{frame}' (the cloud's frame_id), so the lidar's "
+                "height and tilt on the robot are unknown; record its mount on /tf_static "
+                "(static_transform_publisher from the base frame to that frame)")
+        base = sensor.base_frame
+        if base is None:
+            chain, _ = find_chain(tf, sensor, frame)
+            body = chain.body_frame() if chain is not None else None
+            if body is not None and body != frame and chain is not None and chain.steps:
+                base = body
+            else:
+                base = next((b for b in ("base_footprint", "base_link")
+                             if tf.chain(b, frame) is not None and b != frame), None)
+        if base is None:
+            raise GpoccError(
+                f"{where}: cannot tell the robot's base frame under the cloud's frame "
+                f"'{frame}' (its TF parents: {', '.join(sorted(tf.frames())) or 'none'}); "
+                "set sensors[].base_frame to the frame whose x-y plane is the ground")
+        inner = tf.chain(base, frame)
+        if inner is None:
+            raise GpoccError(
+                f"{where}: no TF chain from sensors[].base_frame '{base}' to the cloud's frame "
+                f"'{frame}'; set base_frame to a frame TF connects to it")
+        self.base, self.inner, self.scans.frame_id = base, inner, plane_frame(frame)
+        self.outer, _ = find_chain(tf, sensor, base)
+        res = sensor.horizontal_resolution_deg
+        if res is not None:
+            self.bins, self.bins_source = int(round(360.0 / res)), "sensors[]." \
+                "horizontal_resolution_deg"
+        else:
+            layout = horizontal_bins(cloud)
+            if layout is None:
+                self.bins = int(round(360.0 / DEFAULT_RESOLUTION_DEG))
+                self.bins_source = (f"default {DEFAULT_RESOLUTION_DEG:g} deg: no ring field and "
+                                    "not organised; set sensors[].horizontal_resolution_deg")
+            else:
+                self.bins = int(np.clip(layout, MIN_BINS, MAX_BINS))
+                self.bins_source = ("the cloud's width" if cloud.organised
+                                    else "the points per ring")
+        inc = 2.0 * math.pi / self.bins
+        self.scans.geometry = (self.bins, -math.pi + 0.5 * inc, inc)
+        max_m = sensor.range_max_m
+        self.scans.range_limits = (self.range_min,
+                                   CLOUD_RANGE_MAX_M if max_m is None else float(max_m))
+        self.stats.fields = cloud.fields
+        self.stats.layout = (f"organised {cloud.height} x {cloud.width}" if cloud.organised
+                             else "unorganised")
+
+    def add(self, msg: Any, t: float) -> None:
+        """Decode, move into the base frame and project one cloud stamped ``t`` seconds."""
+        where = f"{self.path}: topic {self.topic} at t={t:.6f} s"
+        cloud = decode_cloud(msg, where)
+        frame = frame_name(msg.header.frame_id)
+        if self.inner is None:
+            self._start(frame, cloud)
+        elif plane_frame(frame) != self.scans.frame_id:
+            raise GpoccError(f"{where}: the cloud's frame_id changes from "
+                             f"'{self.scans.frame_id.rsplit(':', 1)[0]}' to '{frame}'; split the "
+                             "bag at that time")
+        assert self.tf is not None and self.inner is not None
+        trans, quat, ok, _ = self.tf.transforms(self.inner, np.array([t]),
+                                                self.sensor.max_pose_gap_s)
+        if not ok[0]:
+            self.unposed += 1
+            return
+        level = self._level(t)
+        ranges, heard, z = scan_from_cloud(cloud.points, rotation_matrix(quat[0]), trans[0],
+                                           level, self.band_base, self.bins, self.range_min,
+                                           FULL_TURN_SHARE, cloud.returns)
+        if np.count_nonzero(heard) < FULL_TURN_SHARE * self.bins:
+            ranges[~heard & np.isinf(ranges)] = np.nan
+        self.scans.stamps.append(t)
+        self.scans.ranges.append(ranges)
+        self.origins.append(trans[0])
+        st = self.stats
+        st.clouds += 1
+        st.points.append(cloud.n_points)
+        st.returns += z.size
+        low, high = self.band_base
+        st.kept += int(np.count_nonzero((z >= low) & (z <= high)))
+        # One return in four is plenty for a histogram of percent-level shares.
+        st.histogram += height_histogram(z[::4] + self.sensor.base_height_m, HISTOGRAM_EDGES)
+        st.fine += height_histogram(z[::4], FLOOR_EDGES)
+        st.hit_bins += int(np.count_nonzero(np.isfinite(ranges)))
+        if st.clouds == 1:
+            st.rings = ring_count(cloud)
+        st.has_time = st.has_time or cloud.has_time
+
+    def _level(self, t: float) -> np.ndarray | None:
+        """(3, 3) the rotation undoing the base's roll and pitch in the map frame at ``t``
+        (its yaw kept), or None for a level base or without TF to the map: a base tilted
+        on a ramp then sees vertical walls at their true horizontal distance."""
+        if self.outer is None or self.tf is None:
+            return None
+        _, q, ok, _ = self.tf.transforms(self.outer, np.array([t]), self.sensor.max_pose_gap_s)
+        if not ok[0]:
+            return None
+        half = 0.5 * float(yaw_of(q[0]))
+        tilt = quat_multiply(np.array([0.0, 0.0, -math.sin(half), math.cos(half)]), q[0])
+        if abs(tilt[3]) > 1.0 - 1e-12:
+            return None
+        return rotation_matrix(tilt)
+
+    def plane_edge(self) -> Edge:
+        """The TF edge base -> ``<lidar>:plane``: static when the lidar's mount is."""
+        origins = np.asarray(self.origins, float).reshape(-1, 3)
+        assert self.inner is not None
+        static = all(edge.static for edge, _ in self.inner.steps)
+        stamps = np.asarray(self.scans.stamps, float)
+        if static:
+            stamps, origins = stamps[:1], origins[:1]
+        order = np.argsort(stamps, kind="stable")
+        stamps, first = np.unique(stamps[order], return_index=True)
+        flat = origins[order][first] * np.array([1.0, 1.0, 0.0])
+        return Edge(parent=self.base, child=self.scans.frame_id, static=static,
+                    topic=f"{self.topic} projected", stamps=stamps, translations=flat,
+                    quaternions=np.tile([0.0, 0.0, 0.0, 1.0], (stamps.size, 1)))
+
+    def resolved(self, series: PoseSeries | None = None
+                 ) -> tuple[ScanTopic, TfBuffer, SensorConfig, tuple[str, ...]]:
+        """The projected scans, TF with their frame, the sensor entry with the cloud
+        defaults filled in, and the ``gpocc info`` lines. ``series``: the sensor's pose
+        topic; when it poses the base without TF, the projected scans' offset on the base
+        becomes the entry's ``mount``.
+
+        Raises:
+            GpoccError: no clouds, or none with TF from the base frame at its stamp.
+        """
+        where = f"{self.path}: topic {self.topic}"
+        if self.inner is None:
+            raise GpoccError(f"{where} has no messages; pick another scan_topic")
+        if not self.scans.stamps:
+            raise GpoccError(
+                f"{where}: none of its {self.unposed} clouds has TF from '{self.base}' to the "
+                f"cloud's frame within max_pose_gap_s={self.sensor.max_pose_gap_s} s; check "
+                "the TF stamps or raise sensors[].max_pose_gap_s")
+        assert self.tf is not None
+        edge = self.plane_edge()
+        tf = TfBuffer({**self.tf.edges, edge.child: edge}, dict(self.tf.conflicts),
+                      self.tf.normalised_quaternions, self.tf.repeated_stamps)
+        sensor = self.sensor
+        defaults = SensorConfig()
+        inc_deg = 360.0 / self.bins
+        changes: dict[str, Any] = {"range_min_m": self.scans.range_limits[0],
+                                   "range_max_m": self.scans.range_limits[1]}
+        if sensor.range_variance_m2 == defaults.range_variance_m2:
+            changes["range_variance_m2"] = CLOUD_RANGE_VARIANCE_M2
+        if sensor.bearing_variance_deg2 == defaults.bearing_variance_deg2:
+            changes["bearing_variance_deg2"] = CLOUD_BEARING_VARIANCE_DEG2 + inc_deg**2 / 12
+        chain = find_chain(tf, sensor, self.scans.frame_id)[0] if sensor.position_from_tf else None
+        from_tf = chain is not None or (
+            sensor.position_from_tf and series is not None
+            and in_map_frame(series.frame_id, sensor)
+            and mount_chain(tf, series, self.scans.frame_id) is not None)
+        if not from_tf and sensor.mount == MountConfig():
+            # Poses from a pose topic give the base: the projected lidar is mounted on it.
+            x, y, _ = edge.translations[0]
+            changes["mount"] = MountConfig(x_m=float(x), y_m=float(y))
+        return self.scans, tf, replace(sensor, **changes), self.summary(inc_deg)
+
+    def summary(self, inc_deg: float) -> tuple[str, ...]:
+        st = self.stats
+        pts = np.asarray(st.points)
+        low, high = self.sensor.height_band_m
+        rings = st.rings or "unknown (no ring field)"
+        lines = [
+            f"point cloud {self.topic}: {st.clouds} clouds, {pts.mean():.0f} points per message "
+            f"({pts.min()}..{pts.max()}), {100 * st.returns / max(pts.sum(), 1):.0f}% returns, "
+            f"{st.layout}, rings {rings}",
+            f"  fields: {', '.join(st.fields)}",
+            f"  base frame '{self.base}' ({self.inner.describe() if self.inner else ''})",
+            f"  heights above the floor (m) of the returns; band [{low:g}, {high:g}] keeps "
+            f"{100 * st.kept / max(st.returns, 1):.1f}%:",
+        ]
+        total = max(int(st.histogram.sum()), 1)
+        edges = HISTOGRAM_EDGES
+        labels = ([f"< {edges[0]:g}"]
+                  + [f"{a:g}..{b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
+                  + [f">= {edges[-1]:g}"])
+        for label, count in zip(labels, st.histogram, strict=True):
+            share = count / total
+            lines.append(f"    {label:>12}  {100 * share:5.1f}%  {'#' * int(round(40 * share))}")
+        lines.append(
+            f"  equivalent scan: {self.bins} bins of {inc_deg:.3f} deg (from {self.bins_source}), "
+            f"range {self.scans.range_limits[0]:g}..{self.scans.range_limits[1]:g} m, "
+            f"{100 * st.hit_bins / max(st.clouds * self.bins, 1):.0f}% of bins hit")
+        lines += self._floor_hint()
+        if st.has_time:
+            lines.append("  per-point time field present: the sweep is not de-skewed (every "
+                         "point is taken at the cloud's stamp)")
+        if self.unposed:
+            lines.append(f"  {self.unposed} clouds without TF from '{self.base}' at their stamp "
+                         "skipped")
+        return tuple(lines)
+
+    def _floor_hint(self) -> list[str]:
+        """A line naming ``base_height_m`` when the returns' densest height (the floor,
+        in a room) is not where the config puts the floor."""
+        inner = self.stats.fine[1:-1]
+        total = max(int(self.stats.fine.sum()), 1)
+        k = int(np.argmax(inner))
+        if inner[k] < FLOOR_SHARE * total:
+            return []
+        floor = 0.5 * (FLOOR_EDGES[k] + FLOOR_EDGES[k + 1])
+        if abs(floor + self.sensor.base_height_m) <= 0.05:
+            return []
+        return [f"  {100 * inner[k] / total:.0f}% of the returns lie at {floor:+.2f} m in "
+                f"'{self.base}', not at the floor the config gives "
+                f"({0.0 - self.sensor.base_height_m + 0.0:+.2f} m): if that is the floor, set "
+                f"sensors[].base_height_m: {-floor:.2f}"]
