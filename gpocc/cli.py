@@ -34,6 +34,7 @@ from gpocc.lifecycle import command_scope
 COMMANDS: tuple[tuple[str, str], ...] = (
     ("info", "gpocc.commands.info:info"),
     ("train", "gpocc.commands.train:train"),
+    ("update", "gpocc.commands.update:update"),
     ("map", "gpocc.commands.map:map_command"),
     ("build", "gpocc.commands.build:build"),
     ("grid", "gpocc.commands.grid:grid_command"),

@@ -328,6 +328,27 @@ class GridConfig:
 
 
 @dataclass(frozen=True)
+class TransformConfig:
+    """A rigid transform from an input's map frame into the job's map frame: a point
+    (x, y) of the input lands at ``(x_m + cos(yaw) x - sin(yaw) y, y_m + sin(yaw) x +
+    cos(yaw) y)``, and headings turn by ``yaw_deg`` (degrees, counter-clockwise)."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """Settings of one input: ``path`` matches an input like a sensor's ``inputs`` globs
+    (its file name or its path), ``transform`` places its poses in the job's map frame
+    (a recording made in another map frame, on another day)."""
+
+    path: str = ""
+    transform: TransformConfig = field(default_factory=TransformConfig)
+
+
+@dataclass(frozen=True)
 class BHMConfig:
     """Bayesian Hilbert map baseline (Senanayake and Ramos, CoRL 2017): gpocc.baselines.bhm.
 
@@ -366,6 +387,7 @@ class Config:
 
     seed: int = 0
     sensors: tuple[SensorConfig, ...] = ()
+    inputs: tuple[InputConfig, ...] = ()
     samples: SamplesConfig = field(default_factory=SamplesConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)
@@ -429,6 +451,9 @@ _POSITIVE_KEYS = {
 _MAX_VARIANCE = 1e6
 #: A laser mount farther than this from the robot base is a unit mistake.
 _MAX_MOUNT_M = 1e3
+#: An input transform moving farther than this is a unit mistake (as for poses,
+#: gpocc.io.scans.MAX_POSITION_M).
+_MAX_TRANSLATION_M = 1e7
 #: The largest integer a config key may hold (2^32 - 1: seeds and counts fit in int64).
 _MAX_INT = 2**32 - 1
 
@@ -555,6 +580,14 @@ def _validate(config: Config, source: str) -> Config:
         if sensor.range_min_m is not None and sensor.range_max_m is not None:
             if sensor.range_min_m >= sensor.range_max_m:
                 raise GpoccError(f"{source}: key 'sensors[{i}].range_min_m' must be < range_max_m")
+    paths = [entry.path for entry in config.inputs]
+    if any(not p for p in paths) or len(set(paths)) != len(paths):
+        raise GpoccError(f"{source}: key 'inputs' needs a distinct, non-empty path in every "
+                         f"entry, got {paths}")
+    for i, entry in enumerate(config.inputs):
+        if max(abs(entry.transform.x_m), abs(entry.transform.y_m)) > _MAX_TRANSLATION_M:
+            raise GpoccError(f"{source}: key 'inputs[{i}].transform' moves the input more "
+                             f"than {_MAX_TRANSLATION_M:g} m; check its units (metres)")
     c = config.classify
     if not 0.0 < c.free <= c.occupied < 1.0:
         raise GpoccError(

@@ -141,5 +141,5 @@ def test_classifier_record_of_the_wrong_form_is_a_clear_error(tmp_path, version,
 def test_saved_classifier_round_trips_exactly(tmp_path):
     clf = PlattClassifier(offset=-0.0184823, extra_variance=S_MIN)
     path, _, meta = _saved_model(tmp_path, clf)
-    assert meta["format_version"] == 2
+    assert meta["format_version"] >= 2  # (offset, extra_variance) since format 2
     assert load_model(path).classifier == clf

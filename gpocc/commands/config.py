@@ -11,7 +11,7 @@ from typing import Annotated, Any
 import typer
 import yaml
 
-from gpocc.config import Config, SensorConfig, config_to_dict, load_config
+from gpocc.config import Config, InputConfig, SensorConfig, config_to_dict, load_config
 
 
 def _comment(cls: type, indent: str) -> list[str]:
@@ -45,6 +45,11 @@ def _section(cls: type, data: dict[str, Any], indent: str) -> list[str]:
             else:
                 lines.append(f"{indent}sensors:")
                 lines += [f"{indent}{line}" for line in _entries(value, "").splitlines()]
+        elif f.name == "inputs":
+            lines += ["", *_comment(InputConfig, indent),
+                      f"{indent}# e.g. inputs: [{{path: day2.mcap, transform: {{x_m: 12.0, "
+                      "y_m: -3.5, yaw_deg: 90.0}}]",
+                      f"{indent}{f.name}: {_scalar(value)}"]
         else:
             lines.append(f"{indent}{f.name}: {_scalar(value)}")
     return lines

@@ -13,6 +13,7 @@ from gpocc.commands.options import ConfigFile
 from gpocc.config import Config, load_config
 from gpocc.errors import GpoccError
 from gpocc.gp.bounds import values_on_bounds
+from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
@@ -135,7 +136,7 @@ def format_model(path: Path, model: GPModel) -> list[str]:
         f"from {len(np.unique(samples.scan_ids))} scans",
         "  sensors: " + ", ".join(f"{n} ({c} samples)" for n, c in
                                   zip(names, per_sensor, strict=False)),
-        "  inputs: " + (", ".join(model.inputs) or "(not recorded)"),
+        *_input_lines(model),
     ]
     on_bounds = values_on_bounds(model)
     lines.append("  learned values on a bound: " + ("none" if not on_bounds
@@ -147,6 +148,25 @@ def format_model(path: Path, model: GPModel) -> list[str]:
     lines.append("  training time: " + (
         ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
         + f" (total {sum(timings.values()):.1f} s)" if timings else "(not recorded)"))
+    return lines
+
+
+def _input_lines(model: GPModel) -> list[str]:
+    """The model's inputs, one line each: scans, time span, transform, sensors."""
+    listing = input_listing(model.growth, model.inputs)
+    if model.growth is None or not listing:  # no records: the paths alone
+        return ["  inputs: " + (", ".join(model.inputs) or "(not recorded)")]
+    lines = ["  inputs:"]
+    for entry in listing:
+        if "scans" not in entry:
+            lines.append(f"    {entry['path']} (not recorded: added by an older gpocc)")
+            continue
+        span = ("no scans" if entry["start_s"] is None else
+                f"{entry['start_s']:.3f} .. {entry['end_s']:.3f} s")
+        t = entry["transform"]
+        lines.append(f"    {entry['path']}: {entry['scans']} scans, time span {span}, "
+                     f"transform x {t['x_m']:g} m, y {t['y_m']:g} m, yaw {t['yaw_deg']:g} "
+                     f"deg, sensors {', '.join(entry['sensors']) or '(none)'}")
     return lines
 
 

@@ -22,15 +22,17 @@ from gpocc.commands.options import (
 )
 from gpocc.config import Config, load_config
 from gpocc.gp.bounds import values_on_bounds
+from gpocc.gp.growth import Growth
 from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
+from gpocc.io.records import input_records
 from gpocc.io.scans import scan_stamps
 from gpocc.limits import check_seed
 from gpocc.parallel import dask_client
 from gpocc.progress import log, progress_bar
-from gpocc.samples.beams import build_samples
+from gpocc.samples.beams import build_pool, finish_samples
 from gpocc.samples.coverage import beam_coverage
 from gpocc.samples.heldout import calibration_points
 
@@ -82,7 +84,8 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
     with ThreadPoolExecutor(2, thread_name_prefix="gpocc-samples-helper") as helper:
         coverage_of_beams = helper.submit(beam_coverage, batches, cfg)
         optimiser = helper.submit(load_optimiser)
-        samples = build_samples(batches, cfg)
+        pool = build_pool(batches, cfg)
+        samples = finish_samples(pool, cfg)
         coverage = coverage_of_beams.result()
         optimiser.result()
     training_cfg = cfg.model.training
@@ -103,9 +106,11 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
         log(f"warning: {on_bound.message()}: the fit stopped at the bound, not at an optimum")
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
+    growth = Growth(pool, input_records(inputs, batches, cfg), calibration)
     # The scans' time span: a map of this model is stamped with the last scan's time.
     return dataclasses.replace(model, training={**model.training, "timings_s": timings,
-                                                "scan_stamps_s": list(scan_stamps(batches))})
+                                                "scan_stamps_s": list(scan_stamps(batches))},
+                               growth=growth)
 
 
 def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:

@@ -113,7 +113,9 @@ def train_config(config: Config, sensors: list[tuple[SensorConfig, str, str]]) -
                             mount=dataclasses.replace(s.mount, upside_down=False))
         for s, scan, pose in sensors
     )
-    return dataclasses.replace(config, sensors=entries)
+    # The bag's poses are in the job's map frame already (the inputs' transforms applied
+    # when reading): its config must not move them again.
+    return dataclasses.replace(config, sensors=entries, inputs=())
 
 
 def merge_by_sensor(batches: list[ScanBatch]) -> list[ScanBatch]:

@@ -274,3 +274,88 @@ def validate_coverage(meta: Any, bits: np.ndarray | None, config: Config,
         raise GpoccError(
             f"{path}: damaged model file: {exc}; re-create it with `gpocc train`"
         ) from None
+
+
+#: The optional arrays of a model's growth state (format 3; :mod:`gpocc.gp.growth`).
+GROWTH_ARRAYS = (*(f"pool_{name}" for name in ARRAY_LAYOUT), "vote_keys", "vote_counts",
+                 "calibration_points", "calibration_labels", "calibration_scan_ids")
+
+
+def _integers(array: np.ndarray, name: str) -> np.ndarray:
+    if array.dtype.kind not in "iu" or array.ndim != 1:
+        raise _Damaged(f"array {name!r} has dtype {array.dtype} and shape {array.shape}, "
+                       "not a list of integers")
+    return array.astype(np.int64)
+
+
+def _growth(meta: Any, arrays: dict[str, np.ndarray]) -> Any:
+    # Imported here: the growth state's modules import the samples stage, which the
+    # map's workers (loading models) do not otherwise need.
+    from gpocc.gp.growth import Growth
+    from gpocc.io.records import record_from_dict
+    from gpocc.samples.beams import SamplePool
+    from gpocc.samples.heldout import CalibrationPoints
+
+    if not isinstance(meta, dict):
+        raise _Damaged("its growth record is not a JSON object")
+    missing = [n for n in GROWTH_ARRAYS[:8] if n not in arrays]
+    if missing:
+        raise _Damaged(f"its growth state lacks the arrays {missing}")
+    try:
+        pool = _samples({name: arrays[f"pool_{name}"] for name in ARRAY_LAYOUT})
+    except _Damaged as exc:
+        raise _Damaged(f"growth state (pool): {exc}") from None
+    names = meta.get("sensor_names")
+    if (not isinstance(names, list) or not all(isinstance(n, str) for n in names)
+            or (pool.sensor_ids >= len(names)).any()):
+        raise _Damaged("the growth record's sensor_names do not name the pool's sensors")
+    n_scans = meta.get("n_scans")
+    if (isinstance(n_scans, bool) or not isinstance(n_scans, int)
+            or n_scans <= int(pool.scan_ids.max())):
+        raise _Damaged(f"the growth record's n_scans is {n_scans!r}, not above every scan id")
+    keys = _integers(arrays["vote_keys"], "vote_keys")
+    counts = _integers(arrays["vote_counts"], "vote_counts")
+    if keys.shape != counts.shape or (counts <= 0).any() or (np.diff(keys) <= 0).any():
+        raise _Damaged("the label votes are not ascending keys with positive counts")
+    records = meta.get("inputs")
+    if not isinstance(records, list):
+        raise _Damaged("the growth record's inputs are not a list")
+    try:
+        parsed = tuple(record_from_dict(r) for r in records)
+    except ValueError as exc:
+        raise _Damaged(str(exc)) from None
+    calibration = None
+    parts = [n for n in GROWTH_ARRAYS[8:] if n in arrays]
+    if parts:
+        if len(parts) != 3:
+            raise _Damaged("it holds part of the calibration points")
+        points = arrays["calibration_points"]
+        labels = arrays["calibration_labels"]
+        if (points.dtype.kind != "f" or points.ndim != 2 or points.shape[1:] != (2,)
+                or labels.shape != points.shape[:1] or not np.isfinite(points).all()
+                or not np.isin(labels, (-1.0, 1.0)).all()):
+            raise _Damaged("its calibration points are malformed")
+        calibration = CalibrationPoints(points.astype(np.float64), labels.astype(np.float64),
+                                        _integers(arrays["calibration_scan_ids"],
+                                                  "calibration_scan_ids"))
+    pool = dataclasses.replace(pool, sensor_names=tuple(names))
+    return Growth(SamplePool(pool, keys, counts, n_scans), parsed, calibration)
+
+
+def validate_growth(meta: Any, arrays: dict[str, np.ndarray], path: str | Path) -> Any:
+    """The model file's growth state (:class:`gpocc.gp.growth.Growth`), checked; None
+    when the file has none (format 2 and older, models built from samples alone).
+
+    Raises:
+        GpoccError: naming ``path`` and what is wrong, and saying to re-train.
+    """
+    if meta is None and not arrays:
+        return None
+    try:
+        if meta is None:
+            raise _Damaged("it holds growth arrays without their record")
+        return _growth(meta, arrays)
+    except _Damaged as exc:
+        raise GpoccError(
+            f"{path}: damaged model file: {exc}; re-create it with `gpocc train`"
+        ) from None

@@ -24,6 +24,7 @@ from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io import autodetect, bags, carmen
 from gpocc.io.bags import BagContents, TopicSummary
+from gpocc.io.frames import input_transform, transform_batch
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
 
@@ -237,7 +238,9 @@ def read_input(path: str | Path, config: Config,
     else:
         batches = bags.read_bag(path, sensors)
     # A reader may resolve more (a point cloud's defaults and layout): its entry wins.
-    return [replace(b, sensor_config=b.sensor_config or s)
+    # A recording made in another map frame: its poses moved into the job's (config inputs).
+    transform = input_transform(path, config)
+    return [transform_batch(replace(b, sensor_config=b.sensor_config or s), transform)
             for b, s in zip(batches, sensors, strict=True)]
 
 

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from gpocc.gp.classify import classify
+from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters
 from gpocc.gridspec import GridSpec
 from gpocc.io.mapserver import check_map_server_size
@@ -203,6 +204,7 @@ def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
         model=str(model_path),
         model_versions=dict(model.versions),
         model_sensors=list(model.samples.sensor_names),
+        inputs=input_listing(model.growth, model.inputs),
         kernel=kernel_parameters(model.kernel),
         input_noise=model.input_noise,
         quadrature_level=model.level,

@@ -105,9 +105,36 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
         GpoccError: no batches, non-finite poses or pose covariances, or a batch that
             gives no sample at all (no valid beam).
     """
+    return finish_samples(build_pool(batches, config), config)
+
+
+@dataclass(frozen=True)
+class SamplePool:
+    """Thinned training samples before the whole-set rules (``min_label_share``,
+    ``free_clearance_m``): what a model keeps so that new logs can be added later.
+
+    Attributes:
+        samples: thinned samples (one per label and ``thin_cell_m`` cell, in build
+            order), covariances as built (not scaled by a learned input-noise scale).
+        vote_keys, vote_counts: (K,) int64 label votes (:class:`LabelVotes`) of every
+            sample before thinning; empty when ``min_label_share`` is off.
+        n_scans: scans read so far (used or not): the next input's first scan id.
+    """
+
+    samples: SampleSet
+    vote_keys: np.ndarray
+    vote_counts: np.ndarray
+    n_scans: int
+
+
+def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
+               sensor_names: tuple[str, ...] = ()) -> SamplePool:
+    """The thinned samples and label votes of ``batches`` (:func:`build_samples` before
+    its whole-set rules). ``scan_offset``: the first batch's first scan id;
+    ``sensor_names``: sensors already numbered (a model's), new ones are appended."""
     if not batches:
         raise GpoccError("no scans to build training samples from; check the input files")
-    sensor_index: dict[str, int] = {}
+    sensor_index: dict[str, int] = {name: i for i, name in enumerate(sensor_names)}
     thin_cell = float(config.samples.thin_cell_m)
     min_share = float(config.samples.min_label_share)
     parts: list[SampleSet] = []
@@ -127,7 +154,7 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
         kept, keys, counts = _thinned(part, thin_cell)
         return part.subset(kept), len(part), keys, counts
 
-    offset = 0
+    offset = scan_offset
     for batch in batches:
         sensor = beam.sensor_config(batch, config)
         sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
@@ -155,13 +182,39 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
                 f"no_return_free_m and that the ranges are in metres"
             )
         offset += batch.n_scans
-    result = SampleSet.concatenate(parts)
-    if thin_cell > 0:
-        result = thin_samples(result, thin_cell)
-        if votes is not None:
-            result = result.subset(votes.share(result) >= min_share)
-    result = clear_free_near_hits(result, float(config.samples.free_clearance_m))
-    return dataclasses.replace(result, sensor_names=tuple(sensor_index))
+    result = dataclasses.replace(thin_samples(SampleSet.concatenate(parts), thin_cell),
+                                 sensor_names=tuple(sensor_index))
+    if votes is None:
+        return SamplePool(result, np.zeros(0, np.int64), np.zeros(0, np.int64), offset)
+    return SamplePool(result, *votes.table(), offset)
+
+
+def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
+    """The training samples of ``pool``: ``samples.min_label_share`` (by the pool's
+    votes), then ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)."""
+    result = pool.samples
+    cell = float(config.samples.thin_cell_m)
+    min_share = float(config.samples.min_label_share)
+    if cell > 0 and min_share > 0 and pool.vote_keys.size:
+        votes = LabelVotes(cell)
+        votes.add_counts(pool.vote_keys, pool.vote_counts)
+        result = result.subset(votes.share(result) >= min_share)
+    return clear_free_near_hits(result, float(config.samples.free_clearance_m))
+
+
+def merge_pools(first: SamplePool, second: SamplePool, config: Config) -> SamplePool:
+    """One pool of two, ``first``'s samples first: the pool :func:`build_pool` gives for
+    both pools' batches in that order (thinning keeps a per-cell minimum, earliest on
+    ties; votes add). ``second`` must number sensors and scans after ``first``."""
+    names = max((first.samples.sensor_names, second.samples.sensor_names), key=len)
+    samples = thin_samples(SampleSet.concatenate([first.samples, second.samples]),
+                           float(config.samples.thin_cell_m))
+    votes = LabelVotes(float(config.samples.thin_cell_m))
+    for pool in (first, second):
+        if pool.vote_keys.size:
+            votes.add_counts(pool.vote_keys, pool.vote_counts)
+    return SamplePool(dataclasses.replace(samples, sensor_names=names), *votes.table(),
+                      max(first.n_scans, second.n_scans))
 
 
 def clear_free_near_hits(samples: SampleSet, radius_m: float) -> SampleSet:
@@ -278,6 +331,11 @@ class LabelVotes:
             return np.zeros(keys.shape, dtype=np.int64)
         index = np.minimum(np.searchsorted(self.keys, keys), self.keys.size - 1)
         return np.where(self.keys[index] == keys, self.counts[index], 0)
+
+    def table(self) -> tuple[np.ndarray, np.ndarray]:
+        """The (cell, label) keys, ascending, and their counts: (K,) int64 each."""
+        self._merge()
+        return self.keys, self.counts
 
     def share(self, samples: SampleSet) -> np.ndarray:
         """(N,) fraction of its cell's counted samples that carry each sample's label

@@ -132,3 +132,38 @@ def sample_coverage(means: np.ndarray, cell_m: float = COVERAGE_CELL_M) -> Cover
     the beams by up to about half the free spacing plus the hit gap."""
     pts = np.asarray(means, dtype=float)
     return coverage_of_segments(pts, pts, cell_m)
+
+
+def union_coverage(first: Coverage, second: Coverage) -> Coverage:
+    """The cells either raster covers, on a raster grown to both extents.
+
+    Both rasters lie on the lattice of ``cell_m`` multiples that
+    :func:`coverage_of_segments` uses, so their cells line up; the result is the raster
+    of both rasters' beams (up to beam points on cell edges, which float round-off may
+    put in the neighbouring cell).
+
+    Raises:
+        ValueError: rasters of different cell or step sizes.
+    """
+    if first.cell_m != second.cell_m or first.step_m != second.step_m:
+        raise ValueError(f"coverage rasters of {first.cell_m} m and {second.cell_m} m cells "
+                         "cannot be joined")
+    if first.covered.size == 0:
+        return second
+    if second.covered.size == 0:
+        return first
+    cell = first.cell_m
+    origins = [(round(c.x0 / cell), round(c.y0 / cell)) for c in (first, second)]
+    col0 = min(o[0] for o in origins)
+    row0 = min(o[1] for o in origins)
+    cols = max(o[0] + c.covered.shape[1] for o, c in zip(origins, (first, second),
+                                                          strict=True)) - col0
+    rows = max(o[1] + c.covered.shape[0] for o, c in zip(origins, (first, second),
+                                                          strict=True)) - row0
+    covered = np.zeros((rows, cols), dtype=bool)
+    for (c0, r0), cov in zip(origins, (first, second), strict=True):
+        h, w = cov.covered.shape
+        covered[r0 - row0:r0 - row0 + h, c0 - col0:c0 - col0 + w] |= cov.covered
+    x0 = first.x0 if origins[0][0] == col0 else second.x0
+    y0 = first.y0 if origins[0][1] == row0 else second.y0
+    return Coverage(float(x0), float(y0), cell, first.step_m, covered)

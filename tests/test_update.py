@@ -1,0 +1,413 @@
+"""``gpocc update``: logs added to a saved model give the model of all logs at once.
+
+The logs are synthetic CARMEN logs of a two-room world (ray-cast against wall segments),
+so the oracle is training on every log in one run (``--relearn`` must give exactly that
+model; kept hyperparameters the same samples) and brute-force label counts.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from modelfiles import read_model_file, write_model_file
+from typer.testing import CliRunner
+
+from gpocc.cli import app
+from gpocc.config import Config, SamplesConfig, TransformConfig, load_config
+from gpocc.gp.model import load_model
+from gpocc.io.frames import transform_poses
+from gpocc.io.inputs import read_inputs
+from gpocc.samples.beams import build_samples
+from gpocc.samples.coverage import coverage_of_segments, union_coverage
+
+runner = CliRunner()
+
+#: Outer walls of a 10 x 6 m box and a wall at x = 5 with a doorway at y in [2.5, 3.5].
+WALLS = [((0, 0), (10, 0)), ((10, 0), (10, 6)), ((10, 6), (0, 6)), ((0, 6), (0, 0)),
+         ((5, 0), (5, 2.5)), ((5, 3.5), (5, 6))]
+DOOR = ((5, 2.5), (5, 3.5))
+BEAMS = 60
+
+CONFIG = """
+seed: 3
+samples:
+  min_label_share: 0.1
+model:
+  neighbours: 48
+  training: {patches: 3, patch_size: 48, anneal_maxfun: 4, lbfgs_maxiter: 4}
+"""
+
+
+def _ranges(x: float, y: float, yaw: float, walls: list) -> list[float]:
+    """Ranges of a CARMEN fan (even count: -90 deg in steps of 180/n) to the nearest wall."""
+    out = []
+    for k in range(BEAMS):
+        a = yaw - math.pi / 2 + k * math.pi / BEAMS
+        d = np.array([math.cos(a), math.sin(a)])
+        best = 81.9
+        for (x1, y1), (x2, y2) in walls:
+            e = np.array([x2 - x1, y2 - y1])
+            m = np.array([[d[0], -e[0]], [d[1], -e[1]]])
+            if abs(np.linalg.det(m)) < 1e-12:
+                continue
+            t, u = np.linalg.solve(m, [x1 - x, y1 - y])
+            if t > 1e-9 and -1e-9 <= u <= 1 + 1e-9:
+                best = min(best, t)
+        out.append(best)
+    return out
+
+
+def write_log(path: Path, n_scans: int, door_closed: bool, start: float = 0.0,
+              frame: TransformConfig | None = None) -> Path:
+    """A robot driving along y = 3 in the left room, looking towards the door (east),
+    as a CARMEN log; ``frame``: poses written in a frame this transform maps to the
+    world (the recording's own map frame)."""
+    walls = WALLS + ([DOOR] if door_closed else [])
+    lines = []
+    for i in range(n_scans):
+        x, y, yaw = 1.0 + 3.0 * i / max(n_scans - 1, 1), 3.0 + 0.6 * math.sin(i), 0.2 * math.cos(i)
+        r = _ranges(x, y, yaw, walls)
+        px, py, pyaw = x, y, yaw
+        if frame is not None:  # world -> recording frame: the transform's inverse
+            c, s = math.cos(math.radians(frame.yaw_deg)), math.sin(math.radians(frame.yaw_deg))
+            dx, dy = x - frame.x_m, y - frame.y_m
+            px, py, pyaw = c * dx + s * dy, -s * dx + c * dy, yaw - math.radians(frame.yaw_deg)
+        stamp = start + i
+        lines.append(f"FLASER {BEAMS} {' '.join(f'{v:.4f}' for v in r)} {px:.6f} {py:.6f} "
+                     f"{pyaw:.6f} {px:.6f} {py:.6f} {pyaw:.6f} {stamp} host {stamp}")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def gpocc(*args: str, ok: bool = True):
+    result = runner.invoke(app, [*args, "--quiet"])
+    if ok:
+        assert result.exit_code == 0, result.output
+    return result
+
+
+@pytest.fixture()
+def logs(tmp_path: Path) -> dict[str, Path]:
+    (tmp_path / "job.yaml").write_text(CONFIG)
+    return {"config": tmp_path / "job.yaml",
+            "a": write_log(tmp_path / "room_a.log", 14, door_closed=False),
+            "b": write_log(tmp_path / "room_b.log", 10, door_closed=False, start=100.0)}
+
+
+def train_a(logs: dict[str, Path], tmp_path: Path) -> None:
+    gpocc("train", str(logs["a"]), "--config", str(logs["config"]),
+          "--out", str(tmp_path / "a.npz"))
+
+
+def _same_samples(one, two) -> None:
+    for name in ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
+    assert one.sensor_names == two.sensor_names
+
+
+def test_relearned_update_is_the_model_of_all_logs(logs, tmp_path):
+    train_a(logs, tmp_path)
+    gpocc("train", str(logs["a"]), str(logs["b"]), "--config", str(logs["config"]),
+          "--out", str(tmp_path / "ab.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--relearn",
+          "--out", str(tmp_path / "up.npz"))
+    both, up = load_model(tmp_path / "ab.npz"), load_model(tmp_path / "up.npz")
+    _same_samples(both.samples, up.samples)
+    _same_samples(both.growth.pool.samples, up.growth.pool.samples)
+    np.testing.assert_array_equal(both.growth.pool.vote_counts, up.growth.pool.vote_counts)
+    assert both.kernel == up.kernel and both.noise_variance == up.noise_variance
+    assert both.classifier == up.classifier
+    assert both.input_noise_scale == up.input_noise_scale
+    # Coverage: the union of A's raster and B's is the raster of all beams.
+    np.testing.assert_array_equal(both.coverage.covered, up.coverage.covered)
+    assert (both.coverage.x0, both.coverage.y0) == pytest.approx((up.coverage.x0,
+                                                                  up.coverage.y0))
+    assert [r.path for r in up.growth.records] == [str(logs["a"]), str(logs["b"])]
+    assert [r.scans for r in up.growth.records] == [14, 10]
+    assert up.growth.records[1].start_s == 100.0 and up.growth.records[1].end_s == 109.0
+
+
+def test_kept_hyperparameters_ids_and_sensors_continue(logs, tmp_path):
+    train_a(logs, tmp_path)
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "ab.npz"))
+    c = write_log(tmp_path / "room_a_again.log", 6, door_closed=False, start=200.0)
+    gpocc("update", str(tmp_path / "ab.npz"), str(c), "--out", str(tmp_path / "abc.npz"))
+    a, ab, abc = (load_model(tmp_path / n) for n in ("a.npz", "ab.npz", "abc.npz"))
+    if ab.training["hyperparameters"] == "kept":
+        assert ab.kernel == a.kernel and ab.input_noise_scale == a.input_noise_scale
+    # Without sensors in the config a CARMEN log's sensor is its file stem: B and C add
+    # sensors after A's, and their scan ids follow all scans read before.
+    assert abc.samples.sensor_names == ("room_a", "room_b", "room_a_again")
+    ids, sensors = abc.growth.pool.samples.scan_ids, abc.growth.pool.samples.sensor_ids
+    assert set(np.unique(ids[sensors == 0])) <= set(range(14))
+    assert set(np.unique(ids[sensors == 1])) <= set(range(14, 24))
+    assert set(np.unique(ids[sensors == 2])) <= set(range(24, 30))
+    assert abc.growth.pool.n_scans == 30
+    # The samples are those of training on all three logs (scaled by the model's g).
+    cfg = load_config(logs["config"])
+    direct = build_samples(read_inputs([logs["a"], logs["b"], c], cfg), cfg)
+    np.testing.assert_array_equal(abc.samples.means, direct.means)
+    np.testing.assert_array_equal(abc.samples.scan_ids, direct.scan_ids)
+    np.testing.assert_allclose(abc.samples.covariances,
+                               direct.covariances * abc.input_noise_scale, rtol=1e-12)
+    info = gpocc("info", str(tmp_path / "abc.npz")).output
+    assert "room_b.log: 10 scans, time span 100.000 .. 109.000 s" in info
+
+
+def test_coverage_union_is_the_coverage_of_all_segments():
+    rng = np.random.default_rng(5)
+    start, end = rng.uniform(-3, 7, (40, 2)), rng.uniform(-5, 4, (40, 2))
+    whole = coverage_of_segments(start, end)
+    parts = union_coverage(coverage_of_segments(start[:25], end[:25]),
+                           coverage_of_segments(start[25:] + 9.0, end[25:] + 9.0))
+    moved = coverage_of_segments(np.vstack([start[:25], start[25:] + 9.0]),
+                                 np.vstack([end[:25], end[25:] + 9.0]))
+    assert parts.covered.shape == moved.covered.shape
+    assert (parts.x0, parts.y0) == pytest.approx((moved.x0, moved.y0))
+    mismatched = np.count_nonzero(parts.covered != moved.covered)
+    assert mismatched <= 2  # beam points on a cell edge may round to either side
+    assert whole.covered.sum() > 0 and parts.covered.sum() >= whole.covered.sum() - 2
+
+
+def test_an_older_model_file_loads_and_updates(logs, tmp_path):
+    train_a(logs, tmp_path)
+    arrays, meta = read_model_file(tmp_path / "a.npz")
+    old = tmp_path / "old.npz"
+    meta["format_version"] = 2
+    del meta["growth"]
+    write_model_file(old, {k: v for k, v in arrays.items() if not k.startswith(
+        ("pool_", "vote_", "calibration_"))}, meta)
+    loaded = load_model(old)
+    assert loaded.growth is None
+    result = runner.invoke(app, ["update", str(old), str(logs["b"]), "--out",
+                                 str(tmp_path / "new.npz")])
+    assert result.exit_code == 0, result.output
+    assert "does not keep the label votes" in result.output
+    new = load_model(tmp_path / "new.npz")
+    first_new = int(loaded.samples.scan_ids.max()) + 1
+    b_ids = new.growth.pool.samples.scan_ids[new.growth.pool.samples.sensor_ids == 1]
+    assert b_ids.min() >= first_new
+    assert new.growth.pool.n_scans == first_new + 10
+    info = gpocc("info", str(tmp_path / "new.npz")).output
+    assert "not recorded: added by an older gpocc" in info
+
+
+SENSOR = "sensors: [{name: room_a, inputs: ['room_a*'], range_variance_m2: %s}]\n"
+
+
+@pytest.mark.parametrize("config, words", [
+    (CONFIG.replace("neighbours: 48", "neighbours: 48\n  kernel: se"),
+     "key 'model.kernel' differs from the model"),
+    (CONFIG.replace("min_label_share: 0.1", "min_label_share: 0.2"),
+     "key 'samples.min_label_share' differs"),
+    (CONFIG + SENSOR % "0.01", "sensors[0] ('room_a') differs from the sensor"),
+])
+def test_a_config_at_odds_with_the_model_is_one_error_line(logs, tmp_path, config, words):
+    """A model of another kernel, other sample rules or another sensor set-up."""
+    (tmp_path / "job.yaml").write_text(CONFIG + SENSOR % "0.0004")
+    gpocc("train", str(logs["a"]), "--out", str(tmp_path / "a.npz"),
+          "--config", str(tmp_path / "job.yaml"))
+    (tmp_path / "other.yaml").write_text(config)
+    result = runner.invoke(app, ["update", str(tmp_path / "a.npz"), str(logs["b"]),
+                                 "--config", str(tmp_path / "other.yaml"),
+                                 "--out", str(tmp_path / "new.npz")])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and "Traceback" not in result.output
+    assert not (tmp_path / "new.npz").exists()
+
+
+def test_an_input_already_in_the_model_is_one_error_line(logs, tmp_path):
+    gpocc("train", str(logs["a"]), "--out", str(tmp_path / "a.npz"),
+          "--config", str(logs["config"]))
+    copy = tmp_path / "renamed.log"
+    shutil.copy(logs["a"], copy)
+    for args in ([str(logs["a"])], [str(copy)], [str(logs["b"]), str(logs["b"])]):
+        result = runner.invoke(app, ["update", str(tmp_path / "a.npz"), *args,
+                                     "--out", str(tmp_path / "new.npz")])
+        assert result.exit_code == 2
+        lines = result.output.strip().splitlines()
+        assert len(lines) == 1 and "already in the model" in lines[0], result.output
+        assert not (tmp_path / "new.npz").exists()
+
+
+def test_update_then_map_is_deterministic(logs, tmp_path):
+    gpocc("train", str(logs["a"]), "--out", str(tmp_path / "a.npz"),
+          "--config", str(logs["config"]))
+    maps = []
+    for k in range(2):
+        gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out",
+              str(tmp_path / f"u{k}.npz"))
+        gpocc("map", str(tmp_path / f"u{k}.npz"), "--resolution", "0.25", "--workers", "1",
+              "--out", str(tmp_path / f"m{k}"))
+        maps.append(tmp_path / f"m{k}")
+    import rasterio
+
+    for layer in ("probability.tif", "variance.tif", "class.tif"):
+        with rasterio.open(maps[0] / layer) as one, rasterio.open(maps[1] / layer) as two:
+            np.testing.assert_array_equal(one.read(), two.read())
+    meta = json.loads((maps[0] / "metadata.json").read_text())
+    assert [e["path"] for e in meta["inputs"]] == [str(logs["a"]), str(logs["b"])]
+    assert meta["inputs"][1]["scans"] == 10
+    assert meta["inputs"][1]["transform"] == {"x_m": 0.0, "y_m": 0.0, "yaw_deg": 0.0}
+
+
+def _door_labels(samples, cell_m: float) -> np.ndarray:
+    """Labels of the samples in the doorway (x within a cell of 5, 2.6 < y < 3.4)."""
+    near = (np.abs(samples.means[:, 0] - 5.0) < cell_m) & \
+        (np.abs(samples.means[:, 1] - 3.0) < 0.4)
+    return samples.labels[near]
+
+
+@pytest.mark.parametrize("open_scans, closed_scans", [(30, 2), (2, 30)])
+def test_label_votes_across_recordings_decide_a_door(tmp_path, open_scans, closed_scans):
+    """Door open in log A, closed in log B: as within one log, a cell's label seen in
+    under min_label_share of its samples (over all logs) is dropped."""
+    # No clearance: it would drop free samples near kept hits, which the votes do not see.
+    (tmp_path / "job.yaml").write_text(CONFIG.replace(
+        "min_label_share: 0.1", "min_label_share: 0.1\n  free_clearance_m: 0.0"))
+    a = write_log(tmp_path / "open.log", open_scans, door_closed=False)
+    b = write_log(tmp_path / "closed.log", closed_scans, door_closed=True, start=500.0)
+    gpocc("train", str(a), "--config", str(tmp_path / "job.yaml"),
+          "--out", str(tmp_path / "a.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(b), "--out", str(tmp_path / "ab.npz"))
+    model = load_model(tmp_path / "ab.npz")
+    # Brute force: every sample of both logs, unthinned, counted per doorway cell.
+    cfg = load_config(tmp_path / "job.yaml")
+    raw = build_samples(read_inputs([a, b], cfg), Config(samples=SamplesConfig(
+        thin_cell_m=0.0, free_clearance_m=0.0)))
+    cell = cfg.samples.thin_cell_m
+    keys = np.floor(raw.means / cell).astype(np.int64)
+    door_cells = {tuple(k) for k in np.floor(model.samples.means[
+        (np.abs(model.samples.means[:, 0] - 5.0) < cell)
+        & (np.abs(model.samples.means[:, 1] - 3.0) < 0.4)] / cell).astype(np.int64)}
+    assert door_cells
+    for cell_key in door_cells:
+        inside = (keys == cell_key).all(axis=1)
+        share_hit = np.mean(raw.labels[inside] > 0)
+        kept = model.samples.labels[(np.floor(model.samples.means / cell).astype(np.int64)
+                                     == cell_key).all(axis=1)]
+        assert (1.0 in kept) == (share_hit >= 0.1), (cell_key, share_hit)
+        assert (-1.0 in kept) == (np.mean(raw.labels[inside] < 0) >= 0.1), (cell_key,
+                                                                           share_hit)
+    # What a user gets: the state seen most often holds most of the doorway; the other
+    # keeps the cells where free samples (every free_spacing_m along a beam) are sparse.
+    labels = _door_labels(model.samples, cell)
+    assert (np.count_nonzero(labels > 0) > np.count_nonzero(labels < 0)) == \
+        (closed_scans > open_scans)
+
+
+def test_a_recording_in_another_frame_lands_in_place(tmp_path):
+    frame = TransformConfig(x_m=2.0, y_m=-1.5, yaw_deg=35.0)
+    world = write_log(tmp_path / "room_w.log", 8, door_closed=True)
+    other = write_log(tmp_path / "room_o.log", 8, door_closed=True, frame=frame)
+    (tmp_path / "job.yaml").write_text(
+        "inputs: [{path: room_o.log, transform: {x_m: 2.0, y_m: -1.5, yaw_deg: 35.0}}]\n")
+    cfg = load_config(tmp_path / "job.yaml")
+    moved, = read_inputs([other], cfg)
+    direct, = read_inputs([world], cfg)
+    np.testing.assert_allclose(moved.poses, direct.poses, atol=2e-6)
+    gpocc("train", str(world), "--config", str(tmp_path / "job.yaml"), "--out",
+          str(tmp_path / "w.npz"))
+    gpocc("update", str(tmp_path / "w.npz"), str(other), "--config",
+          str(tmp_path / "job.yaml"), "--out", str(tmp_path / "wo.npz"))
+    record = load_model(tmp_path / "wo.npz").growth.records[1]
+    assert record.transform == (2.0, -1.5, 35.0)
+    assert "transform x 2 m, y -1.5 m, yaw 35 deg" in gpocc("info", str(tmp_path / "wo.npz")).output
+
+
+def test_transformed_pose_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(2)
+    t = TransformConfig(x_m=-3.0, y_m=4.0, yaw_deg=120.0)
+    pose = np.array([1.0, 2.0, 0.3])
+    cov = np.array([[0.04, 0.01, 0.002], [0.01, 0.09, -0.003], [0.002, -0.003, 0.01]])
+    draws = rng.multivariate_normal(pose, cov, 200_000)
+    moved, _ = transform_poses(draws, np.zeros((len(draws), 3, 3)), t)
+    _, got = transform_poses(pose[None], cov[None], t)
+    np.testing.assert_allclose(got[0], np.cov(moved.T), atol=2e-3)
+
+
+def test_kept_hyperparameters_worse_than_the_initial_values_are_learned_again(logs, tmp_path):
+    """A model whose learning ended in a kernel far too smooth for the walls: on all logs
+    it explains the data worse than learning's starting point, so the update learns the
+    hyperparameters again and gives the model of training on all logs."""
+    import dataclasses
+
+    from gpocc.gp.kernels import NeuralNetworkKernel
+    from gpocc.gp.model import save_model
+
+    train_a(logs, tmp_path)
+    model = load_model(tmp_path / "a.npz")
+    smooth = dataclasses.replace(model, kernel=NeuralNetworkKernel(
+        signal_variance=100.0, bias_variance=500.0, weight_variance=(0.05, 0.05)))
+    save_model(smooth, tmp_path / "smooth.npz")
+    result = runner.invoke(app, ["update", str(tmp_path / "smooth.npz"), str(logs["b"]),
+                                 "--out", str(tmp_path / "up.npz")])
+    assert result.exit_code == 0, result.output
+    assert "worse than the config's initial values" in result.output
+    gpocc("train", str(logs["a"]), str(logs["b"]), "--config", str(logs["config"]),
+          "--out", str(tmp_path / "ab.npz"))
+    up, both = load_model(tmp_path / "up.npz"), load_model(tmp_path / "ab.npz")
+    assert up.kernel == both.kernel and up.classifier == both.classifier
+    assert up.training["hyperparameters"].startswith("relearned")
+    # The trained model's own hyperparameters pass the check: they are kept.
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "k.npz"))
+    kept = load_model(tmp_path / "k.npz")
+    assert kept.kernel == model.kernel and kept.training["hyperparameters"] == "kept"
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda meta, arrays: meta["growth"].update(n_scans=3), "n_scans is 3"),
+    (lambda meta, arrays: arrays.pop("vote_counts"), "lacks the arrays ['vote_counts']"),
+    (lambda meta, arrays: arrays.update(vote_counts=-arrays["vote_counts"]), "label votes"),
+    (lambda meta, arrays: meta["growth"]["inputs"].append({"scans": 1}), "has no path"),
+    (lambda meta, arrays: meta.pop("growth"), "growth arrays without their record"),
+])
+def test_a_damaged_update_state_is_one_error_line(logs, tmp_path, edit, words):
+    train_a(logs, tmp_path)
+    arrays, meta = read_model_file(tmp_path / "a.npz")
+    arrays.pop("metadata")
+    edit(meta, arrays)
+    write_model_file(tmp_path / "bad.npz", arrays, meta)
+    result = runner.invoke(app, ["update", str(tmp_path / "bad.npz"), str(logs["b"]),
+                                 "--out", str(tmp_path / "new.npz")])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and "re-create it" in lines[0], lines
+    assert not (tmp_path / "new.npz").exists()
+
+
+def test_calibration_points_of_beams_offsets_join(logs, tmp_path):
+    """``classifier_offset: beams``: the held-out scans of every log calibrate the
+    refitted classifier, numbered like the samples' scans."""
+    (tmp_path / "beams.yaml").write_text(CONFIG.replace(
+        "  training: {", "  training: {classifier_offset: beams, calibration_every: 3, "))
+    gpocc("train", str(logs["a"]), "--config", str(tmp_path / "beams.yaml"),
+          "--out", str(tmp_path / "a.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "ab.npz"))
+    a, ab = load_model(tmp_path / "a.npz"), load_model(tmp_path / "ab.npz")
+    held = np.unique(ab.growth.calibration.scan_ids)
+    # Every 3rd scan of each log (index % 3 == 2): A's 14 scans, then B's 10 after them.
+    np.testing.assert_array_equal(held, [2, 5, 8, 11, 14 + 2, 14 + 5, 14 + 8])
+    assert len(ab.growth.calibration.points) > len(a.growth.calibration.points)
+    assert ab.training["classifier_offset"] == "beams"
+
+
+def test_split_of_a_moved_recording_writes_poses_in_the_job_frame(tmp_path):
+    frame = TransformConfig(x_m=2.0, y_m=-1.5, yaw_deg=35.0)
+    other = write_log(tmp_path / "room_o.log", 12, door_closed=True, frame=frame)
+    (tmp_path / "job.yaml").write_text(
+        "inputs: [{path: '*', transform: {x_m: 2.0, y_m: -1.5, yaw_deg: 35.0}}]\n")
+    gpocc("split", str(other), "--every", "4", "--config", str(tmp_path / "job.yaml"),
+          "--out", str(tmp_path / "held"))
+    cfg = load_config(tmp_path / "held" / "train.yaml")
+    assert cfg.inputs == ()
+    moved, = read_inputs([tmp_path / "held" / "train.mcap"], cfg)
+    world, = read_inputs([write_log(tmp_path / "room_w.log", 12, door_closed=True)], Config())
+    kept = np.flatnonzero(np.arange(12) % 4 != 3)
+    np.testing.assert_allclose(moved.poses[:, :2], world.poses[kept, :2], atol=1e-5)
