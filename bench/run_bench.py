@@ -10,8 +10,8 @@ the machine, and says which benchmarks ran and whether the run was quick. The re
 are read from ``../shared/data/carmen`` (or ``GPOCC_CARMEN_DIR``); benchmarks whose data is
 missing are listed as skipped. The benchmarks live in ``bench/pipeline.py`` (whole
 commands), ``bench/stages.py``, ``bench/kernels.py``, ``bench/knobs.py``,
-``bench/cloud_projection.py`` and ``bench/fingerprints.py``; a new one is a function registered with
-``bench.registry.benchmark``.
+``bench/cloud_projection.py``, ``bench/update_cost.py`` and ``bench/fingerprints.py``; a
+new one is a function registered with ``bench.registry.benchmark``.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from . import (  # noqa: F401 (they register)
     knobs,
     pipeline,
     stages,
+    update_cost,
 )
 from .paths import CARMEN, ROOT
 from .registry import REGISTRY, Context, Result, Skipped
@@ -41,7 +42,7 @@ PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
 ORDER = ("intel", "intel-repeats", "campus", "scaling-data", "scaling-size", "samples",
          "sample-memory", "anchor-cost", "expected-kernels", "quadrature", "blas-threads",
-         "anneal-budget", "knobs", "cloud-projection", "fingerprints")
+         "anneal-budget", "knobs", "cloud-projection", "update-cost", "fingerprints")
 
 
 def ordered() -> list[str]:

@@ -1,31 +1,29 @@
 """Cost and accuracy of ``gpocc update`` against training on all logs at once.
 
-Run ``.venv/bin/python bench/update_cost.py [--logs intel.gfs.log ...] [--cuts 0.5 ...]``.
-For each CARMEN log and cut (a share of its laser scans), the log is cut by lines into
-a first part A and a second part B (``<stem>_a.log``, ``<stem>_b.log``), and each part
-is split with ``gpocc split --every 10`` (every 10th scan held out; ``--every`` changes
-it). Then ``gpocc train A`` (once), and, interleaved ``--repeats`` times, ``gpocc update
-A.npz B`` and ``gpocc train A B``: wall seconds and the commands' CPU seconds (user +
+Registered as the benchmark ``update-cost`` (``python -m bench.run_bench --only
+update-cost``). For each CARMEN log and cut (a share of its laser scans), the log is cut
+by lines into a first part A and a second part B (``<stem>_a.log``, ``<stem>_b.log``),
+and each part is split with ``gpocc split --every 10`` (every 10th scan held out). Then
+``gpocc train A`` (once), and, interleaved ``--repeats`` times, ``gpocc update A.npz B``
+and ``gpocc train A B``: wall seconds and the commands' CPU seconds (user +
 system, the process and its workers). The last repeat's models are mapped at 0.1 m and
-scored with ``gpocc evaluate`` on the held-out points of both parts. Prints one row per
-(log, cut) and the medians' ratio update / train; the issue asks AUC and Brier within
-0.002 and a ratio of at most 0.75. ``--json FILE`` also writes the rows.
+scored with ``gpocc evaluate`` on the held-out points of both parts. One row per
+(log, cut, protocol) with the medians' ratio update / train.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-CARMEN = ROOT.parent / "shared" / "data" / "carmen"
+from .paths import FREIBURG, INTEL, ROOT
+from .registry import Context, Result, Table, benchmark, require
+
 CONFIGS = {"intel.gfs.log": "carmen_intel.yaml",
            "freiburg-079-corrected.log": "carmen_freiburg.yaml"}
 #: Part names matching the configs' sensor ``inputs`` globs (``intel*.log``, ...).
@@ -105,44 +103,30 @@ def case(work: Path, log: Path, share: float, repeats: int, every: int = 10) -> 
                               "brier_train": trained[name]["brier"]} for name in updated}}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--logs", nargs="*", default=list(CONFIGS), choices=list(CONFIGS))
-    parser.add_argument("--cuts", nargs="*", type=float, default=[0.5, 0.4, 0.6])
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--every", type=int, default=10,
-                        help="hold out every K-th scan of each part (gpocc split --every)")
-    parser.add_argument("--json", type=Path)
-    parser.add_argument("--data", type=Path, default=CARMEN,
-                        help="folder of the CARMEN logs (default: ../shared/data/carmen)")
-    args = parser.parse_args()
+@benchmark("update-cost", "Updating a model against training on all logs")
+def update_cost(ctx: Context) -> Result:
+    """`gpocc update A.npz B` against `gpocc train A B` for each CARMEN log cut in two
+    halves by lines (A the first half of the scans), each half split with `gpocc split
+    --every 10`: median wall and CPU seconds of 3 interleaved repeats (1, Intel only, in
+    a quick run), and AUC and Brier of both models' maps at 0.1 m on the held-out points
+    of both halves, per protocol."""
+    logs = [INTEL] if ctx.quick else [INTEL, FREIBURG]
+    require(*logs)
+    repeats = 1 if ctx.quick else ctx.repeats
     rows = []
-    print("| log | cut | every | update wall s | train A B wall s | wall ratio | CPU ratio | "
-          "protocol | AUC update / train | Brier update / train |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for name in args.logs:
-        log = args.data / name
-        if not log.is_file():
-            raise SystemExit(f"{log} not found: pass --data with the CARMEN logs' folder")
-        for share in args.cuts:
-            with tempfile.TemporaryDirectory(prefix="gpocc-update-") as tmp:
-                r = case(Path(tmp), log, share, args.repeats, args.every)
-            rows.append(r)
-            for i, (protocol, s) in enumerate(r["scores"].items()):
-                head = (f"| {name} | {share:g} | {args.every} | {r['update_wall_s']:.2f} | "
-                        f"{r['train_wall_s']:.2f} | {r['wall_ratio']:.2f} | "
-                        f"{r['cpu_ratio']:.2f} |" if i == 0 else "| | | | | | | |")
-                print(f"{head} {protocol} | {s['auc_update']:.4f} / {s['auc_train']:.4f} | "
-                      f"{s['brier_update']:.4f} / {s['brier_train']:.4f} |", flush=True)
-    scores = [s for r in rows for s in r["scores"].values()]
-    worst_auc = max(abs(s["auc_update"] - s["auc_train"]) for s in scores)
-    worst_brier = max(abs(s["brier_update"] - s["brier_train"]) for s in scores)
-    print(f"\nlargest |AUC difference| {worst_auc:.4f}, |Brier difference| {worst_brier:.4f} "
-          f"(target: at most 0.002); largest wall ratio "
-          f"{max(r['wall_ratio'] for r in rows):.2f} (target: at most 0.75)")
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
-
-
-if __name__ == "__main__":
-    main()
+    for log in logs:
+        work = ctx.work / f"update-{log.stem}"
+        work.mkdir(parents=True, exist_ok=True)
+        r = case(work, log, 0.5, repeats)
+        for i, (protocol, sc) in enumerate(r["scores"].items()):
+            head = ([log.name, str(repeats), f"{r['update_wall_s']:.2f}",
+                     f"{r['train_wall_s']:.2f}", f"{r['wall_ratio']:.2f}",
+                     f"{r['cpu_ratio']:.2f}"] if i == 0 else [""] * 6)
+            rows.append([*head, protocol,
+                         f"{sc['auc_update']:.4f} / {sc['auc_train']:.4f}",
+                         f"{sc['brier_update']:.4f} / {sc['brier_train']:.4f}"])
+    result = Result()
+    result.add(Table(("log", "repeats", "update wall s", "train A B wall s", "wall ratio",
+                      "CPU ratio", "protocol", "AUC update / train",
+                      "Brier update / train"), rows))
+    return result
