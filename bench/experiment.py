@@ -99,6 +99,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     "neighbours-96": {**_HIT_PATCHES, "model.neighbours": 96},
     "neighbours-256": {**_HIT_PATCHES, "model.neighbours": 256},
     "fixed-scale": {"model.training.learn_input_noise_scale": False},
+    "two-draw": {"model.diagonal": "two-draw"},
+    "two-draw-fixed-scale": {"model.diagonal": "two-draw",
+                             "model.training.learn_input_noise_scale": False},
 }
 
 #: Every gpocc command run, in order (for the page's reproduction section).
