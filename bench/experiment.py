@@ -183,6 +183,7 @@ def octomap_row(inputs: list[Path], config: Path, folder: Path, like: Path) -> b
     """The OctoMap map on the grid of ``like`` (a map folder); False when pyoctomap is
     not installed (``pip install -e '.[bench]'``)."""
     try:
+        import pyoctomap  # noqa: F401  (octomap_map imports it only when called)
         from octomap_map import octomap_probability
     except ImportError:
         return False
