@@ -5,6 +5,7 @@ share the scan's pose error and have independent sensor noise, against Girard's 
 from __future__ import annotations
 
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -177,6 +178,10 @@ def test_config_key_is_validated_and_defaults_to_one_point():
     assert config_from_dict(data).model.diagonal == "one-point"
     assert backends.choose("auto") == "auto"
     assert backends.choose("auto", "two-draw") == backends.Choice("auto", "two-draw")
+    # It crosses process pools: the wrapped backend pickles as its choice.
+    wrapped = backends.get(TWO)
+    assert pickle.loads(pickle.dumps(wrapped)) is wrapped
+    assert pickle.loads(pickle.dumps(TWO)) == TWO
 
 
 def test_cli_trains_and_maps_with_the_two_draw_diagonal(tmp_path):
