@@ -103,6 +103,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     "neighbours-96": {**_HIT_PATCHES, "model.neighbours": 96},
     "neighbours-256": {**_HIT_PATCHES, "model.neighbours": 256},
     "fixed-scale": {"model.training.learn_input_noise_scale": False},
+    "two-draw": {"model.diagonal": "two-draw"},
+    "two-draw-fixed-scale": {"model.diagonal": "two-draw",
+                             "model.training.learn_input_noise_scale": False},
 }
 
 #: Every gpocc command run, in order (for the page's reproduction section).
@@ -186,6 +189,7 @@ def octomap_row(inputs: list[Path], config: Path, folder: Path, like: Path) -> b
     """The OctoMap map on the grid of ``like`` (a map folder); False when pyoctomap is
     not installed (``pip install -e '.[bench]'``)."""
     try:
+        import pyoctomap  # noqa: F401  (octomap_map imports it only when called)
         from octomap_map import octomap_probability
     except ImportError:
         return False

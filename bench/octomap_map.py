@@ -1,7 +1,7 @@
 """The OctoMap row of bench/experiment.py: an OctoMap occupancy probability raster.
 
 Needs the ``bench`` extra (pyoctomap). The scans are read with gpocc's reader and beam
-rules (:mod:`gpocc.samples.beam`: laser poses with the mount, hits, no-returns), every
+rules (:mod:`gpocc.samples.beam_rules`: laser poses with the mount, hits, no-returns), every
 scan is inserted as a planar point cloud (z = 0) from its laser pose with OctoMap's own
 ray casting and default sensor model (hit 0.7, miss 0.4, clamping 0.12-0.97), no-return
 beams as free rays of ``no_return_free_m``; then each cell centre of a reference raster is
@@ -23,16 +23,16 @@ def octomap_probability(inputs: list[Path], config_path: Path, out: Path,
     from gpocc.config import load_config
     from gpocc.io.inputs import read_inputs
     from gpocc.io.rasters import read_raster, write_geotiff
-    from gpocc.samples import beam
+    from gpocc.samples import beam_rules
 
     config = load_config(config_path)
     _, spec, _ = read_raster(like)
     tree = pyoctomap.OcTree(spec.resolution)
     for batch in read_inputs(inputs, config):
-        sensor = beam.sensor_config(batch, config)
-        classes = beam.classify_beams(batch.ranges, batch.range_min, batch.range_max)
-        lasers = beam.laser_poses(batch.poses, beam.mount_vector(sensor))
-        free_m = beam.no_return_free_m(sensor, batch.range_max)
+        sensor = beam_rules.sensor_config(batch, config)
+        classes = beam_rules.classify_beams(batch.ranges, batch.range_min, batch.range_max)
+        lasers = beam_rules.laser_poses(batch.poses, beam_rules.mount_vector(sensor))
+        free_m = beam_rules.no_return_free_m(sensor, batch.range_max)
         for s in range(batch.n_scans):
             x, y, yaw = lasers[s]
             origin = np.array([x, y, 0.0])

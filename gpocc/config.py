@@ -242,6 +242,10 @@ class ModelConfig:
     ``backend``: where the expected kernels are computed (:mod:`gpocc.gp.backends`):
     ``compiled`` (C loops for the kernels they serve, numpy for the others), ``numpy``
     (the reference; slower) or ``auto`` (compiled where built).
+    ``diagonal``: the training covariance's diagonal E[k(x_i, x_i)]: ``one-point`` (one
+    random point) or ``two-draw`` (two draws of a sample's input that share its scan's
+    pose error and have independent sensor noise: the double integral of the method's
+    K(u_i, u_j) taken at i = j).
     """
 
     kernel: str = "nn"
@@ -251,6 +255,7 @@ class ModelConfig:
     block_size_m: float = 1.0
     blend_overlap: float = 1.0
     backend: str = "auto"
+    diagonal: str = "one-point"
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
 
@@ -602,6 +607,9 @@ def _validate(config: Config, source: str) -> Config:
     if config.model.backend not in backends.NAMES:
         raise GpoccError(f"{source}: key 'model.backend' must be one of "
                          f"{', '.join(backends.NAMES)}, got {config.model.backend!r}")
+    if config.model.diagonal not in backends.DIAGONALS:
+        raise GpoccError(f"{source}: key 'model.diagonal' must be one of "
+                         f"{', '.join(backends.DIAGONALS)}, got {config.model.diagonal!r}")
     if config.map.epsg is not None:
         raise GpoccError(
             f"{source}: key 'map.epsg' is retired: a CRS code without the map frame's origin "

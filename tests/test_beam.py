@@ -1,4 +1,4 @@
-"""The beam rules (gpocc.samples.beam) and that every consumer applies the same ones."""
+"""The beam rules (gpocc.samples.beam_rules) and that every consumer applies the same ones."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from gpocc.config import Config, MountConfig, SamplesConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.evaluation.split import labelled_points
 from gpocc.io.scans import ScanBatch
-from gpocc.samples import beam
+from gpocc.samples import beam_rules
 from gpocc.samples.beams import build_samples
 
 MOUNT = SensorConfig(name="laser", mount=MountConfig(x_m=0.3, y_m=-0.2, yaw_deg=15.0))
@@ -36,7 +36,7 @@ def _batch(ranges: np.ndarray, poses: np.ndarray, **kw: object) -> ScanBatch:
 
 def test_classes_follow_rep_117_element_by_element() -> None:
     values = [np.nan, -np.inf, np.inf, 0.0, 0.1999, 0.2, 3.0, 7.9999, 8.0, 9.0, -1.0]
-    classes = beam.classify_beams(np.array(values), 0.2, 8.0)
+    classes = beam_rules.classify_beams(np.array(values), 0.2, 8.0)
     for v, hit, none, bad in zip(values, classes.hit, classes.no_return, classes.invalid,
                                  strict=True):
         # The rule as REP 117 states it, one value at a time.
@@ -48,11 +48,11 @@ def test_classes_follow_rep_117_element_by_element() -> None:
 def test_laser_pose_and_points_are_the_se2_composition() -> None:
     rng = np.random.default_rng(3)
     poses = rng.uniform([-5, -5, -np.pi], [5, 5, np.pi], size=(20, 3))
-    mount = beam.mount_vector(MOUNT)
-    lasers = beam.laser_poses(poses, mount)
+    mount = beam_rules.mount_vector(MOUNT)
+    lasers = beam_rules.laser_poses(poses, mount)
     bearings = rng.uniform(-2, 2, size=20)
     dist = rng.uniform(0, 9, size=20)
-    points = beam.beam_points(lasers, bearings, dist)
+    points = beam_rules.beam_points(lasers, bearings, dist)
     for pose, laser, b, d, p in zip(poses, lasers, bearings, dist, points, strict=True):
         t = _se2(*pose) @ _se2(*mount)
         np.testing.assert_allclose(laser[:2], t[:2, 2], atol=1e-12)
@@ -61,7 +61,7 @@ def test_laser_pose_and_points_are_the_se2_composition() -> None:
         np.testing.assert_allclose(p, (t @ np.array([d * math.cos(b), d * math.sin(b), 1]))[:2],
                                    atol=1e-12)
     inputs = np.column_stack((dist, bearings, poses))
-    np.testing.assert_allclose(beam.beam_endpoint(inputs, mount), points, atol=1e-12)
+    np.testing.assert_allclose(beam_rules.beam_endpoint(inputs, mount), points, atol=1e-12)
 
 
 def test_laser_pose_covariance_matches_monte_carlo() -> None:
@@ -70,8 +70,8 @@ def test_laser_pose_covariance_matches_monte_carlo() -> None:
     mount = np.array([0.8, 0.4, 0.3])
     rng = np.random.default_rng(0)
     draws = rng.multivariate_normal(pose, cov, size=200_000)
-    mc = np.cov(beam.laser_poses(draws, mount).T)
-    lin = beam.laser_pose_covariances(pose[None], cov[None], mount)[0]
+    mc = np.cov(beam_rules.laser_poses(draws, mount).T)
+    lin = beam_rules.laser_pose_covariances(pose[None], cov[None], mount)[0]
     # Linearisation error is second order in the yaw spread (sd 0.045 rad): ~0.2% here.
     np.testing.assert_allclose(lin, mc, rtol=0.03, atol=2e-5)
     # The mount matters: without it the position covariance would be the base's.
@@ -80,19 +80,19 @@ def test_laser_pose_covariance_matches_monte_carlo() -> None:
 
 def test_which_pose_covariance_applies() -> None:
     batch = _batch(np.full((3, 4), 2.0), np.zeros((3, 3)))
-    np.testing.assert_array_equal(beam.pose_covariances(batch, MOUNT), batch.pose_covariances)
+    np.testing.assert_array_equal(beam_rules.pose_covariances(batch, MOUNT), batch.pose_covariances)
     override = SensorConfig(name="laser", override_pose_covariance=True,
                             pose_covariance=((0.5, 0.0, 0.0), (0.0, 0.6, 0.0),
                                              (0.0, 0.0, 0.7)))
-    np.testing.assert_allclose(beam.pose_covariances(batch, override, np.array([0, 2, 2])),
+    np.testing.assert_allclose(beam_rules.pose_covariances(batch, override, np.array([0, 2, 2])),
                                np.broadcast_to(np.diag([0.5, 0.6, 0.7]), (3, 3, 3)))
     absent = _batch(np.full((3, 4), 2.0), np.zeros((3, 3)), has_pose_covariance=False)
-    np.testing.assert_allclose(beam.pose_covariances(absent, MOUNT)[1],
+    np.testing.assert_allclose(beam_rules.pose_covariances(absent, MOUNT)[1],
                                MOUNT.pose_covariance_matrix)
     bad = _batch(np.full((3, 4), 2.0), np.zeros((3, 3)))
     bad.pose_covariances[1, 0, 0] = np.nan
     with pytest.raises(GpoccError, match="non-finite pose covariances"):
-        beam.pose_covariances(bad, MOUNT)
+        beam_rules.pose_covariances(bad, MOUNT)
 
 
 def test_sensor_config_prefers_the_readers_entry_then_the_name() -> None:
@@ -100,9 +100,10 @@ def test_sensor_config_prefers_the_readers_entry_then_the_name() -> None:
     named = SensorConfig(name="laser", range_variance_m2=0.7)
     config = Config(sensors=(named,))
     ranges, poses = np.full((1, 2), 1.0), np.zeros((1, 3))
-    assert beam.sensor_config(_batch(ranges, poses, sensor_config=attached), config) is attached
-    assert beam.sensor_config(_batch(ranges, poses), config) is named
-    assert beam.sensor_config(_batch(ranges, poses, sensor="other"), config) == SensorConfig(
+    given = _batch(ranges, poses, sensor_config=attached)
+    assert beam_rules.sensor_config(given, config) is attached
+    assert beam_rules.sensor_config(_batch(ranges, poses), config) is named
+    assert beam_rules.sensor_config(_batch(ranges, poses, sensor="other"), config) == SensorConfig(
         name="other")
 
 

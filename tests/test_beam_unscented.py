@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpocc.samples import beam
+from gpocc.samples import beam_rules
 from gpocc.samples.beam_unscented import beam_unscented
 from gpocc.samples.unscented import matrix_sqrt, unscented_transform
 
@@ -53,7 +53,7 @@ def test_compiled_transform_equals_the_generic_one(seed, alpha, beta, kappa):
     sqrt_cov[:, 1, 1] = np.sqrt(c["bearing_variance"])
     sqrt_cov[:, 2:, 2:] = root[c["scans"]]
     ref_mean, ref_cov, cross = unscented_transform(
-        lambda x: beam.beam_endpoint(x, c["mount"]), mean, cov, alpha, beta, kappa,
+        lambda x: beam_rules.beam_endpoint(x, c["mount"]), mean, cov, alpha, beta, kappa,
         sqrt_cov=sqrt_cov,
     )
     ref_factors = np.swapaxes(cross[:, 2:, :], -1, -2) @ pose_map[c["scans"]]
@@ -80,7 +80,7 @@ def test_compiled_transform_matches_monte_carlo():
         bearing + np.sqrt(var_b) * rng.standard_normal(draws),
         pose + rng.standard_normal((draws, 3)) @ np.sqrt(pose_cov),
     ])
-    y = beam.beam_endpoint(x, mount)
+    y = beam_rules.beam_endpoint(x, mount)
     np.testing.assert_allclose(means[0], y.mean(axis=0), atol=3e-3)
     np.testing.assert_allclose(covs[0], np.cov(y.T), rtol=0.05, atol=2e-4)
     # A A^T is the covariance explained by the pose: Cov(y, pose) P^-1 Cov(pose, y).

@@ -163,7 +163,7 @@ def test_an_upside_down_mount_mirrors_the_bearings(tmp_path: Path) -> None:
     from dataclasses import replace
 
     from gpocc.config import MountConfig
-    from gpocc.samples.beam import beam_points, laser_poses, mount_vector
+    from gpocc.samples.beam_rules import beam_points, laser_poses, mount_vector
 
     log = _write(tmp_path, [_flaser([2.0] * 4, (0, 0, 0), 1.0)])
     level = read_carmen(log, SENSOR)

@@ -21,7 +21,7 @@ from gpocc.io.inputs import (
     sensors_for_input,
 )
 from gpocc.io.scans import ScanBatch
-from gpocc.samples.beam import sensor_config
+from gpocc.samples.beam_rules import sensor_config
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "carmen"

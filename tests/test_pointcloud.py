@@ -38,7 +38,7 @@ from gpocc.errors import GpoccError
 from gpocc.io.cloudscan import bin_angles, project
 from gpocc.io.inputs import read_inputs
 from gpocc.io.pointcloud import decode_cloud
-from gpocc.samples.beam import laser_poses, mount_vector
+from gpocc.samples.beam_rules import laser_poses, mount_vector
 
 # --------------------------------------------------------------------------- decoding
 

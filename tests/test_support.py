@@ -20,7 +20,7 @@ from gpocc.mapping import support as support_module
 from gpocc.mapping.blend import predict_tile
 from gpocc.mapping.blocks import Anchor, AnchorLattice
 from gpocc.mapping.support import Support
-from gpocc.samples.beam import beam_endpoint
+from gpocc.samples.beam_rules import beam_endpoint
 from gpocc.samples.beams import build_samples
 from gpocc.samples.coverage import beam_coverage, beam_segments, coverage_of_segments
 

@@ -10,7 +10,7 @@ import pytest
 
 from gpocc.config import Config, MountConfig, SamplesConfig, SensorConfig, UnscentedConfig
 from gpocc.io.scans import ScanBatch
-from gpocc.samples.beam import beam_endpoint
+from gpocc.samples.beam_rules import beam_endpoint
 from gpocc.samples.beams import build_samples
 from gpocc.samples.unscented import (
     matrix_sqrt,

@@ -24,7 +24,7 @@ against. The model:
   s_d phi_d^2`` (the variance layer), and ``p(occupied) = sigmoid(mean / sqrt(1 + pi
   var / 8))`` (MacKay's probit approximation).
 
-Training points follow the beam rules every method shares (:mod:`gpocc.samples.beam`:
+Training points follow the beam rules every method shares (:mod:`gpocc.samples.beam_rules`:
 REP 117 classes, mounts, the free extent of no-return beams) and the GP's scan and beam
 strides. EM runs in batch over all of them: the paper also gives a sequential form (one
 scan at a time, the last posterior as the next prior) for online and dynamic maps; on a
@@ -49,7 +49,7 @@ from gpocc.config import BHMConfig, Config
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
-from gpocc.samples import beam as beam_rules
+from gpocc.samples import beam_rules
 
 #: A feature is cut to zero beyond this many ``gamma^-1/2`` from its inducing point.
 REACH_SIGMAS = 3.0
@@ -156,7 +156,7 @@ def training_points(batches: list[ScanBatch], config: Config) -> TrainingPoints:
     A hit at range ``r`` gives an occupied point at ``r`` and free points at ``d = k *
     bhm.free_spacing_m`` (k = 1, 2, ...) while ``d <= r - bhm.hit_gap_m``; a no-return
     beam gives free points up to ``min(no_return_free_m, range_max)``; invalid readings
-    give nothing (:func:`gpocc.samples.beam.classify_beams`). Scans and beams follow
+    give nothing (:func:`gpocc.samples.beam_rules.classify_beams`). Scans and beams follow
     ``samples.scan_stride`` and ``samples.beam_stride``, as the GP's samples do. With
     ``bhm.sample_cell_m > 0`` points are counted per label in squares of that side and
     each count becomes one point at the mean of its points with that weight.

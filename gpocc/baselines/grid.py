@@ -9,7 +9,7 @@ its mind after a long run of one kind of evidence. Unlike OctoMap, which updates
 most once per scan, two beams of one scan may both update a cell before that scan's
 clamp, as in the per-beam formulation of *Probabilistic Robotics*.
 
-Beams follow the same rules as the GP's samples (:mod:`gpocc.samples.beam`): REP 117
+Beams follow the same rules as the GP's samples (:mod:`gpocc.samples.beam_rules`): REP 117
 classes (NaN, ``-inf`` and ranges below ``range_min`` are ignored; a finite
 ``range_min <= r < range_max`` is a hit; ``+inf`` or ``r >= range_max`` (no return) marks
 free space up to ``min(no_return_free_m, range_max)`` and no hit), the laser pose from
@@ -32,7 +32,7 @@ from gpocc.config import Config, GridConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
-from gpocc.samples import beam as beam_rules
+from gpocc.samples import beam_rules
 from gpocc.samples.unscented import unscented_transform
 
 #: Upper bound on the ray columns (see :func:`ray_cells`) handled in one vectorised step;

@@ -22,7 +22,7 @@ from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
 from gpocc.limits import MAX_HELDOUT_POINTS, check_seed
 from gpocc.progress import log
-from gpocc.samples import beam
+from gpocc.samples import beam_rules
 from gpocc.samples.heldout import NEAR_WALL
 
 
@@ -74,7 +74,7 @@ def split(
     n_heldout = 0
     used_prefixes: set[str] = set()
     for batch in batches:
-        sensor = beam.sensor_config(batch, config)
+        sensor = beam_rules.sensor_config(batch, config)
         result = split_batch(
             batch,
             sensor,

@@ -50,7 +50,7 @@ from gpocc.evaluation.families import FAMILIES, family_seed
 from gpocc.evaluation.world import World, make_world
 from gpocc.gridspec import GridSpec
 from gpocc.io.scans import ScanBatch
-from gpocc.samples import beam
+from gpocc.samples import beam_rules
 
 #: Pose covariance (x m^2, y m^2, yaw rad^2) recorded when no pose noise is simulated.
 TINY_POSE_COVARIANCE = np.diag([1e-6, 1e-6, 1e-8])
@@ -401,7 +401,7 @@ def observed_cells(spec: GridSpec, run: RobotRun) -> tuple[np.ndarray, np.ndarra
     for i0 in range(0, origins.shape[0], _RAY_CHUNK):
         sl = slice(i0, i0 + _RAY_CHUNK)
         # The simulated laser sits at the base (no mount): the laser pose is (origin, phi).
-        ends = beam.beam_points(np.column_stack((origins[sl], phi[sl])), 0.0, length[sl])
+        ends = beam_rules.beam_points(np.column_stack((origins[sl], phi[sl])), 0.0, length[sl])
         cells = ray_cells(spec, origins[sl], ends)
         visited[cells.row * spec.width + cells.col] = True
         row, col, inside = spec.index_of(ends[is_hit[sl]])

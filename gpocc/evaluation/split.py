@@ -23,7 +23,7 @@ import numpy as np
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
-from gpocc.samples import beam
+from gpocc.samples import beam_rules
 from gpocc.samples.heldout import heldout_mask, protocol_points, subset_batch
 from gpocc.samples.heldout import labelled_points as labelled_points  # re-exported
 
@@ -48,12 +48,12 @@ class SplitResult:
 
 
 def with_pose_covariances(batch: ScanBatch, sensor: SensorConfig) -> ScanBatch:
-    """The batch with the pose covariances that apply to it (:mod:`gpocc.samples.beam`).
+    """The batch with the pose covariances that apply to it (:mod:`gpocc.samples.beam_rules`).
 
     Written into a bag, the covariances then travel with the scans, so the bag needs no
     config to say how uncertain its poses are.
     """
-    if beam.uses_input_covariance(batch, sensor):
+    if beam_rules.uses_input_covariance(batch, sensor):
         return batch
     cov = np.broadcast_to(sensor.pose_covariance_matrix, (batch.n_scans, 3, 3)).copy()
     return dataclasses.replace(batch, pose_covariances=cov, has_pose_covariance=True)

@@ -6,7 +6,9 @@ uses
 * ``K[i, j] = E[k(x_i, x_j)]`` over the joint law of (x_i, x_j): a product of two 2-D
   rules when the inputs are independent, one 4-D rule over ``[[S_i, C], [C', S_j]]`` when
   they share a scan's pose error (``C = A_i A_j'``, ``A = pose_factors``);
-* ``K[i, i] = E[k(x_i, x_i)]`` over ONE random point (not two independent copies);
+* ``K[i, i] = E[k(x_i, x_i)]`` over ONE random point (not two independent copies), or
+  with ``model.diagonal: two-draw`` (:func:`two_draw_diag`) ``E[k(x_i, x_i')]`` over two
+  draws that share the scan's pose error and have independent sensor noise;
 * ``Kx[q, i] = E[k(x*_q, x_i)]`` for exact queries.
 
 Nodes never depend on the hyperparameters, so gradients are the same quadrature applied to
@@ -428,6 +430,104 @@ def _diag(
     return values, _reduce_last(kernel.pairwise_gradient(ex.nodes, ex.nodes), ex)
 
 
+#: Step in log g of the central difference that gives the two-draw diagonal's dK/dlog g
+#: (values are smooth in log g: truncation ~1e-7 relative, round-off ~1e-13).
+_LOG_SCALE_STEP = 1e-3
+
+
+def two_draw_diag(
+    kernel: Kernel,
+    means: np.ndarray,
+    covariances: np.ndarray,
+    level: int,
+    *,
+    scan_ids: np.ndarray | None = None,
+    pose_factors: np.ndarray | None = None,
+    with_gradient: bool = False,
+    backend: str | backends.Backend = "auto",
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """``E[k(x_i, x_i')]`` for two draws x_i, x_i' of sample i's input N(u_i, S_i) that
+    share its scan's pose error and have independent sensor noise: joint covariance
+    ``[[S_i, A_i A_i'], [A_i A_i', S_i]]`` (``A = pose_factors``).
+
+    A sample whose pose share :func:`same_scan_pairs` would not treat as correlated (no
+    scan ids or pose factors, or a pose part below ``POSE_SHARE_MIN`` of its trace) gets
+    independent draws, the product of two 2-D rules ``sum_ab w_a w_b k(n_a, n_b)``; the
+    others get the same-scan 4-D rule at (i, i) (where the sensor part is ~0 the joint
+    covariance is singular and the two draws coincide: the one-point value). A zero
+    covariance gives ``k(u_i, u_i)``.
+
+    Args:
+        means: (N, 2) metres; covariances: (N, 2, 2) m^2; scan_ids (N,), pose_factors
+            (N, 2, 3) metres, as for :func:`expected_kernel_matrix`.
+
+    Returns:
+        (N,), or ((N,), (P, N)) with the gradient w.r.t. ``kernel.theta``.
+    """
+    means, covariances = _check_inputs(means, covariances)
+    n = means.shape[0]
+    chosen = backends.get(backend)
+    values = np.empty(n)
+    grads = np.empty((_nparams(kernel), n)) if with_gradient else None
+    zero = np.abs(covariances).reshape(n, 4).max(axis=1) <= ZERO_VARIANCE_M2
+    correlated = np.zeros(n, dtype=bool)
+    if scan_ids is not None and pose_factors is not None and level > 1:
+        _, pose_factors = _check_scan_inputs(n, scan_ids, pose_factors)
+        pose_part = np.einsum("nij,nij->n", pose_factors, pose_factors)
+        correlated = (pose_part > POSE_SHARE_MIN * (covariances[:, 0, 0] + covariances[:, 1, 1])
+                      ) & ~zero
+    if zero.any():
+        at = means[zero]
+        if grads is None:
+            values[zero] = kernel.diag(at)
+        else:
+            grads[:, zero] = kernel.pairwise_gradient(at, at)
+            values[zero] = grads[0, zero]  # d/dlog(signal) = k
+    free = np.flatnonzero(~zero & ~correlated)
+    if free.shape[0]:
+        nodes, w = gaussian_nodes(means[free], covariances[free], level)  # (F, L, 2)
+        size = w.shape[0]
+        weights = np.multiply.outer(w, w).reshape(-1)
+        step = max(1, _PAIR_CHUNK // (size * size))
+        for lo in range(0, free.shape[0], step):
+            part = nodes[lo : lo + step]
+            a = np.repeat(part, size, axis=1).reshape(-1, 2)
+            b = np.tile(part, (1, size, 1)).reshape(-1, 2)
+            idx = free[lo : lo + step]
+            if grads is None:
+                values[idx] = kernel.pairwise(a, b).reshape(-1, size * size) @ weights
+            else:
+                g = kernel.pairwise_gradient(a, b)
+                grads[:, idx] = g.reshape(g.shape[0], -1, size * size) @ weights
+                values[idx] = grads[0, idx]
+    both = np.flatnonzero(correlated)
+    if both.shape[0]:
+        pair_values, pair_grads = chosen.loops(kernel).same_scan(
+            kernel, means, covariances, pose_factors, both, both, level, with_gradient,
+            1.0, False)
+        values[both] = pair_values
+        if grads is not None:
+            grads[:, both] = pair_grads[: grads.shape[0]]
+    return values if grads is None else (values, grads)
+
+
+def _two_draw_scale_gradient(
+    kernel: Kernel, means: np.ndarray, covariances: np.ndarray, level: int,
+    scan_ids: np.ndarray | None, pose_factors: np.ndarray | None, input_scale: float,
+    backend: backends.Backend,
+) -> np.ndarray:
+    """(N,) d/dlog g of :func:`two_draw_diag` at covariances ``g S`` and pose factors
+    ``sqrt(g) A``, by a central difference in log g (the diagonal alone: N values)."""
+    out = []
+    for sign in (1.0, -1.0):
+        g = input_scale * math.exp(sign * _LOG_SCALE_STEP)
+        out.append(two_draw_diag(
+            kernel, means, covariances * g, level, scan_ids=scan_ids,
+            pose_factors=None if pose_factors is None else pose_factors * math.sqrt(g),
+            backend=backend))
+    return (out[0] - out[1]) / (2.0 * _LOG_SCALE_STEP)
+
+
 def supports_scale_gradient(kernel: Kernel, backend: str | backends.Backend = "auto") -> bool:
     """Whether :func:`expected_kernel_matrix` gives dK/dlog g for ``kernel``."""
     return backends.get(backend).loops(kernel).scale_gradient
@@ -451,7 +551,9 @@ def expected_kernel_matrix(
     Pairs from one scan (equal ``scan_ids``) with nonzero ``pose_factors`` are correlated,
     ``Cov(x_i, x_j) = A_i A_j'``, and use a 4-D rule (level**4 nodes); other pairs are
     independent and use the product of the two 2-D rules; the diagonal is the one-point
-    expectation. Without ``scan_ids``/``pose_factors`` all pairs are independent.
+    expectation, or :func:`two_draw_diag` where ``backend`` carries ``model.diagonal:
+    two-draw`` (:func:`gpocc.gp.backends.choose`). Without ``scan_ids``/``pose_factors``
+    all pairs are independent.
 
     Args:
         kernel: a :class:`~gpocc.gp.kernels.Kernel`.
@@ -508,13 +610,33 @@ def expected_kernel_matrix(
     # products that need not be (averaging the transposed gradients took a tenth of a
     # training evaluation).
     symmetrise = not loops.symmetric
+    two_draw = backends.diagonal_of(backend) == "two-draw"
+    if two_draw:
+        # At g S and sqrt(g) A, whichever of the loops or this function scaled them.
+        scaled_covariances = covariances * input_scale
+        scaled_factors = (None if pose_factors is None else
+                          np.asarray(pose_factors, dtype=np.float64) * math.sqrt(input_scale))
     if dk is None:
-        k[diag, diag] = _diag(kernel, ex, False)
+        if two_draw:
+            k[diag, diag] = two_draw_diag(kernel, means, scaled_covariances, level,
+                                          scan_ids=scan_ids, pose_factors=scaled_factors,
+                                          backend=backend)
+        else:
+            k[diag, diag] = _diag(kernel, ex, False)
         if symmetrise:
             k += k.T
             k *= 0.5
         return k
-    dvalues, dgrads = _diag(kernel, ex, True)
+    if two_draw:
+        dvalues, dgrads = two_draw_diag(kernel, means, scaled_covariances, level,
+                                        scan_ids=scan_ids, pose_factors=scaled_factors,
+                                        with_gradient=True, backend=backend)
+        if with_scale_gradient:
+            diag_scale_gradient = _two_draw_scale_gradient(
+                kernel, means, covariances, level, scan_ids, pose_factors, input_scale,
+                backend)
+    else:
+        dvalues, dgrads = _diag(kernel, ex, True)
     if with_scale_gradient:
         dgrads = np.vstack([dgrads, diag_scale_gradient])
     k[diag, diag] = dvalues

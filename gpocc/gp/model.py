@@ -22,6 +22,7 @@ import numpy as np
 from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
+from gpocc.gp import backends
 from gpocc.gp.classify import (
     MapFunction,
     PlattClassifier,
@@ -86,6 +87,12 @@ class GPModel:
         return self.config.model.quadrature_level
 
     @property
+    def backend(self) -> str | backends.Choice:
+        """``backend=`` of every expected-kernel call: ``model.backend`` with
+        ``model.diagonal`` (:func:`gpocc.gp.backends.choose`)."""
+        return backends.choose(self.config.model.backend, self.config.model.diagonal)
+
+    @property
     def extent(self) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) of the sample means, metres."""
         lo = self.samples.means.min(axis=0)
@@ -121,11 +128,12 @@ def build_model(
     if not model_cfg.input_noise:
         samples = samples.without_input_noise()
     kernel = make_kernel(model_cfg.kernel, model_cfg.hyperparameters)
+    backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
     with single_threaded_blas():
         result: TrainingResult = learn_hyperparameters(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
-            backend=model_cfg.backend, client=client,
+            backend=backend, client=client,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale)
@@ -184,19 +192,20 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     ``beams``) and the number of held-out beam points it was fitted on (0 for holdout)."""
     model_cfg = config.model
     training = model_cfg.training
+    backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
     # Fresh patches (another seed) for the classifier: a and b fitted on the very
     # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
     patches = make_patches(samples, training, config.seed + 1)
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
                                 model_cfg.quadrature_level, training.classifier_holdout,
-                                model_cfg.backend, map_fn)
+                                backend, map_fn)
     if training.classifier_offset != "beams" or calibration is None or not calibration.usable:
         return classifier, "holdout", 0
     mean, variance, labels = beam_holdout_predictions(
         result.kernel, result.noise_variance, samples, calibration,
         model_cfg.quadrature_level, model_cfg.neighbours, model_cfg.block_size_m,
         training.calibration_blocks, np.random.default_rng(config.seed + 2),
-        model_cfg.backend, map_fn)
+        backend, map_fn)
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0
     return (fit_offset(mean, variance, labels, classifier.extra_variance), "beams",

@@ -71,7 +71,7 @@ class ScanBatch:
         skipped_scans: scans dropped for want of a pose within the allowed gap.
         sensor_config: the config entry the reader resolved for this sensor (topics
             filled in); None for a batch not made by a reader, which
-            :func:`gpocc.samples.beam.sensor_config` then matches by name.
+            :func:`gpocc.samples.beam_rules.sensor_config` then matches by name.
         provenance: pose and covariance sources of a bag's batch (None: not recorded).
     """
 

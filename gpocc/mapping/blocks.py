@@ -209,7 +209,7 @@ def predict_anchors(model: GPModel, lattice: AnchorLattice, anchors: list[Anchor
         footprints.append((block, weight, wanted))
         queries.append(np.column_stack(window.cell_centres_at(*np.nonzero(wanted))))
     predictions = predict_locals(model.kernel, model.noise_variance, problems, queries,
-                                 model.level, model.config.model.backend)
+                                 model.level, model.backend)
     results = []
     for anchor, (block, weight, wanted), pred in zip(anchors, footprints, predictions,
                                                      strict=True):

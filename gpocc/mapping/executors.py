@@ -77,7 +77,7 @@ def warm_up(model: GPModel) -> None:
     centre = model.samples.means[0]
     problem = index.problem(centre, model.config.model.neighbours)
     predict_local(model.kernel, model.noise_variance, problem, centre[None, :], model.level,
-                  model.config.model.backend)
+                  model.backend)
 
 
 def _compute_in_worker(lattice: AnchorLattice, chunk: list[Anchor]) -> list[AnchorResult]:

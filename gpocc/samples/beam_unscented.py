@@ -1,7 +1,7 @@
 """The unscented transform of beam samples, compiled (C: gpocc/_kernels.c).
 
 :func:`gpocc.samples.unscented.unscented_transform` is generic: it builds the (N, 11, 5)
-sigma points, pushes them through :func:`gpocc.samples.beam.beam_endpoint` and reduces
+sigma points, pushes them through :func:`gpocc.samples.beam_rules.beam_endpoint` and reduces
 them with batched matrix products. For the beam endpoint that costs about 3 us a sample,
 and a log gives millions of samples before thinning (Intel: 2 million, the largest stage
 of ``gpocc train``). Here the same transform runs as one loop per sample with the
@@ -42,7 +42,7 @@ def beam_unscented(
 
     Each sample's inputs (range, bearing, base x, y, yaw) are Gaussian with covariance
     ``blockdiag(range_variances[i], bearing_variance, P_s)`` for its scan ``s``, pushed
-    through :func:`gpocc.samples.beam.beam_endpoint` with ``mount``.
+    through :func:`gpocc.samples.beam_rules.beam_endpoint` with ``mount``.
 
     Args:
         distances: (N,) metres along the beam.

@@ -1,7 +1,7 @@
 """Laser beams to uncertain training samples: hits (+1) and free space along beams (-1).
 
 Each sample is a point at a distance along one beam of one scan. Its position is a
-nonlinear function (:func:`gpocc.samples.beam.beam_endpoint`) of five uncertain
+nonlinear function (:func:`gpocc.samples.beam_rules.beam_endpoint`) of five uncertain
 inputs: the range or distance, the beam bearing and the robot pose (x, y, yaw). The
 unscented transform turns the Gaussian of those inputs into the Gaussian of the position,
 and its cross-covariance gives each sample's sensitivity to its scan's pose, so that samples
@@ -23,7 +23,7 @@ from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
 from gpocc.limits import MAX_SAMPLES_PER_SCAN
 from gpocc.parallel import default_workers, thread_map
-from gpocc.samples import beam
+from gpocc.samples import beam_rules
 from gpocc.samples.beam_unscented import beam_unscented
 from gpocc.samples.sampleset import SampleSet, has_both_labels
 from gpocc.samples.unscented import matrix_sqrt
@@ -70,8 +70,8 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
     would otherwise lose kernel amplitude to their input noise while its free samples,
     exact-looking, keep theirs and erode its obstacles.
 
-    Sensor settings and pose covariance: :func:`gpocc.samples.beam.sensor_config` and
-    :func:`gpocc.samples.beam.pose_covariances` (the batch's per-scan covariances when it
+    Sensor settings and pose covariance: :func:`gpocc.samples.beam_rules.sensor_config` and
+    :func:`gpocc.samples.beam_rules.pose_covariances` (the batch's per-scan covariances when it
     has them and the sensor's ``override_pose_covariance`` is off; the sensor's
     ``pose_covariance`` otherwise).
 
@@ -156,7 +156,7 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
 
     offset = scan_offset
     for batch in batches:
-        sensor = beam.sensor_config(batch, config)
+        sensor = beam_rules.sensor_config(batch, config)
         sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
         n_batch = 0
         jobs = _batch_chunks(batch, sensor, config.samples, offset, sensor_id)
@@ -444,15 +444,15 @@ def _batch_chunks(
     beams = np.arange(0, batch.n_beams, cfg.beam_stride)
     ranges = np.asarray(batch.ranges, dtype=float)[np.ix_(scans, beams)]
     angles = np.asarray(batch.angles, dtype=float)[beams]
-    poses = beam.checked_poses(batch, scans)
-    pose_cov = beam.pose_covariances(batch, sensor, scans)
+    poses = beam_rules.checked_poses(batch, scans)
+    pose_cov = beam_rules.pose_covariances(batch, sensor, scans)
     pose_root = matrix_sqrt(pose_cov) if len(scans) else np.zeros((0, 3, 3))
     # A_i = C_i^T pinv(P) L: the scan-level factor pinv(P) L is shared by all its samples.
     pose_map = np.linalg.pinv(pose_cov, hermitian=True) @ pose_root if len(scans) else pose_root
 
-    classes = beam.classify_beams(ranges, float(batch.range_min), float(batch.range_max))
+    classes = beam_rules.classify_beams(ranges, float(batch.range_min), float(batch.range_max))
     is_hit, no_return = classes.hit, classes.no_return
-    no_return_limit = beam.no_return_free_m(sensor, batch.range_max)
+    no_return_limit = beam_rules.no_return_free_m(sensor, batch.range_max)
     gap = max(cfg.hit_gap_m, cfg.hit_gap_sigmas * float(np.sqrt(sensor.range_variance_m2)))
     limit = np.where(is_hit, ranges - gap, np.where(no_return, no_return_limit, 0.0))
     limit = np.where(np.isfinite(limit), limit, 0.0)
@@ -470,7 +470,7 @@ def _batch_chunks(
 
     plan = _BatchPlan(
         scan_index=scans, ranges=ranges, angles=angles, poses=poses, pose_root=pose_root,
-        pose_map=pose_map, is_hit=is_hit, n_free=n_free, mount=beam.mount_vector(sensor),
+        pose_map=pose_map, is_hit=is_hit, n_free=n_free, mount=beam_rules.mount_vector(sensor),
         var_r_hit=float(sensor.range_variance_m2), var_b=float(sensor.bearing_variance_rad2),
         cfg=cfg, scan_offset=scan_offset, sensor_id=sensor_id)
     for s0, s1 in zip(bounds[:-1], bounds[1:], strict=True):

@@ -21,7 +21,7 @@ import numpy as np
 from gpocc import compiled
 from gpocc.config import Config, SensorConfig
 from gpocc.io.scans import ScanBatch
-from gpocc.samples.beam import (
+from gpocc.samples.beam_rules import (
     beam_points,
     checked_poses,
     classify_beams,
@@ -75,7 +75,7 @@ def beam_segments(batch: ScanBatch, sensor: SensorConfig, config: Config
     """Start and end points, each (N, 2) metres, of the beams that gave training samples.
 
     The same scans and beams as :func:`gpocc.samples.beams.build_samples` (strides, REP
-    117 classes of :mod:`gpocc.samples.beam`): a hit runs from the sensor to the reading,
+    117 classes of :mod:`gpocc.samples.beam_rules`): a hit runs from the sensor to the reading,
     a no-return beam to ``min(no_return_free_m, range_max)``; invalid readings give
     nothing.
     """

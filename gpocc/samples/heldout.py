@@ -19,7 +19,7 @@ import numpy as np
 from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
-from gpocc.samples import beam
+from gpocc.samples import beam_rules
 from gpocc.samples.sampleset import has_both_labels
 
 #: Free points start this far from the laser and stop this far short of a hit, metres.
@@ -56,7 +56,7 @@ def subset_batch(batch: ScanBatch, scans: np.ndarray, beam_every: int = 1) -> Sc
 def beam_points(
     poses: np.ndarray, angles: np.ndarray, distances: np.ndarray, sensor: SensorConfig
 ) -> np.ndarray:
-    """Points at ``distances`` along beams, in the map frame (:mod:`gpocc.samples.beam`).
+    """Points at ``distances`` along beams, in the map frame (:mod:`gpocc.samples.beam_rules`).
 
     Args:
         poses: (S, 3) base poses (x m, y m, yaw rad).
@@ -67,8 +67,8 @@ def beam_points(
     Returns:
         (S, B, F, 2) metres.
     """
-    lasers = beam.laser_poses(poses, beam.mount_vector(sensor))
-    return beam.beam_points(lasers[:, None, None, :], np.asarray(angles)[None, :, None],
+    lasers = beam_rules.laser_poses(poses, beam_rules.mount_vector(sensor))
+    return beam_rules.beam_points(lasers[:, None, None, :], np.asarray(angles)[None, :, None],
                             distances)
 
 
@@ -91,12 +91,12 @@ def labelled_points(
         from the laser, metres.
     """
     r = batch.ranges
-    classes = beam.classify_beams(r, batch.range_min, batch.range_max)
+    classes = beam_rules.classify_beams(r, batch.range_min, batch.range_max)
     hit, no_return = classes.hit, classes.no_return
     hit_r = np.where(hit, r, 0.0)
     hits = beam_points(batch.poses, batch.angles, hit_r[:, :, None], sensor)[hit]
 
-    no_return_end = beam.no_return_free_m(sensor, batch.range_max)
+    no_return_end = beam_rules.no_return_free_m(sensor, batch.range_max)
     end = np.where(hit, hit_r - FREE_MARGIN_M, np.where(no_return, no_return_end, 0.0))
     ok = end > FREE_MARGIN_M
     u = rng.random((batch.n_scans, batch.n_beams, free_per_beam))
@@ -131,7 +131,7 @@ def near_wall_points(
     if not 0.0 <= near < far:
         raise GpoccError(f"the near-wall band must satisfy 0 <= near < far, got {band}")
     r = batch.ranges
-    hit = beam.classify_beams(r, batch.range_min, batch.range_max).hit
+    hit = beam_rules.classify_beams(r, batch.range_min, batch.range_max).hit
     hit_r = np.where(hit, r, 0.0)
     start = np.maximum(hit_r - far, FREE_MARGIN_M)
     end = hit_r - near
@@ -188,7 +188,7 @@ def position_std(batch: ScanBatch, sensor: SensorConfig, scans: np.ndarray,
     """(N,) metres: the standard deviation of a point at ``distances`` along a beam of
     scan ``scans`` (indices into ``batch``), from the pose covariance (position and
     heading) and the sensor's range and bearing noise, per axis (first order)."""
-    cov = beam.pose_covariances(batch, sensor, scans)
+    cov = beam_rules.pose_covariances(batch, sensor, scans)
     position = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
     angular = cov[:, 2, 2] + sensor.bearing_variance_rad2
     return np.sqrt(position + 0.5 * (distances**2 * angular + sensor.range_variance_m2))
@@ -208,7 +208,7 @@ def calibration_points(batches: list[ScanBatch], config: Config, every: int,
     for batch in batches:
         held = np.flatnonzero(heldout_mask(batch.n_scans, every))
         if held.size:
-            sensor = beam.sensor_config(batch, config)
+            sensor = beam_rules.sensor_config(batch, config)
             p, lab, scans, dist = labelled_points(subset_batch(batch, held), sensor,
                                                   free_per_beam, rng, geometry=True)
             if max_position_std_m is not None:

@@ -11,6 +11,11 @@ any :class:`~gpocc.gp.kernels.Kernel`.
 C loops of ``gpocc/_kernels.c`` for the kernels they serve) or ``auto`` (compiled where
 built). Adding a backend is a module here with a ``BACKEND`` and one entry in
 :data:`MODULES`.
+
+``model.diagonal`` (:data:`DIAGONALS`) travels with the backend: :func:`choose` gives the
+backend's name for the default ``one-point`` and otherwise a :class:`Choice`, which
+:func:`get` turns into the backend wrapped by :mod:`gpocc.gp.backends.diagonal`; every
+function that takes ``backend=`` then builds its training covariances with that diagonal.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from __future__ import annotations
 import functools
 import importlib
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -37,6 +43,31 @@ MODULES: dict[str, str] = {
 #: The values of ``model.backend``.
 NAMES: tuple[str, ...] = ("auto", *MODULES)
 _AUTO_ORDER = ("compiled", "numpy")
+
+#: The values of ``model.diagonal`` (the first is the default).
+DIAGONALS: tuple[str, ...] = ("one-point", "two-draw")
+
+
+@dataclass(frozen=True)
+class Choice:
+    """A backend's name with a diagonal other than ``one-point`` (plain data: it crosses
+    process pools and Dask as the name alone does)."""
+
+    backend: str
+    diagonal: str
+
+
+def choose(backend: str, diagonal: str = "one-point") -> str | Choice:
+    """What to pass as ``backend=`` for ``model.backend`` and ``model.diagonal``: the name
+    itself for ``one-point`` (the default path is untouched), else a :class:`Choice`."""
+    if diagonal not in DIAGONALS:
+        raise ValueError(f"diagonal must be one of {', '.join(DIAGONALS)}, got {diagonal!r}")
+    return backend if diagonal == DIAGONALS[0] else Choice(backend, diagonal)
+
+
+def diagonal_of(backend: str | Choice | Backend) -> str:
+    """The training diagonal a ``backend=`` argument asks for."""
+    return getattr(backend, "diagonal", DIAGONALS[0])
 
 
 class KernelLoops(Protocol):
@@ -128,11 +159,14 @@ def _load(name: str) -> Backend:
     return importlib.import_module(MODULES[name]).BACKEND
 
 
-def get(backend: str | Backend = "auto") -> Backend:
+def get(backend: str | Choice | Backend = "auto") -> Backend:
     """The backend named ``backend`` (one of :data:`NAMES`), or ``backend`` itself.
 
     ``auto`` is the compiled backend where its library loads, else numpy; ``compiled``
-    without a built library raises the loader's ImportError (how to build it)."""
+    without a built library raises the loader's ImportError (how to build it). A
+    :class:`Choice` gives its backend with its diagonal."""
+    if isinstance(backend, Choice):
+        return _with_diagonal(backend)
     if not isinstance(backend, str):
         return backend
     if backend == "auto":
@@ -150,3 +184,10 @@ def _auto() -> Backend:
         except ImportError:
             continue
     return _load(_AUTO_ORDER[-1])
+
+
+@functools.cache
+def _with_diagonal(choice: Choice) -> Backend:
+    from gpocc.gp.backends.diagonal import DiagonalBackend  # it imports gp.expected
+
+    return DiagonalBackend(choice, get(choice.backend))
