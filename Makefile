@@ -50,7 +50,7 @@ lint: $(KERNELS_STAMP)
 FUZZ_EXAMPLES ?= 2000
 fuzz: $(KERNELS_STAMP)
 	GPOCC_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(BIN)/python -m pytest -n 2 -q \
-		tests/test_fuzz.py tests/test_io_messages.py::test_decoding_gives_a_clean_error_or_a_valid_batch
+		tests/cli/test_fuzz.py tests/io/test_io_messages.py::test_decoding_gives_a_clean_error_or_a_valid_batch
 
 BENCH_STAMP := $(VENV)/.bench-stamp
 

@@ -23,7 +23,7 @@
  * which halves the speed. No reassociation and no approximate division or square root.
  *
  * The exported functions' prototypes are declared once more, for ctypes, in
- * gpocc/compiled.py (DECLARATIONS); tests/test_compiled.py checks that they match.
+ * gpocc/compiled.py (DECLARATIONS); tests/gp/test_compiled.py checks that they match.
  *
  * Array layouts (row-major, as numpy's C order):
  *   u (3, M): scaled nodes, coordinate-major (z = u_a . u_b is the kernel's arcsin

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 import numpy as np
 
 #: Every exported loop of ``gpocc/_kernels.c``, as C prototypes: the one declaration the
-#: ctypes signatures and the argument checks are made from (tests/test_compiled.py checks
+#: ctypes signatures and the argument checks are made from (tests/gp/test_compiled.py checks
 #: it against the C source's definitions). A ``const`` pointer is an input (C order, its
 #: dtype, finite: see :class:`_Function`), any other pointer an output (also writable).
 DECLARATIONS = """
@@ -153,7 +153,7 @@ class _Function:
     ``setup.py`` compiles with -ffinite-math-only, under which the compiler may assume
     that no value is NaN or infinite: the branch-free arcsin's clip and selects, and
     every comparison, could then give any result for one. So no NaN may reach a loop:
-    it raises ValueError here or upstream (tests/test_compiled.py)."""
+    it raises ValueError here or upstream (tests/gp/test_compiled.py)."""
 
     def __init__(self, library: ctypes.CDLL, prototype: Prototype) -> None:
         self.name = prototype.name

@@ -99,7 +99,7 @@ class UnscentedConfig:
     The defaults put the sigma points at sqrt(3) standard deviations (alpha^2 (n + kappa)
     = 3 for the 5-D input, Julier's choice that matches the Gaussian's fourth moments);
     against Monte Carlo at 15 deg heading noise they keep the covariance within 2%, where
-    alpha = 1, beta = 2 was 7-8% off (tests/test_unscented.py).
+    alpha = 1, beta = 2 was 7-8% off (tests/samples/test_unscented.py).
     """
 
     alpha: float = 0.7745966692414834

@@ -6,7 +6,7 @@ same GP posterior, so the blend interpolates approximations; it is not a mixture
 different models. The mixture variance ``sum w_k (v_k + mu_k^2) - mean^2`` was tried:
 where anchors extrapolate differently (behind walls) the spread of their means made
 ripples with the lattice's period, 20 times steeper than a per-cell prediction
-(tests/test_support.py). Cells outside
+(tests/mapping/test_support.py). Cells outside
 the data's support, and anchors whose whole footprint is outside, are not computed.
 """
 

@@ -7,7 +7,7 @@ and a log gives millions of samples before thinning (Intel: 2 million, the large
 of ``gpocc train``). Here the same transform runs as one loop per sample with the
 structure of the input covariance used directly: its square root is block diagonal
 (range, bearing, then the scan's 3 x 3 pose root), so each sigma point moves one input.
-The results equal the generic transform's up to round-off (tests/test_beam_unscented.py
+The results equal the generic transform's up to round-off (tests/samples/test_beam_unscented.py
 checks it against that transform and against Monte Carlo).
 """
 

@@ -84,7 +84,7 @@ def build_samples(batches: list[ScanBatch], config: Config) -> SampleSet:
 
     Thinning (``samples.thin_cell_m > 0``): see :func:`thin_samples`; applied as the
     chunks arrive, which gives the same result as thinning the whole set at the end
-    (``tests/test_beams.py`` checks it). Chunks (their unscented transform, thinning and
+    (``tests/samples/test_beams.py`` checks it). Chunks (their unscented transform, thinning and
     label counts) are computed on one thread per core and consumed in order, so the
     result does not depend on the number of cores. Then ``samples.min_label_share`` (see
     ``SamplesConfig``) and ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)

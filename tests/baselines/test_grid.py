@@ -411,7 +411,7 @@ def test_grid_command_bad_input_is_one_line(tmp_path: Path):
 
 # --------------------------------------------------------------------------- real data
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "carmen"
 
 
 @pytest.mark.slow

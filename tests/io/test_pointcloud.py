@@ -323,7 +323,7 @@ def test_without_config_a_laser_beside_a_cloud_is_the_sensor(tmp_path):
 def test_configs_lidar_3d_spells_out_the_defaults(tmp_path):
     path = write_run(tmp_path, LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31])))
     [auto] = read_inputs([path], Config())
-    config = load_config(Path(__file__).resolve().parents[1] / "configs" / "lidar_3d.yaml")
+    config = load_config(Path(__file__).resolve().parents[2] / "configs" / "lidar_3d.yaml")
     [named] = read_inputs([path], config)
     for field in ("ranges", "poses", "pose_covariances", "angles"):
         np.testing.assert_array_equal(getattr(named, field), getattr(auto, field))

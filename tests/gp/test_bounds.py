@@ -20,7 +20,7 @@ from gpocc.gp.kernels import make_kernel
 from gpocc.gp.model import GPModel, load_model
 from gpocc.samples.sampleset import SampleSet
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
 SAMPLE_CONFIG = ROOT / "data" / "sample" / "sample.yaml"
 

@@ -454,7 +454,7 @@ def test_nav2_reads_the_map_folders_pgm_as_its_class_layer_cell_for_cell(model_p
     # transliteration of Nav2's map_io (not gpocc's reader), each class.tif cell looked
     # up in Nav2's grid by its centre through GDAL's geotransform. Bounds off the cell
     # lattice and past the data's reach, so every class (and no data) is present.
-    from tests.test_io_mapserver import nav2_load_map
+    from tests.io.test_io_mapserver import nav2_load_map
 
     out = run_map(model_path, tmp_path / "nav2", "--resolution", "0.1",
                   "--bounds", "-2.45", "-1.75", "4.05", "1.85")

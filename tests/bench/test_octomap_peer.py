@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 pytest.importorskip("pyoctomap", reason="the bench extra (pyoctomap) is not installed")
-sys.path.append(str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.append(str(Path(__file__).resolve().parents[2] / "bench"))
 from octomap_map import octomap_probability  # noqa: E402
 
 from gpocc.gridspec import GridSpec  # noqa: E402

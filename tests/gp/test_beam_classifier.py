@@ -21,7 +21,7 @@ from gpocc.samples.heldout import (
     position_std,
     subset_batch,
 )
-from tests.test_split import SENSOR, room_batch
+from tests.evaluation.test_split import SENSOR, room_batch
 
 CONFIG = Config(sensors=(SENSOR,), seed=3)
 

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from gpocc.cli import app
 from gpocc.gp.model import load_model
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
 SAMPLE_CONFIG = ROOT / "data" / "sample" / "sample.yaml"
 INTEL = ROOT.parent / "shared" / "data" / "carmen" / "intel.gfs.log"

@@ -4,7 +4,7 @@ Oracles: the room's geometry (tests/cloud_scenes.py, cast in 3-D) for where wall
 the table top are; and the planar laser of the same run, mapped the same way, for how
 good a map is: held-out truth points on the room's surfaces (occupied) and in its free
 space (free), scored by ROC AUC (gpocc.evaluation.roc, checked against scikit-learn's
-conventions in tests/test_roc.py).
+conventions in tests/evaluation/test_roc.py).
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ from gpocc.io.scans import ScanBatch
 
 HALF = 5.0  # the room is the square [-HALF, HALF]^2, metres
 MOUNT = MountConfig(x_m=0.2, y_m=0.1, yaw_deg=10.0)
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
 
 def _laser_origins(poses, mount):

@@ -30,7 +30,7 @@ from gpocc.gp.local import LocalProblem, predict_local, training_covariance
 from gpocc.gp.model import load_model
 from gpocc.samples.sampleset import SampleSet
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
 SAMPLE_CONFIG = ROOT / "data" / "sample" / "sample.yaml"
 TWO = backends.Choice("numpy", "two-draw")

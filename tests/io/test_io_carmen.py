@@ -12,7 +12,7 @@ from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.carmen import describe_carmen, read_carmen
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "carmen"
 
 SENSOR = SensorConfig(name="lab", pose_covariance=((0.01, 0, 0), (0, 0.02, 0), (0, 0, 0.003)))
 

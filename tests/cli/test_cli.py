@@ -20,7 +20,7 @@ from gpocc.config import Config, ModelConfig, TrainingConfig, config_from_dict, 
 from gpocc.gp.model import build_model, load_model, save_model
 from gpocc.samples.sampleset import SampleSet
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 runner = CliRunner()
 
 

@@ -15,7 +15,7 @@ from gpocc.config import load_config
 from gpocc.io.bags import write_bag
 from gpocc.io.scans import ScanBatch
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "sample"
 
 
 def _run(*args: str):

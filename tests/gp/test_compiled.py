@@ -1,8 +1,8 @@
 """The compiled loops' loader and the checks their ctypes wrappers make before C runs.
 
 Their values are checked elsewhere against independent references: the expected kernels
-against the numpy path (tests/test_expected.py), the beam transform against the generic
-unscented transform and Monte Carlo (tests/test_beam_unscented.py); here the coverage
+against the numpy path (tests/gp/test_expected.py), the beam transform against the generic
+unscented transform and Monte Carlo (tests/samples/test_beam_unscented.py); here the coverage
 loop against a plain-Python walk along each segment.
 """
 

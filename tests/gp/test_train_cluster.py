@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 
 from gpocc.cli import app
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
 SAMPLE_CONFIG = ROOT / "data" / "sample" / "sample.yaml"
 runner = CliRunner()

@@ -23,7 +23,7 @@ from gpocc.io.inputs import (
 from gpocc.io.scans import ScanBatch
 from gpocc.samples.beam_rules import sensor_config
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data" / "carmen"
 SAMPLE = REPO / "data" / "sample"
 

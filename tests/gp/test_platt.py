@@ -19,7 +19,7 @@ from gpocc.gp.classify import (
 from gpocc.gp.kernels import NeuralNetworkKernel
 from gpocc.gp.model import load_model
 from gpocc.gp.train import make_patches
-from tests.test_map import room_samples
+from tests.mapping.test_map import room_samples
 
 
 def test_published_form_and_fitted_form_give_the_same_probability():

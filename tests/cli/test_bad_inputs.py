@@ -3,7 +3,7 @@
 Each case must give: a non-zero exit, exactly one stderr line with ``error:`` that names
 the file at fault, no traceback, and nothing left at ``--out`` (no temporaries either).
 Classes (issue 13): unbounded sizes, OS errors, tampered model files, config edge cases
-(races and signals need two processes or a signal: tests/test_faults.py).
+(races and signals need two processes or a signal: tests/cli/test_faults.py).
 """
 
 from __future__ import annotations

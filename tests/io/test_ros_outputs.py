@@ -31,7 +31,7 @@ from gpocc.io.rosmap import read_map_mcap
 from gpocc.mapping.folder import MapFolder, folder_metadata, write_metadata
 from gpocc.mapping.mapper import last_scan_stamp
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
 SAMPLE_CONFIG = ROOT / "data" / "sample" / "sample.yaml"
 SPEC = GridSpec(x0=-3.15, y0=1.35, resolution=0.05, width=37, height=23)
