@@ -106,8 +106,8 @@ def _offices(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, str]:
     cross_x = {0: (0.0, 2.2), 1: (0.5 * width - 1.1, 0.5 * width + 1.1),
                2: (width - 2.2, width)}
     # The middle block is cut by cross corridors (at the west end, middle or east end).
-    walls_of = {1: [], 3: []}  # corridor walls' door gaps, by the wall's index in ys
-    walls_of[2], walls_of[4] = [], []
+    # The corridor walls' door gaps, by the wall's index in ys.
+    walls_of: dict[int, list[tuple[float, float]]] = {1: [], 2: [], 3: [], 4: []}
     for b, (y_lo, y_hi) in enumerate(((ys[0], ys[1]), (ys[2], ys[3]), (ys[4], ys[5]))):
         x = 0.0
         cells = []
