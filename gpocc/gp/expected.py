@@ -37,6 +37,7 @@ import numpy as np
 from numpy.polynomial.hermite_e import hermegauss
 
 from gpocc.gp import backends
+from gpocc.gp.inputscale import LOG_SCALE_STEP
 from gpocc.gp.kernels import Kernel, SquaredExponentialKernel
 
 #: Smallest share of a point's covariance trace due to the shared pose error for its
@@ -430,11 +431,6 @@ def _diag(
     return values, _reduce_last(kernel.pairwise_gradient(ex.nodes, ex.nodes), ex)
 
 
-#: Step in log g of the central difference that gives the two-draw diagonal's dK/dlog g
-#: (values are smooth in log g: truncation ~1e-7 relative, round-off ~1e-13).
-_LOG_SCALE_STEP = 1e-3
-
-
 def two_draw_diag(
     kernel: Kernel,
     means: np.ndarray,
@@ -520,12 +516,12 @@ def _two_draw_scale_gradient(
     ``sqrt(g) A``, by a central difference in log g (the diagonal alone: N values)."""
     out = []
     for sign in (1.0, -1.0):
-        g = input_scale * math.exp(sign * _LOG_SCALE_STEP)
+        g = input_scale * math.exp(sign * LOG_SCALE_STEP)
         out.append(two_draw_diag(
             kernel, means, covariances * g, level, scan_ids=scan_ids,
             pose_factors=None if pose_factors is None else pose_factors * math.sqrt(g),
             backend=backend))
-    return (out[0] - out[1]) / (2.0 * _LOG_SCALE_STEP)
+    return (out[0] - out[1]) / (2.0 * LOG_SCALE_STEP)
 
 
 def supports_scale_gradient(kernel: Kernel, backend: str | backends.Backend = "auto") -> bool:
