@@ -18,6 +18,7 @@ from gpocc.cli import app
 from gpocc.config import BHMConfig, Config, SamplesConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
+from tests.baselines.test_grid import room_ranges
 
 ROOM = (-3.02, -2.47, 3.13, 2.58)  # x_min, y_min, x_max, y_max metres
 
@@ -46,25 +47,13 @@ def exact_posterior(phi: np.ndarray, labels: np.ndarray, weights: np.ndarray, p0
     return log_z, mean, var
 
 
-def room_ranges(laser: np.ndarray, angles: np.ndarray, room=ROOM) -> np.ndarray:
-    """Analytic distance from laser poses (S, 3) along bearings (B,) to the room walls."""
-    x0, y0, x1, y1 = room
-    phi = laser[:, 2:3] + angles[None, :]
-    c, s = np.cos(phi), np.sin(phi)
-    lx, ly = laser[:, 0:1], laser[:, 1:2]
-    with np.errstate(divide="ignore"):
-        tx = np.where(c > 0, (x1 - lx) / c, np.where(c < 0, (x0 - lx) / c, np.inf))
-        ty = np.where(s > 0, (y1 - ly) / s, np.where(s < 0, (y0 - ly) / s, np.inf))
-    return np.minimum(tx, ty)
-
-
 def room_batch(seed: int, n_scans: int = 12, n_beams: int = 120, corrupt: bool = False,
                range_max: float = 8.0) -> ScanBatch:
     rng = np.random.default_rng(seed)
     poses = np.column_stack((rng.uniform(-1.8, 1.8, (n_scans, 2)),
                              rng.uniform(-np.pi, np.pi, n_scans)))
     angles = -np.pi + np.arange(n_beams) * 2 * np.pi / n_beams
-    ranges = room_ranges(poses, angles)
+    ranges = room_ranges(poses, angles, ROOM)
     if corrupt:
         kinds = rng.integers(0, 10, ranges.shape)
         ranges[kinds == 0] = np.nan
