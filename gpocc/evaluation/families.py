@@ -238,6 +238,8 @@ def plan_routes(world: World, rng: np.random.Generator) -> tuple[np.ndarray, np.
     None when its free space is too small or broken up for two routes."""
     from scipy import ndimage
     from scipy.sparse import coo_matrix
+
+    from gpocc.gp.train import farthest_point_indices
     x0, y0, x1, y1 = world.bounds
     xs = np.arange(x0 + 0.5 * _GRID_M, x1, _GRID_M)
     ys = np.arange(y0 + 0.5 * _GRID_M, y1, _GRID_M)
@@ -269,7 +271,7 @@ def plan_routes(world: World, rng: np.random.Generator) -> tuple[np.ndarray, np.
                                                   np.concatenate(edges_to))),
                        shape=(cells.size, cells.size)).tocsr()
     points = centres[cells]
-    targets = _spread(points, max(8, int(region.sum() * _GRID_M**2 / 45.0)), rng)
+    targets = farthest_point_indices(points, max(8, int(region.sum() * _GRID_M**2 / 45.0)), rng)
     split = float(np.quantile(points[:, 0], rng.uniform(0.4, 0.6)))
     west = [t for t in targets if points[t, 0] < split]
     east = [t for t in targets if points[t, 0] >= split]
@@ -285,17 +287,6 @@ def plan_routes(world: World, rng: np.random.Generator) -> tuple[np.ndarray, np.
     if not all(_route_clear(world, r, _CHECK_CLEARANCE_M) for r in (explorer, traverser)):
         return None
     return explorer, traverser
-
-
-def _spread(points: np.ndarray, count: int, rng: np.random.Generator) -> list[int]:
-    """Indices of ``count`` points spread over ``points`` (farthest-point sampling)."""
-    chosen = [int(rng.integers(len(points)))]
-    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
-    for _ in range(1, min(count, len(points))):
-        nxt = int(np.argmax(distance))
-        chosen.append(nxt)
-        distance = np.minimum(distance, np.linalg.norm(points - points[nxt], axis=1))
-    return chosen
 
 
 def _tour(graph, points: np.ndarray, start: int, targets: list[int], region: np.ndarray,

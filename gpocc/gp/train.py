@@ -59,6 +59,19 @@ class TrainingResult:
     input_noise_scale: float = 1.0
 
 
+def farthest_point_indices(points: np.ndarray, count: int,
+                           rng: np.random.Generator) -> list[int]:
+    """Indices of ``count`` of the (N, 2) ``points`` spread over them: greedy
+    farthest-point sampling from a random start (one draw of ``rng``)."""
+    chosen = [int(rng.integers(len(points)))]
+    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for _ in range(1, min(count, len(points))):
+        nxt = int(np.argmax(distance))
+        chosen.append(nxt)
+        distance = np.minimum(distance, np.linalg.norm(points - points[nxt], axis=1))
+    return chosen
+
+
 def spread_patch_centres(means: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
     """``count`` sample positions spread over the data (greedy farthest-point from a random start).
 
@@ -67,13 +80,7 @@ def spread_patch_centres(means: np.ndarray, count: int, rng: np.random.Generator
     """
     n = len(means)
     candidates = means[rng.choice(n, size=min(n, max(50 * count, 500)), replace=False)]
-    chosen = [int(rng.integers(len(candidates)))]
-    distance = np.linalg.norm(candidates - candidates[chosen[0]], axis=1)
-    for _ in range(1, min(count, len(candidates))):
-        nxt = int(np.argmax(distance))
-        chosen.append(nxt)
-        distance = np.minimum(distance, np.linalg.norm(candidates - candidates[nxt], axis=1))
-    return candidates[chosen]
+    return candidates[farthest_point_indices(candidates, count, rng)]
 
 
 def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[LocalProblem]:
