@@ -10,7 +10,14 @@ import typer
 
 from gpocc.baselines.bhm import fit_bhm, predict_grid, training_points
 from gpocc.commands.baseline import baseline_job, write_baseline
-from gpocc.commands.options import Bounds, ConfigFile, Force, Inputs, OutFolder
+from gpocc.commands.options import (
+    Bounds,
+    ConfigFile,
+    ConfigResolution,
+    Force,
+    Inputs,
+    OutFolder,
+)
 from gpocc.io.rasters import Band
 from gpocc.limits import check_cells
 from gpocc.mapping.support import Support
@@ -30,9 +37,7 @@ _MASK_GROUP = 16
 def bhm_command(
     inputs: Inputs,
     config: ConfigFile = None,
-    resolution: float | None = typer.Option(
-        None, "--resolution", help="Cell size, metres (default: the config's map.resolution_m)."
-    ),
+    resolution: ConfigResolution = None,
     out: OutFolder = ...,
     bounds: Bounds = None,
     force: Force = False,

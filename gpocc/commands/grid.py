@@ -9,7 +9,14 @@ import typer
 
 from gpocc.baselines.grid import occupancy_grid
 from gpocc.commands.baseline import baseline_job, write_baseline
-from gpocc.commands.options import Bounds, ConfigFile, Force, Inputs, OutFolder
+from gpocc.commands.options import (
+    Bounds,
+    ConfigFile,
+    ConfigResolution,
+    Force,
+    Inputs,
+    OutFolder,
+)
 from gpocc.config import config_to_dict
 from gpocc.io.rasters import BERNOULLI_VARIANCE_BAND
 from gpocc.progress import log
@@ -18,9 +25,7 @@ from gpocc.progress import log
 def grid_command(
     inputs: Inputs,
     config: ConfigFile = None,
-    resolution: float | None = typer.Option(
-        None, "--resolution", help="Cell size, metres (default: the config's map.resolution_m)."
-    ),
+    resolution: ConfigResolution = None,
     out: OutFolder = ...,
     bounds: Bounds = None,
     force: Force = False,

@@ -40,6 +40,8 @@ InputNoise = Annotated[Switch | None, typer.Option(
     "--input-noise", help="on: use sample covariances (default); off: the baseline.")]
 Seed = Annotated[int | None, typer.Option("--seed", help="Overrides the config's seed.")]
 Resolution = Annotated[float, typer.Option("--resolution", help="Cell size, metres.")]
+ConfigResolution = Annotated[float | None, typer.Option(
+    "--resolution", help="Cell size, metres (default: the config's map.resolution_m).")]
 Workers = Annotated[int | None, typer.Option(
     "--workers", help="Local processes for the map's local problems (default and most: the "
     "cores this process may use).")]
