@@ -1,4 +1,4 @@
-"""The one exception type the CLI turns into a single error line."""
+"""The exception types the CLI turns into a single error line."""
 
 
 class GpoccError(Exception):
@@ -7,3 +7,13 @@ class GpoccError(Exception):
     The message must name the file (or key) at fault and say how to fix it; the CLI
     prints it as one line and exits non-zero, without a traceback.
     """
+
+
+class SchedulerUnreachable(GpoccError):
+    """No Dask scheduler answers at ``address``; ``cause`` is Dask's reason, one line."""
+
+    def __init__(self, address: str, cause: str) -> None:
+        super().__init__(f"cannot reach the Dask scheduler at {address} ({cause}); check "
+                         "the address and that the scheduler is running")
+        self.address = address
+        self.cause = cause

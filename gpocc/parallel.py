@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from gpocc.blas import single_threaded_blas
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, SchedulerUnreachable
 
 _PR_SET_PDEATHSIG = 1
 
@@ -223,16 +223,6 @@ def _single_threaded_worker() -> None:
     # A plain call (no context) limits BLAS for the worker's whole life; returns nothing,
     # so that nothing has to travel back to the client.
     single_threaded_blas()
-
-
-class SchedulerUnreachable(GpoccError):
-    """No Dask scheduler answers at ``address``; ``cause`` is Dask's reason, one line."""
-
-    def __init__(self, address: str, cause: str) -> None:
-        super().__init__(f"cannot reach the Dask scheduler at {address} ({cause}); check "
-                         "the address and that the scheduler is running")
-        self.address = address
-        self.cause = cause
 
 
 @contextlib.contextmanager

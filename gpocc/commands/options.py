@@ -16,8 +16,7 @@ from typing import Annotated
 
 import typer
 
-from gpocc.errors import GpoccError
-from gpocc.parallel import SchedulerUnreachable
+from gpocc.errors import GpoccError, SchedulerUnreachable
 
 
 class Switch(StrEnum):
