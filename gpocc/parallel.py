@@ -225,25 +225,39 @@ def _single_threaded_worker() -> None:
     single_threaded_blas()
 
 
+#: The clients :func:`dask_client` has open in this process, by scheduler address.
+_OPEN_CLIENTS: dict[str, Any] = {}
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str) -> Iterator[Any]:
     """A ``distributed.Client`` of the Dask cluster at ``scheduler`` (``tcp://HOST:PORT``),
     closed on exit. Its workers run BLAS on one thread, as gpocc's local workers do, so
     that a cluster computes every local problem bit for bit as this process would.
 
+    Nested blocks share one client: inside an open ``dask_client(scheduler)``, another for
+    the same address yields the same client and leaves it open, so that a command made of
+    stages that each ask for a client (``gpocc build``: training, then the map) connects
+    once when it wraps them in one block. The outermost block closes it.
+
     Raises:
         SchedulerUnreachable: the scheduler cannot be reached or the address is malformed.
     """
+    if scheduler in _OPEN_CLIENTS:
+        yield _OPEN_CLIENTS[scheduler]
+        return
     from distributed import Client
 
     try:
         client = Client(scheduler, timeout="10s")
     except (OSError, TimeoutError, ValueError) as exc:  # ValueError: a malformed address
         raise SchedulerUnreachable(scheduler, " ".join(str(exc).split())) from None
+    _OPEN_CLIENTS[scheduler] = client
     try:
         client.run(_single_threaded_worker)
         yield client
     finally:
+        del _OPEN_CLIENTS[scheduler]
         client.close()
 
 

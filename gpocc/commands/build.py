@@ -10,6 +10,7 @@ re-sampled later with ``gpocc map OUT/model.npz``.
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 
 import typer
 
@@ -32,11 +33,13 @@ from gpocc.commands.options import (
     Scheduler,
     Seed,
     Workers,
+    scheduler_errors,
 )
 from gpocc.commands.train import echo_model, job_config, learn_model
 from gpocc.gp.model import write_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
+from gpocc.parallel import dask_client
 
 #: The model's file name inside the map folder.
 MODEL_FILE = "model.npz"
@@ -62,16 +65,19 @@ def build(
     if bounds is not None:  # the map's size is known before training: check it first
         check_map_size(GridSpec.from_bounds(*bounds, resolution), cfg, what, True)
     started = time.perf_counter()
-    model = learn_model(inputs, cfg, scheduler)
-    model_path = out / MODEL_FILE
-    spec = map_spec(model, resolution, bounds, what, configurable=True)
-    mapping_started = time.perf_counter()
-    with atomic_directory(out, force=force) as tmp:
-        # The model file (0.1-0.2 s on Intel, mostly compression, which releases the GIL)
-        # is written beside the map's own files, when the workers are done and a core is
-        # free: beside the workers it slowed them.
-        summary = write_map(model, str(model_path), spec, tmp, workers, scheduler,
-                            while_writing=lambda: write_model(model, tmp / MODEL_FILE))
+    # One client serves both stages: training's and the map's own requests for a client
+    # of this address reuse it (gpocc.parallel.dask_client) instead of connecting again.
+    with scheduler_errors(), (dask_client(scheduler) if scheduler else nullcontext()):
+        model = learn_model(inputs, cfg, scheduler)
+        model_path = out / MODEL_FILE
+        spec = map_spec(model, resolution, bounds, what, configurable=True)
+        mapping_started = time.perf_counter()
+        with atomic_directory(out, force=force) as tmp:
+            # The model file (0.1-0.2 s on Intel, mostly compression, which releases the
+            # GIL) is written beside the map's own files, when the workers are done and a
+            # core is free: beside the workers it slowed them.
+            summary = write_map(model, str(model_path), spec, tmp, workers, scheduler,
+                                while_writing=lambda: write_model(model, tmp / MODEL_FILE))
     echo_model(model, model_path, None)
     echo_map(summary, out, resolution, time.perf_counter() - mapping_started)
     warn_if_no_data(summary, model)

@@ -21,6 +21,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gpocc.cli import app
+from gpocc.io.rasters import read_raster
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
@@ -88,8 +89,19 @@ def _wait_for_workers(address: str, count: int, deadline_s: float = 60.0) -> Non
 
 @pytest.mark.skipif(shutil.which("dask", path=str(Path(sys.executable).parent)) is None,
                     reason="the dask command-line tools are not installed")
-def test_build_on_dask_scheduler_and_worker_processes(local_model, tmp_path):
-    """`dask scheduler` and two `dask worker` processes, as a user starts them."""
+def test_build_on_dask_scheduler_and_worker_processes(local_model, tmp_path, monkeypatch):
+    """`dask scheduler` and two `dask worker` processes, as a user starts them; the build
+    connects to the scheduler once, for training and the map both, and makes the local
+    build's map."""
+    import distributed
+
+    clients: list[str] = []
+
+    class CountedClient(distributed.Client):
+        def __init__(self, address, *args, **kwargs):
+            clients.append(address)
+            super().__init__(address, *args, **kwargs)
+
     bindir = Path(sys.executable).parent
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
@@ -106,11 +118,23 @@ def test_build_on_dask_scheduler_and_worker_processes(local_model, tmp_path):
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env) for _ in range(2)]
         _wait_for_workers(address, 2)
         out = tmp_path / "built"
+        monkeypatch.setattr(distributed, "Client", CountedClient)
         result = runner.invoke(app, ["build", "--quiet", str(SAMPLE), "--config",
                                      str(SAMPLE_CONFIG), "--resolution", "0.2", "--out",
                                      str(out), "--scheduler", address])
+        monkeypatch.undo()
         assert result.exit_code == 0, result.output
+        assert clients == [address]
         _assert_same_model(local_model, out / "model.npz")
+        local = tmp_path / "built-locally"
+        result = runner.invoke(app, ["build", "--quiet", str(SAMPLE), "--config",
+                                     str(SAMPLE_CONFIG), "--resolution", "0.2", "--out",
+                                     str(local)])
+        assert result.exit_code == 0, result.output
+        for raster in ("probability.tif", "variance.tif", "class.tif"):
+            (a, spec_a, _), (b, spec_b, _) = (read_raster(f / raster) for f in (local, out))
+            np.testing.assert_array_equal(a, b, err_msg=raster)
+            assert spec_a == spec_b
     finally:
         for proc in reversed(procs):
             proc.terminate()
