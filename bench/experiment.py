@@ -108,8 +108,11 @@ VARIANTS: dict[str, dict[str, object]] = {
                              "model.training.learn_input_noise_scale": False},
 }
 
-#: Every gpocc command run, in order (for the page's reproduction section).
-COMMANDS: list[str] = []
+#: Every step the page's results depend on, in order (the page's "Commands" section):
+#: ``{"command": line, "reused": bool}``, a ``gpocc ...`` command or a ``# library: ...``
+#: line for the steps that are library calls; ``reused`` when its output was already in the
+#: work folder (made by an earlier run), so this run did not make it again.
+COMMANDS: list[dict[str, object]] = []
 
 
 def carmen_folder() -> Path:
@@ -122,16 +125,36 @@ def carmen_folder() -> Path:
     return ROOT.parent / "shared" / "data" / "carmen"
 
 
-def gpocc(*args: str | Path) -> str:
-    """Run one gpocc command (echoed on stderr, recorded) and return its stdout."""
-    cmd = [str(a) for a in args]
-    line = "gpocc " + " ".join(cmd)
-    print("$ " + line, file=sys.stderr, flush=True)
-    COMMANDS.append(line)
+def record(line: str, reused: bool) -> None:
+    """Note one step in :data:`COMMANDS` and echo it on stderr."""
+    COMMANDS.append({"command": line, "reused": reused})
+    print("$ " + line + ("  # reused: its output is in the work folder" if reused else ""),
+          file=sys.stderr, flush=True)
+
+
+def run_gpocc(cmd: list[str]) -> str:
+    """``gpocc`` with the arguments ``cmd`` in a subprocess; its stdout."""
     done = subprocess.run([*GPOCC, *cmd], cwd=ROOT, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"gpocc {' '.join(cmd)} failed:\n{done.stderr}")
     return done.stdout
+
+
+def gpocc(*args: str | Path, creates: Path | None = None) -> str:
+    """Run one gpocc command (echoed on stderr, recorded) and return its stdout; with
+    ``creates`` (a file the command writes), only record it when that file exists."""
+    cmd = [str(a) for a in args]
+    reused = creates is not None and creates.exists()
+    record("gpocc " + " ".join(cmd), reused)
+    return "" if reused else run_gpocc(cmd)
+
+
+def library_step(what: str, out: Path) -> bool:
+    """Record the library call ``what`` that writes ``out``; True if it must run (``out``
+    is not there yet)."""
+    reused = out.exists()
+    record(f"# library: {what} -> {out}", reused)
+    return not reused
 
 
 def with_overrides(config: Path, overrides: dict[str, object], out: Path) -> Path:
@@ -178,11 +201,9 @@ def gp_map(inputs: list[Path], config: Path, noise: str, folder: Path,
 def grid_map(inputs: list[Path], config: Path, folder: Path, bounds: list[str] | None,
              command: str = "grid") -> None:
     """A baseline's map folder (``gpocc grid`` or ``gpocc bhm``), made once."""
-    if (folder / "probability.tif").is_file():
-        return
     extra = ["--bounds", *bounds] if bounds else []
     gpocc(command, *inputs, "--config", config, "--resolution", RESOLUTION, "--out", folder,
-          "--force", *extra)
+          "--force", *extra, creates=folder / "probability.tif")
 
 
 def octomap_row(inputs: list[Path], config: Path, folder: Path, like: Path) -> bool:
@@ -193,9 +214,9 @@ def octomap_row(inputs: list[Path], config: Path, folder: Path, like: Path) -> b
         from octomap_map import octomap_probability
     except ImportError:
         return False
-    if not (folder / "probability.tif").is_file():
-        print(f"$ (library) OctoMap of {' '.join(map(str, inputs))} -> {folder}",
-              file=sys.stderr, flush=True)
+    if library_step(f"bench/octomap_map.py octomap_probability of "
+                    f"{' '.join(map(str, inputs))} on the grid of {like}",
+                    folder / "probability.tif"):
         octomap_probability(inputs, config, folder, like / "probability.tif")
     return True
 
@@ -213,7 +234,8 @@ def noisy_only_truth(sim: Path, world: str, seed: int) -> Path:
     from gpocc.io.rasters import write_geotiff
 
     out = sim / "truth-noisy-only.tif"
-    if not out.is_file():
+    if library_step(f"bench/experiment.py noisy_only_truth of world {world}, seed {seed}",
+                    out):
         s = simulate(world, seed=seed)
         labels, spec = truth_raster(s.world, s.runs, 0.1)
         write_geotiff(out, region_truth(labels, spec, s.runs[:1]), spec, nodata=255)
@@ -239,8 +261,8 @@ def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
 
 
 def split(log: Path, config: Path, out: Path, every: int) -> Path:
-    if not (out / "heldout.csv").is_file():
-        gpocc("split", log, "--every", str(every), "--config", config, "--out", out, "--force")
+    gpocc("split", log, "--every", str(every), "--config", config, "--out", out, "--force",
+          creates=out / "heldout.csv")
     return out
 
 
@@ -248,8 +270,8 @@ def run_sim(work: Path, variant: str, worlds: list[str], seed: int) -> list[dict
     cases = []
     for world in worlds:
         sim = work / "sim" / f"{world}-s{seed}"
-        if not (sim / "sim.mcap").is_file():
-            gpocc("simulate", "--out", sim, "--world", world, "--seed", str(seed), "--force")
+        gpocc("simulate", "--out", sim, "--world", world, "--seed", str(seed), "--force",
+              creates=sim / "sim.mcap")
         held = split(sim / "sim.mcap", sim / "sim.yaml", sim / "split", HELD_OUT_EVERY)
         truth = sim / "truth.tif"
         bounds = truth_bounds(truth)
@@ -281,7 +303,8 @@ def perturbed_training_bag(split_dir: Path, seed: int) -> Path:
     from gpocc.io.inputs import read_inputs
 
     out = split_dir / "train-noisy.mcap"
-    if out.is_file():
+    if not library_step(f"bench/experiment.py perturbed_training_bag of {split_dir}, "
+                        f"seed {seed}", out):
         return out
     config = load_config(split_dir / "train.yaml")
     batches = read_inputs([split_dir / "train.mcap"], config)
@@ -480,10 +503,12 @@ def page(run: dict) -> str:
         "The OctoMap rows need the bench extra (`.venv/bin/python -m pip install -e "
         "'.[bench]'`, pyoctomap); without it they are left out"
         + (" (left out in this run)." if "octomap" not in _methods(cases) else "."),
-        "Every gpocc command the run made is listed at the end of this page (paths under "
-        f"`{work}`); the steps that are not gpocc commands (the real logs' perturbed "
-        "poses, the noisy-only truth, the OctoMap rows, the loop-closure figure) are library "
-        "calls in bench/experiment.py, bench/octomap_map.py and bench/loop_closure.py.",
+        "Every step the results depend on is listed at the end of this page (paths under "
+        f"`{work}`), those an earlier run made and this one reused from the work folder "
+        "too (marked `reused`); the steps that are not gpocc commands (the real logs' "
+        "perturbed poses, the noisy-only truth, the OctoMap rows, the loop-closure figure) "
+        "are library calls in bench/experiment.py, bench/octomap_map.py and "
+        "bench/loop_closure.py, listed as `# library:` lines.",
         "",
         "## What is measured",
         "",
@@ -532,9 +557,27 @@ def page(run: dict) -> str:
             lines += [f"## Protocol `{protocol}`", "", *table, ""]
     if run.get("loop"):
         lines += ["## Loop closure (intel_poses_odom_vs_corrected.txt)", "", run["loop"], ""]
-    commands = [c.replace(str(ROOT) + "/", "") for c in run["commands"]]
-    lines += ["## Commands", "", "```sh", *commands, "```", ""]
+    lines += ["## Commands", "", *command_lines(run["commands"]), ""]
     return "\n".join(lines)
+
+
+def command_lines(commands: list[dict | str]) -> list[str]:
+    """The page's "Commands" section body: every step of :data:`COMMANDS` in order, paths
+    relative to the repository, the reused ones marked (a plain string: a step of a
+    summary written before steps were marked, made by that run)."""
+    reused = sum(1 for c in commands if isinstance(c, dict) and c["reused"])
+    lines = []
+    if reused:
+        lines += [f"{reused} of these {len(commands)} steps were not run again: their "
+                  "output was already in the work folder, made by an earlier run with the "
+                  "same command; delete the work folder to make everything anew.", ""]
+    lines.append("```sh")
+    for c in commands:
+        line, was_reused = (c["command"], c["reused"]) if isinstance(c, dict) else (c, False)
+        line = str(line).replace(str(ROOT) + "/", "")
+        lines.append(line + ("  # reused" if was_reused else ""))
+    lines.append("```")
+    return lines
 
 
 def main() -> None:

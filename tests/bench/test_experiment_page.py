@@ -84,3 +84,65 @@ def test_world_families():
             ("default", "office", "grown-3", "hall-4", "clutter-0", "offices-12")] == [
         "hand-drawn", "hand-drawn", "grown", "hall", "clutter", "offices"]
     assert len(experiment.WORLDS) >= 20
+
+
+def _steps(work: Path, log: Path) -> None:
+    """A cut of the real-log pipeline: split, the perturbed bag's library step, the shared
+    grid and BHM maps (all cached by their output files) and one GP (never cached)."""
+    held = experiment.split(log, log.with_suffix(".yaml"), work / "split", 5)
+    if experiment.library_step("perturbed_training_bag", held / "train-noisy.mcap"):
+        (held / "train-noisy.mcap").write_text("bag\n")
+    bag = held / "train-noisy.mcap"
+    experiment.grid_map([bag], held / "train.yaml", work / "grid", None)
+    experiment.grid_map([bag], held / "train.yaml", work / "bhm", None, "bhm")
+    experiment.gp_map([bag], held / "train.yaml", "on", work / "gp")
+
+
+def test_a_rerun_over_a_cached_work_folder_lists_every_command(tmp_path, monkeypatch):
+    made: list[list[str]] = []
+
+    def fake_gpocc(cmd: list[str]) -> str:
+        """Writes the one file of each command the experiment checks for, as gpocc would."""
+        made.append(cmd)
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / {"split": "heldout.csv", "grid": "probability.tif",
+                "bhm": "probability.tif"}.get(cmd[0], "made")).write_text("x\n")
+        return ""
+
+    monkeypatch.setattr(experiment, "run_gpocc", fake_gpocc)
+    monkeypatch.setattr(experiment, "COMMANDS", [])
+    log = experiment.ROOT / "data" / "sample" / "intel_sample.mcap"
+    _steps(tmp_path, log)
+    first = list(experiment.COMMANDS)
+    assert [c["reused"] for c in first] == [False] * len(first)
+    assert len(made) == 5  # split, grid, bhm, train, map (the bag is a library step)
+
+    monkeypatch.setattr(experiment, "COMMANDS", [])
+    made.clear()
+    _steps(tmp_path, log)
+    second = list(experiment.COMMANDS)
+    # The re-run made only the GP's two commands, and lists every step all the same.
+    assert [m[0] for m in made] == ["train", "map"]
+    assert [c["command"] for c in second] == [c["command"] for c in first]
+    reused = [c["command"].split()[:2] for c in second if c["reused"]]
+    assert reused == [["gpocc", "split"], ["#", "library:"], ["gpocc", "grid"],
+                      ["gpocc", "bhm"]]
+
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    run["commands"] = second
+    text = experiment.page(run)
+    section = text[text.index("## Commands"):]
+    assert "4 of these 6 steps were not run again" in section
+    listed = section[section.index("```sh\n") + 6:section.rindex("```")].splitlines()
+    assert len(listed) == len(first)
+    for line, step in zip(listed, second, strict=True):
+        command = step["command"].replace(str(experiment.ROOT) + "/", "")
+        assert line == command + ("  # reused" if step["reused"] else "")
+    assert "gpocc split data/sample/intel_sample.mcap --every 5" in section
+
+
+def test_a_summary_of_plain_command_strings_still_makes_a_page():
+    run = _run(("grid", "gp-input-noise"))
+    assert "gpocc split data/x.mcap --every 10\n```" in experiment.page(run)
+    assert "not run again" not in experiment.page(run)
