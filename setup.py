@@ -2,6 +2,7 @@
 
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
@@ -19,30 +20,38 @@ FLAGS = ["-O3", "-fno-math-errno", "-fno-trapping-math", "-ffinite-math-only",
 MSVC_FLAGS = ["/O2", "/std:c11"]
 
 
+def accepted_flags(compiler: Any, flags: list[str]) -> list[str]:
+    """The flags of ``flags`` that ``compiler`` (a distutils ``CCompiler``) accepts, in
+    order: each is tried on an empty program (warnings as errors: clang only warns about
+    some unknown ``-f`` options), so that GCC gets them all and another compiler builds
+    the loops too."""
+    return [flag for flag in flags if _accepts(compiler, flag)]
+
+
+def _accepts(compiler: Any, flag: str) -> bool:
+    with tempfile.TemporaryDirectory() as tmp:
+        source = Path(tmp) / "flag.c"
+        source.write_text("int gpocc_flag_probe(void) { return 0; }\n")
+        try:
+            compiler.compile([str(source)], output_dir=tmp, extra_postargs=[flag, "-Werror"])
+        except Exception:  # CompileError, or a compiler that cannot run at all
+            return False
+    return True
+
+
 class BuildWithAcceptedFlags(build_ext):
-    """``build_ext`` with the flags of :data:`FLAGS` the C compiler accepts: each is tried
-    on an empty program (warnings as errors: clang only warns about some unknown ``-f``
-    options), so that GCC gets them all and another compiler builds the loops too."""
+    """``build_ext`` with the flags of :data:`FLAGS` the C compiler accepts
+    (:func:`accepted_flags`; tests/gp/test_build_flags.py builds with a compiler that
+    refuses some)."""
 
     def build_extensions(self) -> None:
         if self.compiler.compiler_type == "msvc":
             flags = MSVC_FLAGS
         else:
-            flags = [flag for flag in FLAGS if self._accepts(flag)]
+            flags = accepted_flags(self.compiler, FLAGS)
         for extension in self.extensions:
             extension.extra_compile_args = flags
         super().build_extensions()
-
-    def _accepts(self, flag: str) -> bool:
-        with tempfile.TemporaryDirectory() as tmp:
-            source = Path(tmp) / "flag.c"
-            source.write_text("int gpocc_flag_probe(void) { return 0; }\n")
-            try:
-                self.compiler.compile([str(source)], output_dir=tmp,
-                                      extra_postargs=[flag, "-Werror"])
-            except Exception:  # CompileError, or a compiler that cannot run at all
-                return False
-        return True
 
 
 setup(ext_modules=[Extension("gpocc._kernels", ["gpocc/_kernels.c"])],
