@@ -65,7 +65,7 @@ bench: $(BENCH_STAMP) bytecode
 
 # The bench extra gives the suite its OctoMap rows (left out with a note without it).
 experiment: $(BENCH_STAMP) bytecode
-	$(BIN)/python bench/experiment.py
+	$(BIN)/python -m bench.experiment
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache build gpocc/_kernels*.so

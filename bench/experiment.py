@@ -1,10 +1,10 @@
 """Accuracy experiments on every held-out protocol; writes docs/results.md.
 
-Run ``make experiment`` (everything) or ``.venv/bin/python bench/experiment.py [steps]
-[--quick]``. Every gpocc step is a ``gpocc`` command, printed before it runs and listed in
-the generated page, so each number can be reproduced by hand; the few steps that are not
-(perturbing a log's poses, the region truth, the OctoMap row, the loop-closure figure)
-are library calls in this file and its neighbours.
+Run ``make experiment`` (everything) or ``.venv/bin/python -m bench.experiment [steps]
+[--quick]`` from the repository's root. Every gpocc step is a ``gpocc`` command, printed
+before it runs and listed in the generated page, so each number can be reproduced by hand;
+the few steps that are not (perturbing a log's poses, the region truth, the OctoMap row,
+the loop-closure figure) are library calls in this file and its neighbours.
 
 * ``sim``: per world (``default``, ``office``, ``warehouse`` and grown worlds
   ``grown-<seed>``), ``gpocc simulate`` (paper Table I platforms) -> ``gpocc split
@@ -38,7 +38,6 @@ import argparse
 import dataclasses
 import datetime
 import json
-import os
 import platform
 import subprocess
 import sys
@@ -48,7 +47,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import CARMEN, CONFIGS, ROOT
+from .stamp import commit, machine
+
 GPOCC = [sys.executable, "-m", "gpocc"]
 #: Worlds of two generators: the hand-drawn and grown corridor buildings, and five of
 #: each family of the second generator (:mod:`gpocc.evaluation.families`).
@@ -113,16 +114,6 @@ VARIANTS: dict[str, dict[str, object]] = {
 #: line for the steps that are library calls; ``reused`` when its output was already in the
 #: work folder (made by an earlier run), so this run did not make it again.
 COMMANDS: list[dict[str, object]] = []
-
-
-def carmen_folder() -> Path:
-    """../shared/data/carmen next to the repository, or /work/shared/data/carmen."""
-    for candidate in (ROOT.parent / "shared" / "data" / "carmen",
-                      ROOT.parents[1] / "shared" / "data" / "carmen",
-                      Path("/work/shared/data/carmen")):
-        if candidate.is_dir():
-            return candidate
-    return ROOT.parent / "shared" / "data" / "carmen"
 
 
 def record(line: str, reused: bool) -> None:
@@ -211,7 +202,8 @@ def octomap_row(inputs: list[Path], config: Path, folder: Path, like: Path) -> b
     not installed (``pip install -e '.[bench]'``)."""
     try:
         import pyoctomap  # noqa: F401  (octomap_map imports it only when called)
-        from octomap_map import octomap_probability
+
+        from .octomap_map import octomap_probability
     except ImportError:
         return False
     if library_step(f"bench/octomap_map.py octomap_probability of "
@@ -328,8 +320,7 @@ def real_logs(names: list[str], quick: bool) -> list[tuple[str, Path, Path, int]
     if quick:
         name, log, config = QUICK_LOG
         return [(name, log, config, 5)]
-    carmen = carmen_folder()
-    return [(n, carmen / REAL_LOGS[n][0], ROOT / "configs" / REAL_LOGS[n][1], HELD_OUT_EVERY)
+    return [(n, CARMEN / REAL_LOGS[n][0], CONFIGS / REAL_LOGS[n][1], HELD_OUT_EVERY)
             for n in names]
 
 
@@ -357,29 +348,6 @@ def run_real(work: Path, variant: str, logs: list[tuple[str, Path, Path, int]],
 
 
 # ---- the page -----------------------------------------------------------------------------
-
-def machine() -> str:
-    """CPU model, logical cores and the cores this process may use."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return f"{model}, {os.cpu_count()} logical cores ({usable} usable), {platform.system()}"
-
-
-def commit() -> str:
-    """The short commit hash, ``-dirty`` when tracked files differ from it."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True,
-                              text=True).stdout.strip()
-    head = git("rev-parse", "--short", "HEAD") or "unknown"
-    return head + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
-
 
 def stamp() -> dict[str, str]:
     return {"date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
@@ -497,7 +465,7 @@ def page(run: dict) -> str:
         "",
         "```sh",
         "make install",
-        "make experiment" if not quick else ".venv/bin/python bench/experiment.py --quick",
+        "make experiment" if not quick else ".venv/bin/python -m bench.experiment --quick",
         "```",
         "",
         "The OctoMap rows need the bench extra (`.venv/bin/python -m pip install -e "
@@ -604,7 +572,6 @@ def main() -> None:
     if args.what == ["report"]:
         run = json.loads(summary.read_text())
     else:
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
         worlds = ["default"] if args.quick else args.worlds
         cases: list[dict] = []
         if "sim" in args.what:
@@ -614,9 +581,9 @@ def main() -> None:
                               args.seed)
         loop = None
         if "loop" in args.what:
-            from loop_closure import loop_closure_experiment
+            from .loop_closure import loop_closure_experiment
 
-            loop = loop_closure_experiment(args.work / "loop", carmen_folder(), gpocc)
+            loop = loop_closure_experiment(args.work / "loop", CARMEN, gpocc)
         run = {"stamp": stamp(), "variant": args.variant, "seed": args.seed,
                "quick": args.quick, "work": str(args.work), "cases": cases, "loop": loop,
                "commands": COMMANDS}

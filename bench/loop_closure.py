@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from .paths import INTEL_CONFIG
+
 CORRECTION_M = 10.0
 
 
@@ -110,7 +111,7 @@ def loop_closure_experiment(work: Path, carmen: Path, gpocc: Callable[..., str])
     work.mkdir(parents=True, exist_ok=True)
     rows = np.loadtxt(table, comments="#")
     odom, corrected = rows[:, 2:5], rows[:, 5:8]
-    config = load_config(ROOT / "configs" / "carmen_intel.yaml")
+    config = load_config(INTEL_CONFIG)
     (batch,) = read_inputs([log], config)
     if batch.n_scans != len(rows) or not np.allclose(batch.poses[:, :2], corrected[:, :2],
                                                      atol=1e-3):
@@ -124,7 +125,7 @@ def loop_closure_experiment(work: Path, carmen: Path, gpocc: Callable[..., str])
     sensor = config.sensors[0]
     after_cov = np.broadcast_to(sensor.pose_covariance_matrix, (batch.n_scans, 3, 3))
     before_cov = after_cov + np.einsum("s,ij->sij", since, np.diag([k_xy, k_xy, k_yaw]))
-    cfg = yaml.safe_load((ROOT / "configs" / "carmen_intel.yaml").read_text())
+    cfg = yaml.safe_load((INTEL_CONFIG).read_text())
     entry = cfg["sensors"][0]
     entry.pop("inputs", None)
     entry.update(scan_topic="/intel/scan", pose_topic="/intel/pose",

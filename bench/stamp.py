@@ -1,8 +1,7 @@
 """The stamp of a generated page: date, git commit and machine.
 
-It imports nothing from the rest of ``bench`` so that scripts run by path (``python
-bench/experiment.py``, where ``bench/`` is on ``sys.path``: ``from stamp import stamp``)
-and modules run with ``-m`` (``from bench.stamp import stamp``) can both use it.
+Shared by the benchmark suite (``bench.run_bench``) and the accuracy suite
+(``bench.experiment``).
 """
 
 from __future__ import annotations

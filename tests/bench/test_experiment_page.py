@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.append(str(Path(__file__).resolve().parents[2] / "bench"))
-import experiment  # noqa: E402
+from bench import experiment
 
 
 def _scores(rng: np.random.Generator) -> dict[str, float]:

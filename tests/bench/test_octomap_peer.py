@@ -3,17 +3,12 @@ OctoMap's sensor model (one hit 0.7, one miss 0.4) where the beams end and pass.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import yaml
 
 pytest.importorskip("pyoctomap", reason="the bench extra (pyoctomap) is not installed")
-sys.path.append(str(Path(__file__).resolve().parents[2] / "bench"))
-from octomap_map import octomap_probability  # noqa: E402
-
+from bench.octomap_map import octomap_probability  # noqa: E402
 from gpocc.gridspec import GridSpec  # noqa: E402
 from gpocc.io.bags import write_bag  # noqa: E402
 from gpocc.io.rasters import read_raster, write_geotiff  # noqa: E402
