@@ -125,7 +125,7 @@ class SamplesConfig:
     and forget the counts. 0 (the default, the method as published) keeps every label;
     0.1 suits long real logs with moving people (configs/carmen_*.yaml). On the static
     simulated world it removes the noisy platform's scattered hits, which is what the
-    input-noise model is there to handle (docs/results.md).
+    input-noise model is there to handle.
 
     ``free_clearance_m`` drops free samples within that distance of an occupied sample
     (after thinning): beams that graze a wall leave free samples centimetres from its
@@ -193,19 +193,22 @@ class TrainingConfig:
     the label noise to zero and interpolate the accurate samples' labels exactly.
     ``learn: false`` keeps the initial values. ``classifier_holdout``: how the Platt
     classifier's training labels are held out, ``sample`` (leave one sample out, the method
-    as published, default) or ``scan`` (leave one scan out); see gpocc.gp.classify and
-    docs/results.md (leave-one-scan-out measured worse calibrated on held-out data).
+    as published, default) or ``scan`` (leave one scan out); see gpocc.gp.classify
+    (leave-one-scan-out measured worse calibrated on held-out data: docs/results.md,
+    'Summary', made with ``python -m bench.experiment --variant scan-cv``).
     ``classifier_offset: beams`` then re-fits the classifier's offset on labelled points of
     every ``calibration_every``-th scan (those known to ``calibration_max_position_std_m``),
     predicted from the other scans' samples in up to ``calibration_blocks`` map blocks:
     probabilities calibrated for points where beams end (held-out-scan evaluation) rather
-    than for map cells (``holdout``, default; docs/results.md compares the two).
+    than for map cells (``holdout``, default; docs/results.md's protocol tables made with
+    ``--variant beam-offset`` and ``--variant learned-scale-floor-0.1`` compare the two).
     ``learn_input_noise_scale``: also learn a scale g on every input covariance (S -> g S,
     pose factors -> sqrt(g) A; gpocc.gp.inputscale) within ``[min_input_noise_scale,
     max_input_noise_scale]``, starting at 1; false keeps g = 1. Defaults (g learned, label
-    noise floor 0.1) were chosen on bench/experiment.py's suite (docs/results.md, variant
-    ``learned-scale-floor-0.1``); the method as published is ``learn_input_noise_scale:
-    false`` with ``min_noise_variance: 0.01`` (variant ``published``).
+    noise floor 0.1) were chosen on bench/experiment.py's suite (docs/results.md,
+    'Summary', made with ``--variant learned-scale-floor-0.1``); the method as published
+    is ``learn_input_noise_scale: false`` with ``min_noise_variance: 0.01`` (variant
+    ``published``).
     """
 
     learn: bool = True
@@ -306,7 +309,8 @@ class MapConfig:
     that far are not computed; null maps everywhere. 1.5 m: beyond about 1 m from any
     sample the variance already exceeds ``classify.max_variance_ratio`` of the prior (the
     cells are unsure), so no classified cell is lost, and with the coverage raster's
-    0.24 m error every cell more than 2 m from a beam is nodata (docs/results.md).
+    0.24 m error (:mod:`gpocc.samples.coverage`) every cell more than 2 m from a beam is
+    nodata.
     ``max_cells``: the largest raster (map, grid, truth) a command may make; larger
     requests are refused before allocating (see :mod:`gpocc.limits`).
     """

@@ -6,7 +6,7 @@ mean ``mu`` and variance ``var`` into a probability (Rasmussen and Williams, sec
 ``c = b / a`` (latent units) and the extra variance ``s = 1 / a^2`` (latent units
 squared): the same family, but as ``a`` grows the objective tends to that of
 ``Phi((mu + c) / sqrt(var))``, a ridge towards ``a -> infinity`` along which the fitted
-``a`` depended on round-off (docs/results.md). In ``(c, s)`` that ridge is the finite
+``a`` depended on round-off. In ``(c, s)`` that ridge is the finite
 boundary ``s = S_MIN`` (``a = 1000``, the old bound), which a bounded optimiser reaches
 exactly. ``c`` and ``s`` maximise the predictive log probability of training labels that
 the predicting GP did not see, in one of two ways (``model.training.
@@ -19,7 +19,9 @@ classifier_holdout``):
   problem's samples of all *other* scans, so that samples of one scan (which share its
   pose error) cannot vouch for each other. It gives a much flatter classifier (a of
   1.3-1.6 instead of 260-530), which measured *worse* calibrated on held-out scans and
-  simulated truth (docs/results.md): free space came out grey (p 0.2-0.3). A likely
+  simulated truth (docs/results.md, 'Summary' and 'Protocol `cells`', made with
+  ``python -m bench.experiment --variant scan-cv`` against ``--variant published``): free
+  space came out grey (p 0.2-0.3). A likely
   reason, not yet verified: held-out training samples are not distributed like map
   queries (thinning keeps boundary cells over-represented, and map cells lie between
   samples), so a classifier fitted on them is too timid for open space.
@@ -34,7 +36,8 @@ wall surfaces, where the latent mean crosses zero, so this offset makes the prob
 mean what it says at points where beams end (the held-out-scan evaluation of real logs:
 Brier on Intel 0.0439 -> 0.0420, Freiburg 0.0715 -> 0.0660), while the default is
 calibrated for map cells (simulated truth rasters: the beam offset doubled the Brier
-score there; docs/results.md).
+score there; docs/results.md, 'Protocol `cells`', made with ``--variant beam-offset``
+against ``--variant learned-scale-floor-0.1``).
 """
 
 from __future__ import annotations
