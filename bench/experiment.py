@@ -47,6 +47,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from gpocc.constants import RESULTS_FILE
+
 from .paths import CARMEN, CONFIGS, ROOT
 from .stamp import commit, machine
 
@@ -172,7 +174,7 @@ def evaluate(maps: dict[str, Path], truth: Path, out: Path) -> dict[str, dict[st
     A truth with kinds gives the held-out protocols; one without (a raster) gives one
     protocol, ``all``."""
     gpocc("evaluate", *maps.values(), "--ground-truth", truth, "--out", out, "--force")
-    results = json.loads((out / "results.json").read_text())
+    results = json.loads((out / RESULTS_FILE).read_text())
     by_folder = {str(p): m for m, p in maps.items()}
     return {g["name"]: {by_folder[row["path"]]: scores(row) for row in g["maps"]}
             for g in results["protocols"]}
@@ -222,6 +224,7 @@ def truth_bounds(truth_tif: Path) -> list[str]:
 
 def noisy_only_truth(sim: Path, world: str, seed: int) -> Path:
     """truth-noisy-only.tif: the truth where only platform II's rays went."""
+    from gpocc.constants import NO_DATA
     from gpocc.evaluation.simulate import region_truth, simulate, truth_raster
     from gpocc.io.rasters import write_geotiff
 
@@ -230,7 +233,7 @@ def noisy_only_truth(sim: Path, world: str, seed: int) -> Path:
                     out):
         s = simulate(world, seed=seed)
         labels, spec = truth_raster(s.world, s.runs, 0.1)
-        write_geotiff(out, region_truth(labels, spec, s.runs[:1]), spec, nodata=255)
+        write_geotiff(out, region_truth(labels, spec, s.runs[:1]), spec, nodata=NO_DATA)
     return out
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 
+from gpocc.constants import RESULTS_FILE
+
 from .harness import gpocc
 from .paths import INTEL, INTEL_CONFIG
 from .registry import Context, Result, Table, benchmark, require
@@ -61,7 +63,7 @@ def knobs(ctx: Context) -> Result:
                        ctx.work / f"knobs-map-{i}", "--force")
         gpocc("evaluate", ctx.work / f"knobs-map-{i}", "--ground-truth",
               split / "heldout.csv", "--out", ctx.work / f"knobs-eval-{i}", "--force")
-        row = json.loads((ctx.work / f"knobs-eval-{i}" / "results.json").read_text())
+        row = json.loads((ctx.work / f"knobs-eval-{i}" / RESULTS_FILE).read_text())
         row = row["maps"][0]
         note = {SETTINGS[0]: "default", SETTINGS[1]: "most exact"}.get(setting, "")
         rows.append([*(str(k) for k in setting), f"{row['auc']:.4f}",

@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from gpocc.constants import RESULTS_FILE
+
 from .paths import FREIBURG, INTEL, ROOT
 from .registry import Context, Result, Table, benchmark, require
 
@@ -58,7 +60,7 @@ def score(work: Path, model: Path, truth: Path, name: str) -> dict[str, dict]:
         "--out", str(work / f"map-{name}"))
     run("evaluate", str(work / f"map-{name}"), "--ground-truth", str(truth),
         "--out", str(work / f"eval-{name}"))
-    results = json.loads((work / f"eval-{name}" / "results.json").read_text())
+    results = json.loads((work / f"eval-{name}" / RESULTS_FILE).read_text())
     return {p["name"]: {"auc": p["maps"][0]["auc"], "brier": p["maps"][0]["brier"]}
             for p in results.get("protocols", [{"name": "all", "maps": results["maps"]}])}
 
