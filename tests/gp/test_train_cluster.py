@@ -154,3 +154,15 @@ def test_train_with_an_unreachable_scheduler_is_one_error_line(tmp_path):
     assert "Traceback" not in result.output
     assert f"127.0.0.1:{port}" in result.output
     assert not out.exists()
+
+
+def test_build_with_an_unreachable_scheduler_is_one_error_line_and_no_folder(tmp_path):
+    port = _free_port()  # nothing listens there
+    out = tmp_path / "built"
+    result = runner.invoke(app, ["build", str(SAMPLE), "--config", str(SAMPLE_CONFIG),
+                                 "--resolution", "0.2", "--out", str(out),
+                                 "--scheduler", f"tcp://127.0.0.1:{port}"])
+    assert result.exit_code != 0
+    assert "Traceback" not in result.output
+    assert f"--scheduler tcp://127.0.0.1:{port}" in result.output
+    assert not out.exists()
