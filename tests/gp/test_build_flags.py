@@ -75,3 +75,29 @@ def test_the_loops_build_with_the_flags_the_compiler_accepts(tmp_path, monkeypat
         assert any(flag in c and "-Werror" in c for c in calls)
     (library,) = (tmp_path / "lib" / "gpocc").glob("_kernels*.so")
     assert compiled.load(library).gpocc_kernels_compiler()
+
+
+def test_msvc_gets_its_own_flags_without_probes(monkeypatch):
+    """MSVC takes setup.MSVC_FLAGS as they stand (it has no finite-math-only short of
+    /fp:fast): no flag is probed on it and no GCC flag reaches it."""
+    setup_py = _setup_py(monkeypatch)
+    built: list[list[str]] = []
+
+    class Msvc:
+        compiler_type = "msvc"
+
+        def compile(self, *args, **kwargs):
+            raise AssertionError("a flag was probed on MSVC")
+
+    def record(self) -> None:
+        built.extend(ext.extra_compile_args for ext in self.extensions)
+
+    monkeypatch.setattr(setup_py["build_ext"], "build_extensions", record)
+    dist = setuptools.Distribution({
+        "name": "gpocc-build-flags-test",
+        "ext_modules": [setuptools.Extension("gpocc._kernels", ["gpocc/_kernels.c"])]})
+    build = setup_py["BuildWithAcceptedFlags"](dist)
+    build.ensure_finalized()
+    build.compiler = Msvc()
+    build.build_extensions()
+    assert built == [setup_py["MSVC_FLAGS"]]
