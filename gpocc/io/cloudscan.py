@@ -107,8 +107,39 @@ def _bin_index(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
     percent of the points), or undefined (dx = dy = 0), the bin is taken from arctan2
     itself, so every bin is the one arctan2 gives.
     """
-    if dx.dtype != np.float32 or dy.dtype != np.float32:
+    if dx.dtype != np.float32 or dy.dtype != np.float32 or _on_edges(dx[:256], dy[:256],
+                                                                     bins):
         return _exact_bin_index(dx, dy, bins)
+    u = _bin_coordinate(dx, dy, bins)
+    unsure = _near_edge(u, bins)
+    k = np.flatnonzero(unsure)
+    if k.size > dx.size // 4:
+        return _exact_bin_index(dx, dy, bins)
+    index = u.astype(np.intp)
+    index[k] = _exact_bin_index(dx[k], dy[k], bins)
+    return index
+
+
+def _on_edges(dx: np.ndarray, dy: np.ndarray, bins: int) -> bool:
+    """Whether more than a quarter of these bearings lie within the polynomial's
+    tolerance of a bin's edge: a lidar whose columns are the bins, mounted at a yaw of a
+    multiple of the bin's width. Then arctan2 decides nearly every bin."""
+    return bool(np.count_nonzero(_near_edge(_bin_coordinate(dx, dy, bins), bins))
+                > dx.size // 4)
+
+
+def _near_edge(u: np.ndarray, bins: int) -> np.ndarray:
+    """(N,) bool: bin coordinates ``u`` within the polynomial's tolerance of an integer
+    (or NaN)."""
+    frac = u - np.floor(u)
+    margin = np.float32(max(ATAN_TOLERANCE * bins / (2.0 * math.pi), 1e-3))
+    with np.errstate(invalid="ignore"):
+        return ~((frac > margin) & (frac < 1 - margin))  # NaN (dx = dy = 0) is unsure
+
+
+def _bin_coordinate(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
+    """(N,) float32 ``(bearing + pi) bins / (2 pi)`` with the polynomial arctan: its floor
+    is the bin, but for bearings within :data:`ATAN_TOLERANCE` of a bin's edge."""
     ax, ay = np.abs(dx), np.abs(dy)
     steep = ay > ax
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -126,22 +157,9 @@ def _bin_index(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
     p += steep * (half_pi - 2 * p)  # pi/2 - p where steep
     p += np.signbit(dx) * (pi - 2 * p)  # pi - p where dx < 0
     p *= 1 - 2 * np.signbit(dy).view(np.int8).astype(np.float32)  # the sign of dy
-    # In units of bins from -pi: floor(u) is the bin.
-    u = p
-    u += pi
-    u *= np.float32(bins / (2.0 * math.pi))
-    frac = u - np.floor(u)
-    margin = np.float32(max(ATAN_TOLERANCE * bins / (2.0 * math.pi), 1e-3))
-    with np.errstate(invalid="ignore"):
-        unsure = ~((frac > margin) & (frac < 1 - margin))  # NaN (dx = dy = 0) is unsure
-    k = np.flatnonzero(unsure)
-    if k.size > dx.size // 4:
-        # Bearings on the bins' edges (a lidar whose columns are the bins, at a yaw of
-        # a multiple of the bin's width): arctan2 for all, rather than copies and arctan2.
-        return _exact_bin_index(dx, dy, bins)
-    index = u.astype(np.intp)
-    index[k] = _exact_bin_index(dx[k], dy[k], bins)
-    return index
+    p += pi
+    p *= np.float32(bins / (2.0 * math.pi))
+    return p
 
 
 def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
@@ -228,7 +246,7 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
 
     columns = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     with np.errstate(invalid="ignore", over="ignore"):  # NaN points fail every test
-        z = row(*columns, rotation[2], translation[2])
+        z = _height(columns, rotation[2], translation[2])
         in_band = (z >= band[0]) & (z <= band[1])
         if valid is not None:
             in_band &= valid
@@ -255,6 +273,30 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
         dx, dy = bearings(*(c[pick] for c in columns))
         heard[_bin_index(dx, dy, bins)] = True
     return ranges, heard, z
+
+
+def _height(columns: tuple[np.ndarray, np.ndarray, np.ndarray], r: np.ndarray,
+            shift: float) -> np.ndarray:
+    """(N,) ``x r[0] + y r[1] + z r[2] + shift`` in the columns' float type, rounded as
+    :func:`scan_from_cloud`'s rows, without the terms whose coefficient is exactly 0 nor
+    the products by exactly 1: a lidar mounted level (a yaw at most) has height
+    ``z + shift``, one pass over the cloud instead of six. A term dropped with a
+    non-finite coordinate would have made the height NaN; such points are not returns,
+    and every use of the heights tests the returns among them."""
+    kind = columns[0].dtype.type
+    out = None
+    for c, k in zip(columns, r, strict=True):
+        if k == 0.0:
+            continue
+        term = c if k == 1.0 else c * kind(k)
+        if out is None:
+            out = term.copy() if k == 1.0 else term
+        else:
+            out += term
+    if out is None:
+        out = np.zeros(columns[0].shape, columns[0].dtype)
+    out += kind(shift)
+    return out
 
 
 def height_histogram(z: np.ndarray, edges: np.ndarray) -> np.ndarray:
