@@ -115,7 +115,8 @@ def _bin_index(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
     k = np.flatnonzero(unsure)
     if k.size > dx.size // 4:
         return _exact_bin_index(dx, dy, bins)
-    index = u.astype(np.intp)
+    with np.errstate(invalid="ignore"):  # NaN (dx = dy = 0): set just below
+        index = u.astype(np.intp)
     index[k] = _exact_bin_index(dx[k], dy[k], bins)
     return index
 
