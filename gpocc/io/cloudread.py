@@ -39,7 +39,13 @@ from gpocc.config import MountConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.cloudscan import height_histogram, rotation_matrix, scan_from_cloud
 from gpocc.io.laserpose import ScanTopic, find_chain, in_map_frame, mount_chain
-from gpocc.io.pointcloud import Cloud, decode_cloud, horizontal_bins, ring_count
+from gpocc.io.pointcloud import (
+    Cloud,
+    decode_cloud,
+    horizontal_bins,
+    returns_mask,
+    ring_count,
+)
 from gpocc.io.poses import PoseSeries
 from gpocc.io.tf import Chain, Edge, TfBuffer, frame_name, quat_multiply, yaw_of
 
@@ -58,6 +64,11 @@ FLOOR_EDGES = np.round(np.arange(-3.01, 0.51, 0.02), 2)  # centres on even centi
 FLOOR_SHARE = 0.05
 #: Heights above the floor (m) of the ``gpocc info`` histogram's bin edges.
 HISTOGRAM_EDGES = np.array([-0.5, -0.1, 0.1, 0.3, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0])
+#: ``gpocc info``'s shares (returns, kept by the band, the height histograms) are counted
+#: on one point in this many of each cloud: percent-level shares over many clouds need no
+#: more, and testing every point for a return and binning its height would cost as much
+#: as the rest of the projection.
+STATS_STRIDE = 16
 
 
 def plane_frame(frame: str) -> str:
@@ -66,10 +77,13 @@ def plane_frame(frame: str) -> str:
 
 @dataclass
 class CloudStats:
-    """What ``gpocc info`` says about a cloud topic, accumulated as clouds are read."""
+    """What ``gpocc info`` says about a cloud topic, accumulated as clouds are read.
+    ``sampled``, ``returns``, ``kept`` and the histograms count one point in
+    :data:`STATS_STRIDE` of each cloud."""
 
     clouds: int = 0
     points: list[int] = field(default_factory=list)
+    sampled: int = 0
     returns: int = 0
     kept: int = 0
     rings: int | None = None
@@ -104,6 +118,11 @@ class CloudCollector:
     bins_source: str = ""
     origins: list[np.ndarray] = field(default_factory=list)
     unposed: int = 0
+    #: base <- lidar when every edge between them is static: looked up once.
+    mount: tuple[np.ndarray, np.ndarray] | None = None
+    #: Every rotation on the chain map -> base is a yaw (a planar robot's TF): the base
+    #: is level at every stamp and :meth:`_level` needs no lookup.
+    yaw_only: bool = False
 
     @property
     def topic(self) -> str:
@@ -150,6 +169,8 @@ class CloudCollector:
                 f"'{frame}'; set base_frame to a frame TF connects to it")
         self.base, self.inner, self.scans.frame_id = base, inner, plane_frame(frame)
         self.outer, _ = find_chain(tf, sensor, base)
+        self.yaw_only = self.outer is not None and all(
+            not np.any(edge.quaternions[:, :2]) for edge, _ in self.outer.steps)
         res = sensor.horizontal_resolution_deg
         if res is not None:
             self.bins, self.bins_source = int(round(360.0 / res)), "sensors[]." \
@@ -184,40 +205,56 @@ class CloudCollector:
             raise GpoccError(f"{where}: the cloud's frame_id changes from "
                              f"'{self.scans.frame_id.rsplit(':', 1)[0]}' to '{frame}'; split the "
                              "bag at that time")
-        assert self.tf is not None and self.inner is not None
-        trans, quat, ok, _ = self.tf.transforms(self.inner, np.array([t]),
-                                                self.sensor.max_pose_gap_s)
-        if not ok[0]:
+        mount = self._mount(t)
+        if mount is None:
             self.unposed += 1
             return
+        translation, rotation = mount
         level = self._level(t)
-        ranges, heard, z = scan_from_cloud(cloud.points, rotation_matrix(quat[0]), trans[0],
-                                           level, self.band_base, self.bins, self.range_min,
-                                           FULL_TURN_SHARE, cloud.returns)
+        ranges, heard, z = scan_from_cloud(cloud.points, rotation, translation, level,
+                                           self.band_base, self.bins, self.range_min,
+                                           FULL_TURN_SHARE)
         if np.count_nonzero(heard) < FULL_TURN_SHARE * self.bins:
             ranges[~heard & np.isinf(ranges)] = np.nan
         self.scans.stamps.append(t)
         self.scans.ranges.append(ranges)
-        self.origins.append(trans[0])
+        self.origins.append(translation)
         st = self.stats
         st.clouds += 1
         st.points.append(cloud.n_points)
+        sample = cloud.points[::STATS_STRIDE]
+        z = z[::STATS_STRIDE][returns_mask(sample)]
+        st.sampled += sample.shape[0]
         st.returns += z.size
         low, high = self.band_base
         st.kept += int(np.count_nonzero((z >= low) & (z <= high)))
-        # One return in four is plenty for a histogram of percent-level shares.
-        st.histogram += height_histogram(z[::4] + self.sensor.base_height_m, HISTOGRAM_EDGES)
-        st.fine += height_histogram(z[::4], FLOOR_EDGES)
+        st.histogram += height_histogram(z + self.sensor.base_height_m, HISTOGRAM_EDGES)
+        st.fine += height_histogram(z, FLOOR_EDGES)
         st.hit_bins += int(np.count_nonzero(np.isfinite(ranges)))
         if st.clouds == 1:
             st.rings = ring_count(cloud)
         st.has_time = st.has_time or cloud.has_time
 
+    def _mount(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(translation (3,) m, rotation (3, 3)) base <- lidar at ``t``, or None without
+        TF there."""
+        if self.mount is not None:
+            return self.mount
+        assert self.tf is not None and self.inner is not None
+        trans, quat, ok, _ = self.tf.transforms(self.inner, np.array([t]),
+                                                self.sensor.max_pose_gap_s)
+        if not ok[0]:
+            return None
+        mount = trans[0], rotation_matrix(quat[0])
+        if all(edge.static for edge, _ in self.inner.steps):
+            self.mount = mount
+        return mount
+
     def _level(self, t: float) -> np.ndarray | None:
         """(3, 3) the rotation undoing the base's roll and pitch in the map frame at ``t``
         (its yaw kept), or None for a level base or without TF to the map: a base tilted
         on a ramp then sees vertical walls at their true horizontal distance."""
-        if self.outer is None or self.tf is None:
+        if self.outer is None or self.tf is None or self.yaw_only:
             return None
         _, q, ok, _ = self.tf.transforms(self.outer, np.array([t]), self.sensor.max_pose_gap_s)
         if not ok[0]:
@@ -292,7 +329,7 @@ class CloudCollector:
         rings = st.rings or "unknown (no ring field)"
         lines = [
             f"point cloud {self.topic}: {st.clouds} clouds, {pts.mean():.0f} points per message "
-            f"({pts.min()}..{pts.max()}), {100 * st.returns / max(pts.sum(), 1):.0f}% returns, "
+            f"({pts.min()}..{pts.max()}), {100 * st.returns / max(st.sampled, 1):.0f}% returns, "
             f"{st.layout}, rings {rings}",
             f"  fields: {', '.join(st.fields)}",
             f"  base frame '{self.base}' ({self.inner.describe() if self.inner else ''})",

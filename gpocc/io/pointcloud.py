@@ -14,6 +14,7 @@ return"), are no returns: they are dropped here and never become obstacles.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -38,22 +39,26 @@ class Cloud:
         points: (P, 3) every point of the message, metres in its frame (a view into the
             message's bytes where the layout allows); float32 unless a coordinate is
             float64. P = ``n_points``.
-        returns: (P,) bool, the points that are returns (finite, not all zero).
         n_points: points in the message, returns and no-returns (``height * width``).
         height, width: the message's layout (``height > 1``: organised, one row per ring).
         fields: the message's field names, in order.
-        columns: the message's points (structured, all of them) and which are returns,
-            from which :attr:`ring`, :attr:`time` and :attr:`intensity` are read when
-            asked for (the projection needs none of them).
+        columns: the message's points (structured, all of them), from which
+            :attr:`ring`, :attr:`time` and :attr:`intensity` are read when asked for
+            (the projection needs none of them).
     """
 
     points: np.ndarray
-    returns: np.ndarray
     n_points: int
     height: int
     width: int
     fields: tuple[str, ...]
-    columns: tuple[np.ndarray, np.ndarray] | None = None
+    columns: np.ndarray | None = None
+
+    @cached_property
+    def returns(self) -> np.ndarray:
+        """(P,) bool, the points that are returns (:func:`returns_mask`). Computed when
+        first asked for: the projection tests only the points in its height band."""
+        return returns_mask(self.points)
 
     @property
     def organised(self) -> bool:
@@ -67,12 +72,12 @@ class Cloud:
     def _column(self, names: tuple[str, ...]) -> np.ndarray | None:
         if self.columns is None:
             return None
-        points, keep = self.columns
+        points = self.columns
         name = next((n for n in names if n in (points.dtype.names or ())), None)
         if name is None:
             return None
         values = points[name]
-        return (values[:, 0] if values.ndim > 1 else values)[keep]
+        return (values[:, 0] if values.ndim > 1 else values)[self.returns]
 
     @property
     def ring(self) -> np.ndarray | None:
@@ -80,7 +85,7 @@ class Cloud:
         without a ring field), or None."""
         ring = self._column(RING_FIELDS)
         if ring is None and self.organised and self.columns is not None:
-            ring = np.repeat(np.arange(self.height), self.width)[self.columns[1]]
+            ring = np.repeat(np.arange(self.height), self.width)[self.returns]
         return ring
 
     @property
@@ -158,8 +163,7 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
                          f"({height} x {width} points of {step} bytes, row_step {row_step}) "
                          f"needs {need}; the message is cut off: drop it or re-record")
     if n == 0:
-        empty = np.zeros((0, 3))
-        return Cloud(empty, np.zeros(0, bool), 0, height, width, names)
+        return Cloud(np.zeros((0, 3)), 0, height, width, names)
     points = np.ndarray((height, width), dtype=dtype, buffer=data.data,
                         strides=(rows, step)).reshape(-1)
     # float32 clouds stay float32 (millimetres at a kilometre): the projection's matrix
@@ -170,14 +174,24 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
         xyz = np.empty((n, 3), kind)
         for k, axis in enumerate("xyz"):
             xyz[:, k] = points[axis]
-    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    # Not copied out: the projection reads the view under this mask (one pass fewer).
-    with np.errstate(over="ignore", invalid="ignore"):  # beyond 1e19 m is no return
+    return Cloud(xyz, n, height, width, names, points)
+
+
+def returns_mask(xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: which points (N, 3) of a cloud, in the lidar's own frame, are returns:
+    finite and not all zero (beyond about 1e19 m, where the square overflows in float32,
+    is no return either)."""
+    return is_return(xyz[:, 0], xyz[:, 1], xyz[:, 2])
+
+
+def is_return(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """:func:`returns_mask` of the points' coordinates (N,) each."""
+    with np.errstate(over="ignore", invalid="ignore"):
         square = x * x
         square += y * y
         square += z * z
-    keep = np.isfinite(square) & (square > 0)
-    return Cloud(xyz, keep, n, height, width, names, (points, keep))
+        # One comparison each side: NaN fails both, as isfinite(square) & (square > 0).
+        return (square > 0) & (square < np.inf)
 
 
 def _xyz_view(data: np.ndarray, fields: dict, n: int, step: int, rows: int, width: int,
