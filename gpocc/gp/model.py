@@ -125,7 +125,9 @@ def build_model(
     (:func:`gpocc.samples.heldout.calibration_points`); without them, or if they lack
     either class, the offset stays that of the hold-out fit.
     ``warm_start``: a model whose hyperparameters learning refines instead of searching
-    from the config's initial values (:func:`gpocc.gp.train.learn_hyperparameters`).
+    from the config's initial values (:func:`gpocc.gp.train.learn_hyperparameters`);
+    ``training["warm_started"]`` then says whether it did (false: they fitted worse than
+    the initial values and learning searched as without them).
     """
     model_cfg = config.model
     if not model_cfg.input_noise:
@@ -155,6 +157,8 @@ def build_model(
         "classifier_offset": offset,
         "classifier_points": points,
     }
+    if warm_start is not None:
+        training["warm_started"] = result.warm_started
     return GPModel(
         kernel=result.kernel, noise_variance=result.noise_variance, classifier=classifier,
         samples=samples, config=config, input_noise=model_cfg.input_noise,

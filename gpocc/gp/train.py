@@ -52,6 +52,8 @@ class TrainingResult:
         evaluations: likelihood evaluations spent.
         patches: number of patches and samples per patch.
         input_noise_scale: learned scale g of the input covariances (1: not learned).
+        warm_started: the search refined a ``warm_start`` (else it started from the
+            initial values).
     """
 
     kernel: Kernel
@@ -61,6 +63,7 @@ class TrainingResult:
     evaluations: int
     patches: tuple[int, int]
     input_noise_scale: float = 1.0
+    warm_started: bool = False
 
 
 def farthest_point_indices(points: np.ndarray, count: int,
@@ -319,8 +322,9 @@ def learn_hyperparameters(
     ``kernel`` and ``noise_variance`` are the initial values (the centre of the search
     box). ``warm_start``: learned values (kernel, label noise, input-noise scale) to refine
     with L-BFGS-B alone instead of annealing from the initial values; a start outside the
-    box is moved onto it, and one whose covariance is not positive definite falls back to
-    the full search.
+    box is moved onto it, and one that fits the patches worse than the initial values
+    (or whose covariance is not positive definite) falls back to the full search, which
+    then gives the result of learning without a start.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
@@ -424,10 +428,10 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         given = np.clip(given, [lo for lo, _ in bounds], [hi for _, hi in bounds])
         given_value = value_only(given)
         evaluations += 1
-        # L-BFGS-B from the better of the start and the initial values; annealing only
-        # when the start's covariance is not positive definite.
-        from_start = given_value < _REJECTED
-        if given_value < best_value:
+        # A start worse than the initial values (a model of few logs that learned a kernel
+        # far too smooth for the walls) is dropped: the search is then learning's own.
+        from_start = given_value < best_value
+        if from_start:
             best, best_value = given, given_value
     if config.anneal_maxfun > 0 and not from_start:
         annealed = dual_annealing(
@@ -454,4 +458,5 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         initial_log_marginal_likelihood=-initial,
         evaluations=evaluations,
         patches=(len(patches), len(patches[0].samples)),
+        warm_started=from_start,
     )

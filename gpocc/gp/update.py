@@ -150,17 +150,24 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
         raise ValueError(f"hyperparameters must be refined, kept or relearned, "
                          f"not {hyperparameters!r}")
     how = hyperparameters
-    if how != "relearned":
+    worse = "relearned (the model's fitted all logs worse than the initial values)"
+    if how == "kept":
         fit = kept_fit(model, samples, config)
         if fit[0] < fit[1]:
             log(f"note: the model's hyperparameters explain all the logs worse than the "
                 f"config's initial values do (log marginal likelihood {fit[0]:.1f} < "
                 f"{fit[1]:.1f} on the same patches); learning them again")
-            how = "relearned (the kept ones fitted all logs worse than the initial values)"
+            how = worse
     if how != "kept":
+        # A refinement checks the model's values against the initial ones itself (on
+        # the patches it draws anyway) and searches as training does if they fit worse.
         grown = build_model(samples, config, inputs=inputs, on_evaluation=on_evaluation,
                             coverage=coverage, calibration=calibration,
                             warm_start=model if how == "refined" else None)
+        if how == "refined" and not grown.training["warm_started"]:
+            log("note: the model's hyperparameters explain all the logs worse than the "
+                "config's initial values do (on the same patches); learned them again")
+            how = worse
     else:
         grown = refit_model(samples, config, model, inputs=inputs, coverage=coverage,
                             calibration=calibration)
