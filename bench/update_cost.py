@@ -31,6 +31,9 @@ CONFIGS = {"intel.gfs.log": "carmen_intel.yaml",
 #: Part names matching the configs' sensor ``inputs`` globs (``intel*.log``, ...).
 STEMS = {"intel.gfs.log": "intel", "freiburg-079-corrected.log": "freiburg"}
 GPOCC = [sys.executable, "-m", "gpocc"]
+#: Where each log is cut (share of its scans in A): several splits, since one split's
+#: difference between update and train is one draw of the learning's own spread.
+CUTS = (0.35, 0.5, 0.65)
 
 
 def run(*args: str) -> tuple[float, float]:
@@ -108,27 +111,33 @@ def case(work: Path, log: Path, share: float, repeats: int, every: int = 10) -> 
 @benchmark("update-cost", "Updating a model against training on all logs")
 def update_cost(ctx: Context) -> Result:
     """`gpocc update A.npz B` against `gpocc train A B` for each CARMEN log cut in two
-    halves by lines (A the first half of the scans), each half split with `gpocc split
-    --every 10`: median wall and CPU seconds of 3 interleaved repeats (1, Intel only, in
-    a quick run), and AUC and Brier of both models' maps at 0.1 m on the held-out points
-    of both halves, per protocol."""
+    parts by lines at 35%, 50% and 65% of its scans (A the first part), each part split
+    with `gpocc split --every 10`: median wall and CPU seconds of the interleaved repeats
+    (1, Intel cut at 50% only, in a quick run), and AUC and Brier of both models' maps at
+    0.1 m on the held-out points of both parts, per protocol, with the largest absolute
+    difference update - train of AUC and Brier (issue 33 asks for at most 0.002)."""
     logs = [INTEL] if ctx.quick else [INTEL, FREIBURG]
+    cuts = (0.5,) if ctx.quick else CUTS
     require(*logs)
     repeats = 1 if ctx.quick else ctx.repeats
     rows = []
     for log in logs:
-        work = ctx.work / f"update-{log.stem}"
-        work.mkdir(parents=True, exist_ok=True)
-        r = case(work, log, 0.5, repeats)
-        for i, (protocol, sc) in enumerate(r["scores"].items()):
-            head = ([log.name, str(repeats), f"{r['update_wall_s']:.2f}",
-                     f"{r['train_wall_s']:.2f}", f"{r['wall_ratio']:.2f}",
-                     f"{r['cpu_ratio']:.2f}"] if i == 0 else [""] * 6)
-            rows.append([*head, protocol,
-                         f"{sc['auc_update']:.4f} / {sc['auc_train']:.4f}",
-                         f"{sc['brier_update']:.4f} / {sc['brier_train']:.4f}"])
+        for cut in cuts:
+            work = ctx.work / f"update-{log.stem}-{cut}"
+            work.mkdir(parents=True, exist_ok=True)
+            r = case(work, log, cut, repeats)
+            for i, (protocol, sc) in enumerate(r["scores"].items()):
+                gap = max(abs(sc["auc_update"] - sc["auc_train"]),
+                          abs(sc["brier_update"] - sc["brier_train"]))
+                head = ([log.name, f"{cut:.2f}", str(repeats), f"{r['update_wall_s']:.2f}",
+                         f"{r['train_wall_s']:.2f}", f"{r['wall_ratio']:.2f}",
+                         f"{r['cpu_ratio']:.2f}"] if i == 0 else [""] * 7)
+                rows.append([*head, protocol,
+                             f"{sc['auc_update']:.4f} / {sc['auc_train']:.4f}",
+                             f"{sc['brier_update']:.4f} / {sc['brier_train']:.4f}",
+                             f"{gap:.4f}"])
     result = Result()
-    result.add(Table(("log", "repeats", "update wall s", "train A B wall s", "wall ratio",
-                      "CPU ratio", "protocol", "AUC update / train",
-                      "Brier update / train"), rows))
+    result.add(Table(("log", "cut", "repeats", "update wall s", "train A B wall s",
+                      "wall ratio", "CPU ratio", "protocol", "AUC update / train",
+                      "Brier update / train", "max difference"), rows))
     return result

@@ -11,6 +11,7 @@ import typer
 from gpocc.commands.options import Force, Inputs
 from gpocc.commands.train import echo_model
 from gpocc.config import load_config
+from gpocc.errors import GpoccError
 from gpocc.gp.model import load_model, save_model
 from gpocc.gp.update import model_growth, update_config, update_model
 from gpocc.io.atomic import prepare_output
@@ -29,12 +30,18 @@ def update(
         None, "--config", help="YAML config for the new logs (sensors, inputs transforms); "
         "its samples and model keys must be the model's. Default: the model's config."),
     relearn: bool = typer.Option(
-        False, "--relearn", help="Learn the hyperparameters again on all samples (default: "
-        "keep the model's and only refit the classifier)."),
+        False, "--relearn", help="Learn the hyperparameters again on all samples from the "
+        "config's initial values, as `gpocc train` does (default: refine the model's "
+        "values on all samples, the quasi-Newton stage of learning alone)."),
+    keep: bool = typer.Option(
+        False, "--keep", help="Keep the model's hyperparameters and only refit the "
+        "classifier (fastest; they were learned on the old logs' patches alone)."),
     force: Force = False,
 ) -> None:
-    """Add new logs to a model: their samples join the model's, the classifier is refitted
-    on all of them; the old logs are not read again."""
+    """Add new logs to a model: their samples join the model's, its hyperparameters are
+    refined and the classifier refitted on all of them; the old logs are not read again."""
+    if relearn and keep:
+        raise GpoccError("--relearn and --keep exclude each other; give one of them")
     prepare_output(out, force, folder=False, inputs=[model_path, *inputs, config])
     started = time.perf_counter()
     model = load_model(model_path)
@@ -50,13 +57,15 @@ def update(
     read_s = time.perf_counter() - started
     log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
     records = input_records(inputs, batches, cfg, hashes)
-    if relearn:
-        training = cfg.model.training
-        budget = 2 + training.anneal_maxfun + 2 * training.lbfgs_maxiter
-        with progress_bar(budget, "likelihood evaluations (at most)") as advance:
-            grown = update_model(model, growth, batches, records, cfg, True, advance)
+    if keep:
+        grown = update_model(model, growth, batches, records, cfg, "kept")
     else:
-        grown = update_model(model, growth, batches, records, cfg, False)
+        training = cfg.model.training
+        budget = (2 + (training.anneal_maxfun if relearn else 1)
+                  + 2 * training.lbfgs_maxiter)
+        with progress_bar(budget, "likelihood evaluations (at most)") as advance:
+            grown = update_model(model, growth, batches, records, cfg,
+                                 "relearned" if relearn else "refined", advance)
     grown = dataclasses.replace(grown, training={
         **grown.training,
         "timings_s": {"read": round(read_s, 3), **grown.training["timings_s"]},

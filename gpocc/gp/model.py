@@ -113,6 +113,7 @@ def build_model(
     coverage: Coverage | None = None,
     calibration: CalibrationPoints | None = None,
     client: Any = None,
+    warm_start: GPModel | None = None,
 ) -> GPModel:
     """Learn hyperparameters and the classifier from ``samples`` under ``config``.
 
@@ -123,17 +124,24 @@ def build_model(
     ``calibration``: labelled points of held-out scans for ``classifier_offset: beams``
     (:func:`gpocc.samples.heldout.calibration_points`); without them, or if they lack
     either class, the offset stays that of the hold-out fit.
+    ``warm_start``: a model whose hyperparameters learning refines instead of searching
+    from the config's initial values (:func:`gpocc.gp.train.learn_hyperparameters`);
+    ``training["warm_started"]`` then says whether it did (false: they fitted worse than
+    the initial values and learning searched as without them).
     """
     model_cfg = config.model
     if not model_cfg.input_noise:
         samples = samples.without_input_noise()
     kernel = make_kernel(model_cfg.kernel, model_cfg.hyperparameters)
     backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
+    start = None if warm_start is None else TrainingResult(
+        warm_start.kernel, warm_start.noise_variance, math.nan, math.nan, 0, (0, 0),
+        warm_start.input_noise_scale)
     with single_threaded_blas():
         result: TrainingResult = learn_hyperparameters(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
-            backend=backend, client=client,
+            backend=backend, client=client, warm_start=start,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale)
@@ -149,6 +157,8 @@ def build_model(
         "classifier_offset": offset,
         "classifier_points": points,
     }
+    if warm_start is not None:
+        training["warm_started"] = result.warm_started
     return GPModel(
         kernel=result.kernel, noise_variance=result.noise_variance, classifier=classifier,
         samples=samples, config=config, input_noise=model_cfg.input_noise,

@@ -7,6 +7,10 @@ gradients come from Gauss-Hermite quadrature whose nodes do not depend on the
 hyperparameters. Optimisation: ``scipy.optimize.dual_annealing`` (global, bounded,
 seeded) and then L-BFGS-B from its best point. With ``learn_input_noise_scale`` a
 scale g on every input covariance (:mod:`gpocc.gp.inputscale`) is learned with them.
+Given a ``warm_start`` (the values of a model of part of the samples, ``gpocc update``), the
+annealing is skipped and L-BFGS-B starts there: the optimum of a set of patches does not
+depend on where the search starts (Freiburg: four annealing seeds and budgets 20 and 60
+reach one optimum), so the refinement lands where learning from the initial values does.
 """
 
 from __future__ import annotations
@@ -48,6 +52,8 @@ class TrainingResult:
         evaluations: likelihood evaluations spent.
         patches: number of patches and samples per patch.
         input_noise_scale: learned scale g of the input covariances (1: not learned).
+        warm_started: the search refined a ``warm_start`` (else it started from the
+            initial values).
     """
 
     kernel: Kernel
@@ -57,6 +63,7 @@ class TrainingResult:
     evaluations: int
     patches: tuple[int, int]
     input_noise_scale: float = 1.0
+    warm_started: bool = False
 
 
 def farthest_point_indices(points: np.ndarray, count: int,
@@ -308,8 +315,16 @@ def learn_hyperparameters(
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
     workers: int | None = None, backend: str = "auto", client: Any = None,
+    warm_start: TrainingResult | None = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
+
+    ``kernel`` and ``noise_variance`` are the initial values (the centre of the search
+    box). ``warm_start``: learned values (kernel, label noise, input-noise scale) to refine
+    with L-BFGS-B alone instead of annealing from the initial values; a start outside the
+    box is moved onto it, and one that fits the patches worse than the initial values
+    (or whose covariance is not positive definite) falls back to the full search, which
+    then gives the result of learning without a start.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
@@ -343,7 +358,7 @@ def learn_hyperparameters(
             return result
 
         return _optimise(kernel, noise_variance, patches, level, config, seed,
-                         negative_log_likelihood_counted, learn_scale)
+                         negative_log_likelihood_counted, learn_scale, warm_start)
 
 
 def load_optimiser() -> None:
@@ -375,8 +390,10 @@ def search_bounds(theta: np.ndarray, noise_variance: float, config: TrainingConf
 def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem], level: int,
               config: TrainingConfig, seed: int,
               negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
-              learn_scale: bool = False) -> TrainingResult:
-    """Global annealing on values, then L-BFGS-B on values and gradients."""
+              learn_scale: bool = False, warm_start: TrainingResult | None = None,
+              ) -> TrainingResult:
+    """Global annealing on values (none from a valid ``warm_start``), then L-BFGS-B on values and
+    gradients."""
     # Imported here: a map loads models through this module but never learns.
     from scipy.optimize import dual_annealing, minimize
 
@@ -403,7 +420,20 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         best_value = value_only(x0)
         evaluations += 1
     best = x0
-    if config.anneal_maxfun > 0:
+    from_start = False
+    if warm_start is not None:
+        given = np.append(warm_start.kernel.theta, math.log(warm_start.noise_variance))
+        if learn_scale:
+            given = np.append(given, math.log(warm_start.input_noise_scale))
+        given = np.clip(given, [lo for lo, _ in bounds], [hi for _, hi in bounds])
+        given_value = value_only(given)
+        evaluations += 1
+        # A start worse than the initial values (a model of few logs that learned a kernel
+        # far too smooth for the walls) is dropped: the search is then learning's own.
+        from_start = given_value < best_value
+        if from_start:
+            best, best_value = given, given_value
+    if config.anneal_maxfun > 0 and not from_start:
         annealed = dual_annealing(
             value_only, bounds, maxfun=config.anneal_maxfun, seed=seed, x0=x0,
             no_local_search=True,
@@ -428,4 +458,5 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         initial_log_marginal_likelihood=-initial,
         evaluations=evaluations,
         patches=(len(patches), len(patches[0].samples)),
+        warm_started=from_start,
     )

@@ -132,9 +132,49 @@ def test_relearned_update_is_the_model_of_all_logs(logs, tmp_path):
     assert up.growth.records[1].start_s == 100.0 and up.growth.records[1].end_s == 109.0
 
 
+def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_path):
+    """The default update starts L-BFGS-B from the model's values on the patches training
+    on all logs draws (same samples, same seed): run to convergence it reaches the point
+    training reaches by annealing from the initial values, not the model's own."""
+    (tmp_path / "job.yaml").write_text(CONFIG.replace("lbfgs_maxiter: 4", "lbfgs_maxiter: 200"))
+    job = str(tmp_path / "job.yaml")
+    gpocc("train", str(logs["a"]), "--config", job, "--out", str(tmp_path / "a.npz"))
+    gpocc("train", str(logs["a"]), str(logs["b"]), "--config", job,
+          "--out", str(tmp_path / "ab.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "up.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--keep",
+          "--out", str(tmp_path / "kept.npz"))
+    a, both, up, kept = (load_model(tmp_path / n)
+                         for n in ("a.npz", "ab.npz", "up.npz", "kept.npz"))
+    assert up.training["hyperparameters"] == "refined"
+    assert kept.training["hyperparameters"] == "kept" and kept.kernel == a.kernel
+
+    def values(m):
+        return np.append(m.kernel.theta, [math.log(m.noise_variance),
+                                          math.log(m.input_noise_scale)])
+
+    # The model of A alone is elsewhere; the refined update is at training's optimum.
+    assert np.abs(values(a) - values(both)).max() > 0.05
+    np.testing.assert_allclose(values(up), values(both), atol=5e-3)
+    assert up.training["log_marginal_likelihood"] == pytest.approx(
+        both.training["log_marginal_likelihood"], abs=1e-4)
+    assert up.training["evaluations"] < both.training["evaluations"]
+
+
+def test_relearn_and_keep_together_are_one_error_line(logs, tmp_path):
+    train_a(logs, tmp_path)
+    result = runner.invoke(app, ["update", str(tmp_path / "a.npz"), str(logs["b"]),
+                                 "--relearn", "--keep", "--out", str(tmp_path / "up.npz")])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "exclude each other" in lines[0]
+    assert not (tmp_path / "up.npz").exists()
+
+
 def test_kept_hyperparameters_ids_and_sensors_continue(logs, tmp_path):
     train_a(logs, tmp_path)
-    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "ab.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--keep",
+          "--out", str(tmp_path / "ab.npz"))
     c = write_log(tmp_path / "room_a_again.log", 6, door_closed=False, start=200.0)
     gpocc("update", str(tmp_path / "ab.npz"), str(c), "--out", str(tmp_path / "abc.npz"))
     a, ab, abc = (load_model(tmp_path / n) for n in ("a.npz", "ab.npz", "abc.npz"))
@@ -356,7 +396,8 @@ def test_kept_hyperparameters_worse_than_the_initial_values_are_learned_again(lo
     assert up.kernel == both.kernel and up.classifier == both.classifier
     assert up.training["hyperparameters"].startswith("relearned")
     # The trained model's own hyperparameters pass the check: they are kept.
-    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "k.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--keep",
+          "--out", str(tmp_path / "k.npz"))
     kept = load_model(tmp_path / "k.npz")
     assert kept.kernel == model.kernel and kept.training["hyperparameters"] == "kept"
 
