@@ -27,6 +27,7 @@ import numpy as np
 from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
+from gpocc.gp import backends
 from gpocc.gp.growth import Growth, growth_of_older_model, join_calibration
 from gpocc.gp.kernels import make_kernel
 from gpocc.gp.model import GPModel, build_model, refit_model
@@ -199,7 +200,7 @@ def kept_fit(model: GPModel, samples: SampleSet, config: Config) -> tuple[float,
             -negative_log_likelihood(
                 np.append(kernel.theta, math.log(noise)), kernel, patches,
                 model_cfg.quadrature_level, with_gradient=False, input_scale=scale,
-                backend=model_cfg.backend)[0]
+                backend=backends.choose(model_cfg.backend, model_cfg.diagonal))[0]
             for kernel, noise, scale in (
                 (model.kernel, model.noise_variance, model.input_noise_scale),
                 (initial, model_cfg.hyperparameters.noise_variance, 1.0))]
