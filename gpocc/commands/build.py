@@ -37,8 +37,6 @@ from gpocc.commands.train import echo_model, job_config, learn_model
 from gpocc.gp.model import write_model
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
-from gpocc.io.rasters import prepare_writer
-from gpocc.mapping.render import prepare_preview
 
 #: The model's file name inside the map folder.
 MODEL_FILE = "model.npz"
@@ -64,10 +62,7 @@ def build(
     if bounds is not None:  # the map's size is known before training: check it first
         check_map_size(GridSpec.from_bounds(*bounds, resolution), cfg, what, True)
     started = time.perf_counter()
-    # The map's GeoTIFF and PNG writers (0.2-0.4 s of imports) are loaded beside the
-    # samples, where a core is mostly idle; the map loaded them while its workers
-    # computed, and held the GIL the workers' results waited for.
-    model = learn_model(inputs, cfg, scheduler, beside_samples=(prepare_writer, prepare_preview))
+    model = learn_model(inputs, cfg, scheduler)
     model_path = out / MODEL_FILE
     spec = map_spec(model, resolution, bounds, what, configurable=True)
     mapping_started = time.perf_counter()

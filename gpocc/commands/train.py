@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from pathlib import Path
@@ -69,14 +68,11 @@ def job_config(config: Path | None, input_noise: Switch | None, seed: int | None
     return cfg
 
 
-def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None,
-                beside_samples: Sequence[Callable[[], None]] = ()) -> GPModel:
+def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -> GPModel:
     """Read ``inputs``, build their samples and learn a model; its ``training`` records
     the stages' wall seconds under ``timings_s``. ``scheduler``: the address of a Dask
     cluster that computes the likelihood patches and the classifier's predictions (the
-    model is the same as without it). ``beside_samples``: the caller's own loading
-    (imports), done on the helper thread that imports the optimiser, where a core is
-    mostly idle."""
+    model is the same as without it)."""
     started = time.perf_counter()
     batches = read_inputs(inputs, cfg)
     read_s = time.perf_counter() - started
@@ -87,7 +83,7 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None,
     # its workers: a fork during an import could leave the children its lock.
     with ThreadPoolExecutor(2, thread_name_prefix="gpocc-samples-helper") as helper:
         coverage_of_beams = helper.submit(beam_coverage, batches, cfg)
-        optimiser = helper.submit(_each, (load_optimiser, *beside_samples))
+        optimiser = helper.submit(load_optimiser)
         pool = build_pool(batches, cfg)
         samples = finish_samples(pool, cfg)
         coverage = coverage_of_beams.result()
@@ -115,11 +111,6 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None,
     return dataclasses.replace(model, training={**model.training, "timings_s": timings,
                                                 "scan_stamps_s": list(scan_stamps(batches))},
                                growth=growth)
-
-
-def _each(calls: Sequence[Callable[[], None]]) -> None:
-    for call in calls:
-        call()
 
 
 def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
