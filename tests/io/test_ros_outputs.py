@@ -179,6 +179,30 @@ def test_map_mcap_read_by_the_mcap_reader_with_channel_metadata(tmp_path: Path) 
     assert meta["stamp_ns"] == stamp_ns and meta["topics"] == list(TOPICS)
 
 
+def test_map_messages_are_those_of_the_whole_humble_type_store(tmp_path: Path) -> None:
+    """map.mcap's types come from a store of the map's own types only: its schema text and
+    every message's CDR bytes are what rosbags' full ROS 2 Humble store gives."""
+    from gpocc.io.rosmap import OCCUPANCY_GRID, _typestore, grid_message
+
+    ours = _typestore()
+    assert (ours.generate_msgdef(OCCUPANCY_GRID, ros_version=2)
+            == TYPESTORE.generate_msgdef(OCCUPANCY_GRID, ros_version=2))
+    rng = np.random.default_rng(5)
+    cells = rng.integers(-1, 101, size=SPEC.shape).astype(np.int8)
+    data = grid_message(SPEC, cells, 1_700_000_000_123_456_789)
+    t = TYPESTORE.types
+    stamp = t["builtin_interfaces/msg/Time"](sec=1_700_000_000, nanosec=123_456_789)
+    msg = t[OCCUPANCY_GRID](
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id="map"),
+        info=t["nav_msgs/msg/MapMetaData"](
+            map_load_time=stamp, resolution=SPEC.resolution, width=SPEC.width,
+            height=SPEC.height, origin=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=SPEC.x0, y=SPEC.y0, z=0.0),
+                orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))),
+        data=np.ascontiguousarray(cells[::-1]).reshape(-1))
+    assert data == bytes(TYPESTORE.serialize_cdr(msg, OCCUPANCY_GRID))
+
+
 def test_a_map_larger_than_one_message_is_tiled_and_mosaics_back(tmp_path: Path) -> None:
     spec = GridSpec(x0=10.0, y0=-4.0, resolution=0.25, width=45, height=31)
     # Raster tiles of 16 cells, messages of at most 20: the two tilings cut differently.

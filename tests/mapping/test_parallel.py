@@ -3,6 +3,7 @@ worker_pool (processes)."""
 
 from __future__ import annotations
 
+import multiprocessing
 import multiprocessing.pool
 import os
 import signal
@@ -117,6 +118,23 @@ def test_worker_pool_maintenance_thread_does_not_wake_on_every_result(monkeypatc
     # one per result (500 results).
     assert 1 <= len(wakes) <= 10
 
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="pipe capacity is set on Linux only")
+def test_the_result_pipe_takes_half_a_megabyte_that_nobody_reads() -> None:
+    """A worker's results fit in the pool's result pipe while the parent is busy: with
+    the default 64 KiB pipe a non-blocking write stops at 64 KiB."""
+    import fcntl
+
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    with reader, writer:
+        parallel.widen_pipe(writer)
+        os.set_blocking(writer.fileno(), False)
+        size = parallel.RESULT_PIPE_BYTES // 2
+        assert os.write(writer.fileno(), b"\0" * size) == size
+    with worker_pool(1, _init_nothing, ()) as pool:
+        capacity = fcntl.fcntl(pool._outqueue._writer.fileno(), fcntl.F_GETPIPE_SZ)
+    assert capacity >= parallel.RESULT_PIPE_BYTES
 
 
 def _die_on(k: int) -> int:
