@@ -100,6 +100,18 @@ def _wait_through_interrupts(future: Future) -> None:
             continue
 
 
+def _write_tile(folder: MapFolder, row0: int, col0: int, window: GridSpec, layers,
+                occupied: float, free: float) -> None:
+    """Classify one tile's layers (:func:`gpocc.mapping.blend.predict_tile`) and hand
+    them to ``folder``."""
+    probability, unsure = layers.probability, layers.unsure
+    variance = layers.variance.astype(np.float32)
+    classes = classify(probability, occupied, free, unsure)
+    # The preview draws cells too uncertain to classify as no data.
+    folder.add(row0, col0, window, probability, variance, classes,
+               decided=np.where(unsure, np.nan, probability))
+
+
 def make_map(
     model: GPModel,
     spec: GridSpec,
@@ -141,8 +153,15 @@ def make_map(
     rows, cols = lattice.shape
     tick = time.perf_counter()
     beside: Future | None = None
+    written: Future | None = None  # the tile being written while the next one is computed
     with contextlib.ExitStack() as helper:
         with anchor_executor(model, workers, scheduler, rows * cols) as executor:
+            # A tile's rasters are written on this thread while the workers compute the
+            # next tile (before, they waited: 4 tiles of a 500 m city at 0.1 m, 2-3 s
+            # each). One tile is in flight at a time, written in order, so the folder
+            # gets the same calls as without it. Started after the workers were forked.
+            writer = (helper.enter_context(ThreadPoolExecutor(
+                1, thread_name_prefix="gpocc-tile-writing")) if len(windows) > 1 else None)
             # The GeoTIFF and PNG writers are loaded once the workers have the first
             # tile's anchors: before, the workers waited for them (0.3 s of every Intel
             # map).
@@ -164,13 +183,19 @@ def make_map(
                         1, thread_name_prefix="gpocc-map-writing")).submit(while_writing)
                     helper.callback(_wait_through_interrupts, beside)
                 n_blocks += layers.anchors
-                probability, unsure = layers.probability, layers.unsure
-                variance = layers.variance.astype(np.float32)
-                classes = classify(probability, occupied, free, unsure)
-                # The preview draws cells too uncertain to classify as no data.
-                folder.add(row0, col0, window, probability, variance, classes,
-                           decided=np.where(unsure, np.nan, probability))
+                if written is not None:
+                    written.result()
+                if writer is None:
+                    _write_tile(folder, row0, col0, window, layers, occupied, free)
+                else:
+                    written = writer.submit(_write_tile, folder, row0, col0, window, layers,
+                                            occupied, free)
+                    helper.callback(_wait_through_interrupts, written)
                 stages["write"] += time.perf_counter() - tick
+            tick = time.perf_counter()
+            if written is not None:
+                written.result()
+            stages["write"] += time.perf_counter() - tick
 
         tick = time.perf_counter()
         side()  # no tile had anchors; counted in predict, as on a tile that had some
