@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +29,7 @@ from gpocc.mapping.blend import predict_tile
 from gpocc.mapping.blocks import AnchorLattice
 from gpocc.mapping.executors import anchor_executor
 from gpocc.mapping.folder import MapFolder, folder_metadata
+from gpocc.mapping.folder import wait_through_interrupts as _wait_through_interrupts
 from gpocc.mapping.render import prepare_preview
 from gpocc.mapping.support import model_support
 
@@ -85,19 +86,6 @@ class _SideWork:
         work, self._work = self._work, []
         for call in work:
             call()
-
-
-def _wait_through_interrupts(future: Future) -> None:
-    """Wait for ``future`` even through further Ctrl-Cs: on the way out of a failed or
-    interrupted map, the output folder's clean-up must not race a thread still writing
-    into it (it could leave the temporary folder behind). The wait is the thread's
-    remaining work (``gpocc build``: at most the model file, 0.1-0.2 s)."""
-    while True:
-        try:
-            wait([future])
-            return
-        except KeyboardInterrupt:
-            continue
 
 
 def _write_tile(folder: MapFolder, row0: int, col0: int, window: GridSpec, layers,

@@ -629,3 +629,36 @@ def test_tiles_are_written_in_order_off_the_main_thread_and_a_failure_leaves_not
         make_map(model, spec, folder, workers=2)
     assert list(out.iterdir()) == []
     assert multiprocessing.active_children() == []
+
+
+def test_a_failed_export_stops_the_map_once_the_other_exports_are_done(model_path, tmp_path,
+                                                                       monkeypatch):
+    # The map_server, scale map, map.mcap and preview exports are written side by side:
+    # one failing is the map's error, and the folder goes only when none is writing.
+    import threading
+    import time
+
+    from gpocc.io.atomic import atomic_directory
+    from gpocc.mapping import folder as folder_module
+    from gpocc.mapping.mapper import make_map
+
+    model = load_model(model_path)
+    spec = GridSpec.from_bounds(-1.0, -1.0, 1.5, 0.5, 0.1)
+    real_mcap = folder_module.MapFolder._write_mcap
+    mcap_done = threading.Event()
+
+    def slow_mcap(self):
+        time.sleep(0.3)  # still writing when the scale map fails
+        real_mcap(self)
+        mcap_done.set()
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(folder_module.MapFolder, "_write_mcap", slow_mcap)
+    monkeypatch.setattr(folder_module, "write_scale_map", disk_full)
+    with pytest.raises(GpoccError, match="(?i)no space left on device"), \
+            atomic_directory(tmp_path / "map") as folder:
+        make_map(model, spec, folder, workers=1)
+    assert mcap_done.is_set()
+    assert list(tmp_path.iterdir()) == []
