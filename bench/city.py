@@ -133,16 +133,17 @@ def map_auc(probability: np.ndarray, spec, nodata, points: np.ndarray,
 def building_aucs(ctx: Context, site: Site) -> list[tuple[Building, float, float]]:
     """(building, its AUC in the city map, its source's AUC alone) on the source's
     held-out points moved by the building's transform."""
-    from gpocc.evaluation.report import read_probability
+    from gpocc.evaluation.report import probability_raster, read_probability
 
-    city = read_probability(site.out / "probability.tif")
+    # A map of several tiles has probability.vrt, of one probability.tif.
+    city = read_probability(probability_raster(site.out)[1])
     alone = {}
     out = []
     for b in site.layout:
         src = split_source(ctx, b.source, site.resolution)
         if b.source.name not in alone:
-            alone[b.source.name] = map_auc(*read_probability(src.alone / "probability.tif"),
-                                           src.points, src.labels)
+            alone[b.source.name] = map_auc(
+                *read_probability(probability_raster(src.alone)[1]), src.points, src.labels)
         out.append((b, map_auc(*city, b.apply(src.points), src.labels),
                     alone[b.source.name]))
     return out
