@@ -277,8 +277,7 @@ def city_1km(ctx: Context) -> Result:
     """256 buildings of the city (`city`: the same layout and training scans, 62.5 m
     apart; 192 Intel, 64 Freiburg 079) on a 1 x 1 km site, built at 0.1 m with
     `gpocc build` and no config: wall and CPU time, peak memory of all processes and each
-    stage's time (the city's buildings were each within its AUC bound; this site's are
-    the same buildings, more of them)."""
+    stage's time."""
     require(INTEL, FREIBURG)
     site = build_site(ctx, 4 if ctx.quick else 16, 0.1)
     result = Result()
