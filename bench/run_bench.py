@@ -26,6 +26,7 @@ import traceback
 from pathlib import Path
 
 from . import (  # noqa: F401 (they register)
+    city,
     cloud_projection,
     fingerprints,
     kernels,
@@ -40,9 +41,10 @@ from .stamp import commit, load, machine, usable_cores
 
 PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
-ORDER = ("intel", "intel-repeats", "campus", "scaling-data", "scaling-size", "samples",
-         "sample-memory", "anchor-cost", "expected-kernels", "quadrature", "blas-threads",
-         "anneal-budget", "knobs", "cloud-projection", "update-cost", "fingerprints")
+ORDER = ("intel", "intel-repeats", "campus", "city", "city-1km", "growth", "scaling-data",
+         "scaling-size", "samples", "sample-memory", "anchor-cost", "expected-kernels",
+         "quadrature", "blas-threads", "anneal-budget", "knobs", "cloud-projection",
+         "update-cost", "fingerprints")
 
 
 def ordered() -> list[str]:

@@ -17,8 +17,7 @@ stride group) otherwise.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Any
 
@@ -132,7 +131,6 @@ class MapFolder:
             self.largest_variance = float(np.fmax(self.largest_variance, np.nanmax(variance)))
         layers = {"probability": (probability, np.nan), "variance": (variance, np.nan),
                   "class": (classes, NO_DATA)}
-        writes = []
         for name, (array, nodata) in layers.items():
             if self.tiled:
                 path = (self.out_dir / "tiles" / name
@@ -141,11 +139,9 @@ class MapFolder:
                 self.tile_files[name].append((path, window))
             else:
                 path = self.out_dir / f"{name}.tif"
-            writes.append(lambda path=path, array=array, nodata=nodata, name=name:
-                          write_geotiff(path, array, window, nodata=nodata,
-                                        georef=self.georef, band=self.bands[name]))
+            write_geotiff(path, array, window, nodata=nodata, georef=self.georef,
+                          band=self.bands[name])
             self.layer_files[name].append((path, window))
-        run_together(writes)
         stride = self.stride
         r_off, c_off = (-row0) % stride, (-col0) % stride
         pr, pc = (row0 + r_off) // stride, (col0 + c_off) // stride
@@ -164,22 +160,37 @@ class MapFolder:
                 nodata = NO_DATA if name == "class" else float("nan")
                 write_vrt(self.out_dir / f"{name}.vrt", self.tile_files[name], self.spec,
                           dtype, nodata, self.georef, self.bands[name])
-        run_together([self._write_map_server, self._write_mcap,
-                      lambda: render_preview(
-                          self.out_dir / "preview.png", self.preview_decided,
-                          self.preview_variance, self.preview_spec, title=title,
-                          no_data_label=no_data_label,
-                          orientation=orientation_label(
-                              None if self.georef is None else self.georef.yaw_deg))])
+        # The exports are independent files, each made from the layer files: written side
+        # by side (their compression, GDAL's reads and most numpy work release the GIL;
+        # a 500 m city at 0.1 m: scale map, map.mcap and preview 5, 4 and 3 s one after
+        # another).
+        with ThreadPoolExecutor(3, thread_name_prefix="gpocc-map-exports") as pool:
+            exports = [pool.submit(self._write_map_server), pool.submit(self._write_scale),
+                       pool.submit(self._write_mcap)]
+            try:
+                render_preview(self.out_dir / "preview.png", self.preview_decided,
+                               self.preview_variance, self.preview_spec, title=title,
+                               no_data_label=no_data_label,
+                               orientation=orientation_label(
+                                   None if self.georef is None else self.georef.yaw_deg))
+            finally:
+                # The folder is removed on an error: no thread may still write into it.
+                for export in exports:
+                    wait_through_interrupts(export)
+            for export in exports:
+                export.result()
         return dict(self.counts)
 
     def _write_map_server(self) -> None:
-        """``map.yaml`` + ``map.pgm`` and ``map_scale.yaml`` + ``map_scale.png``."""
-        # map.pgm at full resolution from the class tiles, one tile in memory at a time.
+        """map.pgm at full resolution from the class tiles, one tile in memory at a
+        time."""
         pgm_tiles = ((window, class_pixels(read_raster(path)[0]))
                      for path, window in self.layer_files["class"])
         write_map_server_tiles(self.out_dir / "map.yaml", self.spec, pgm_tiles, self.occupied,
                                self.free, self.max_pgm_pixels)
+
+    def _write_scale(self) -> None:
+        """map_scale.yaml + .png from the probability tiles."""
         write_scale_map(self.out_dir / "map_scale.yaml", self.spec,
                         ((window, read_raster(path)[0])
                          for path, window in self.layer_files["probability"]))
@@ -229,20 +240,16 @@ class MapFolder:
         }
 
 
-def run_together(calls: list[Callable[[], None]]) -> None:
-    """Run independent writers on threads of this process and wait for all of them; the
-    first error (in ``calls`` order) is raised after every writer has stopped. Their
-    heavy parts (GDAL's compression, zlib, zstd) release the GIL, so on a free core
-    they overlap: the layers of the Intel map took 0.2 s one after another. Each writes
-    its own files, so the files are the same as when they run one after another."""
-    if len(calls) < 2:
-        for call in calls:
-            call()
-        return
-    with ThreadPoolExecutor(len(calls), thread_name_prefix="gpocc-folder-writer") as pool:
-        futures = [pool.submit(call) for call in calls]
-    for future in futures:
-        future.result()
+def wait_through_interrupts(future: Future) -> None:
+    """Wait for ``future`` even through further Ctrl-Cs: on the way out of a failed or
+    interrupted map, the output folder's clean-up must not race a thread still writing
+    into it (it could leave the temporary folder behind)."""
+    while True:
+        try:
+            wait([future])
+            return
+        except KeyboardInterrupt:
+            continue
 
 
 def _assemble(files: list[tuple[Path, GridSpec]], window: GridSpec, spec: GridSpec,

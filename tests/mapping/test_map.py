@@ -585,3 +585,80 @@ def test_the_writing_thread_is_waited_for_through_further_interrupts():
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+
+
+def test_tiles_are_written_in_order_off_the_main_thread_and_a_failure_leaves_nothing(
+        model_path, tmp_path, monkeypatch):
+    # A tiled map writes each tile on a thread while the workers compute the next one.
+    import multiprocessing
+    import threading
+
+    from gpocc.io.atomic import atomic_directory
+    from gpocc.mapping import folder as folder_module
+    from gpocc.mapping.mapper import make_map
+
+    model = load_model(model_path)
+    model = dataclasses.replace(model, config=dataclasses.replace(
+        model.config, map=dataclasses.replace(model.config.map, tile_pixels=12)))
+    spec = GridSpec.from_bounds(-2.5, -2.0, 6.0, 6.0, 0.1)
+    real_add = folder_module.MapFolder.add
+    added = []
+
+    def add(self, row0, col0, *args, **kwargs):
+        added.append((row0, col0, threading.current_thread() is threading.main_thread()))
+        return real_add(self, row0, col0, *args, **kwargs)
+
+    monkeypatch.setattr(folder_module.MapFolder, "add", add)
+    summary = make_map(model, spec, tmp_path / "ok", workers=2)
+    assert summary.tiles > 2
+    assert len(added) == summary.tiles  # every tile, once
+    order = [(r, c) for r, c, _ in added]
+    assert order == sorted(order)  # row-major, as the tiles are laid out
+    assert not any(on_main for _, _, on_main in added)
+
+    def disk_full(self, row0, col0, *args, **kwargs):
+        if row0 or col0:  # the first tile is written, a later one fails
+            raise OSError(28, "No space left on device")
+        return real_add(self, row0, col0, *args, **kwargs)
+
+    monkeypatch.setattr(folder_module.MapFolder, "add", disk_full)
+    out = tmp_path / "failed"
+    out.mkdir()
+    with pytest.raises(GpoccError, match="(?i)no space left on device"), \
+            atomic_directory(out / "map") as folder:
+        make_map(model, spec, folder, workers=2)
+    assert list(out.iterdir()) == []
+    assert multiprocessing.active_children() == []
+
+
+def test_a_failed_export_stops_the_map_once_the_other_exports_are_done(model_path, tmp_path,
+                                                                       monkeypatch):
+    # The map_server, scale map, map.mcap and preview exports are written side by side:
+    # one failing is the map's error, and the folder goes only when none is writing.
+    import threading
+    import time
+
+    from gpocc.io.atomic import atomic_directory
+    from gpocc.mapping import folder as folder_module
+    from gpocc.mapping.mapper import make_map
+
+    model = load_model(model_path)
+    spec = GridSpec.from_bounds(-1.0, -1.0, 1.5, 0.5, 0.1)
+    real_mcap = folder_module.MapFolder._write_mcap
+    mcap_done = threading.Event()
+
+    def slow_mcap(self):
+        time.sleep(0.3)  # still writing when the scale map fails
+        real_mcap(self)
+        mcap_done.set()
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(folder_module.MapFolder, "_write_mcap", slow_mcap)
+    monkeypatch.setattr(folder_module, "write_scale_map", disk_full)
+    with pytest.raises(GpoccError, match="(?i)no space left on device"), \
+            atomic_directory(tmp_path / "map") as folder:
+        make_map(model, spec, folder, workers=1)
+    assert mcap_done.is_set()
+    assert list(tmp_path.iterdir()) == []
