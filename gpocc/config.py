@@ -195,6 +195,11 @@ class TrainingConfig:
     classifier's training labels are held out, ``sample`` (leave one sample out, the method
     as published, default) or ``scan`` (leave one scan out); see gpocc.gp.classify and
     docs/results.md (leave-one-scan-out measured worse calibrated on held-out data).
+    ``classifier_variance`` (with ``classifier_holdout: sample``): the variance of each
+    held-out prediction the classifier is fitted on, ``label`` (the leave-one-out
+    predictive variance of the noisy label, as published) or ``latent`` (of the latent
+    function: that minus the label-noise variance, the quantity a map cell's variance is;
+    gpocc.gp.classify).
     ``classifier_offset: beams`` then re-fits the classifier's offset on labelled points of
     every ``calibration_every``-th scan (those known to ``calibration_max_position_std_m``),
     predicted from the other scans' samples in up to ``calibration_blocks`` map blocks:
@@ -218,6 +223,7 @@ class TrainingConfig:
     min_noise_variance: float = 0.1
     classifier_holdout: str = "sample"
     classifier_offset: str = "holdout"
+    classifier_variance: str = "label"
     calibration_every: int = 10
     calibration_blocks: int = 64
     calibration_max_position_std_m: float = 0.075
@@ -632,6 +638,11 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'model.training.patch_centres' must be 'hits' or 'samples', "
             f"got {t.patch_centres!r}"
+        )
+    if t.classifier_variance not in ("latent", "label"):
+        raise GpoccError(
+            f"{source}: key 'model.training.classifier_variance' must be 'latent' or "
+            f"'label', got {t.classifier_variance!r}"
         )
     if t.classifier_offset not in ("holdout", "beams"):
         raise GpoccError(
