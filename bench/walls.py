@@ -56,6 +56,8 @@ KNOBS: dict[str, dict[str, object]] = {
     "noise_floor=0.03": {"model.training.min_noise_variance": 0.03},
     "two-draw": {"model.diagonal": "two-draw"},
     "g_max=16": {"model.training.max_input_noise_scale": 16.0},
+    "hit_gap=0.05,g_max=16": {"samples.hit_gap_m": 0.05,
+                              "model.training.max_input_noise_scale": 16.0},
     "platt=latent": {"model.training.classifier_variance": "latent"},
     "hit_gap=0.05,platt=latent": {"samples.hit_gap_m": 0.05,
                                   "model.training.classifier_variance": "latent"},
