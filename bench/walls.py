@@ -214,8 +214,11 @@ def profile(knob: str, case: str, seed: int) -> dict:
     out["g_slice"] = [(s, lml(m.noise_variance, s))
                       for s in (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)]
     out["noise_slice"] = [(n, lml(n, g)) for n in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)]
-    mu, var, y = holdout_predictions(m.kernel, m.noise_variance, patches, level,
-                                     cfg.training.classifier_holdout, backend)
+    # The classifier's own points: fresh patches (seed + 1) as gpocc.gp.model fits it.
+    fit_patches = make_patches(m.samples, cfg.training, m.config.seed + 1)
+    mu, var, y = holdout_predictions(m.kernel, m.noise_variance, fit_patches, level,
+                                     cfg.training.classifier_holdout, backend,
+                                     latent=cfg.training.classifier_variance == "latent")
     floor = float(var.min())
 
     def best(s: float) -> float:
@@ -223,7 +226,7 @@ def profile(knob: str, case: str, seed: int) -> dict:
                             bounds=(-5.0, 5.0), method="bounded")
         return -float(r.fun)
 
-    grid = [1.0, 0.1, 0.01, 1e-3, 1e-6, 0.0,
+    grid = [1.0, 0.3, 0.1, 0.03, 0.01, 1e-3, 1e-6, 0.0,
             -0.25 * floor, -0.5 * floor, -0.75 * floor, -0.9 * floor, -0.99 * floor]
     out["platt_s_slice"] = [(s, best(s)) for s in grid]
     out["min_loo_variance"] = floor
@@ -324,7 +327,9 @@ def profile_page(profiles: list[dict]) -> str:
             xs = [fmt.format(x) for x, _ in p[key]]
             ys = [v for _, v in p[key]]
             top = max(range(len(ys)), key=lambda i: ys[i])
-            cells = [f"**{v:.1f}**" if i == top else f"{v:.1f}" for i, v in enumerate(ys)]
+            # the learner's value for a covariance that is not positive definite
+            cells = ["not PD" if v <= -1e9 else f"**{v:.1f}**" if i == top else f"{v:.1f}"
+                     for i, v in enumerate(ys)]
             lines += [f"| {label} | " + " | ".join(xs) + " |",
                       "|---|" + "---:|" * len(xs),
                       "| log-lik | " + " | ".join(cells) + " |", ""]
