@@ -240,6 +240,66 @@ def _f(v: float | None, digits: int = 4) -> str:
     return "" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
+def _profile_commands() -> list[str]:
+    groups: dict[tuple, list[str]] = {}
+    for p in load_profiles():
+        knobs = groups.setdefault((p["case"], p["seed"]), [])
+        if p["knob"] not in knobs:
+            knobs.append(p["knob"])
+    by_knobs: dict[tuple, list[tuple]] = {}
+    for (case, seed), knobs in groups.items():
+        by_knobs.setdefault(tuple(knobs), []).append((case, seed))
+    return [".venv/bin/python bench/walls.py profile " + " ".join(f"'{k}'" for k in knobs)
+            + " --logs " + " ".join(sorted({c for c, _ in cs}))
+            + " --seeds " + " ".join(str(s) for s in sorted({s for _, s in cs}))
+            for knobs, cs in by_knobs.items()]
+
+
+def _difference_table(rows: list[dict]) -> list[str]:
+    """Each knob minus ``defaults`` on the same case and seed: AUC and Brier of the
+    union and of hits+near-wall (real logs) or of the cells (worlds)."""
+    base = {(r["case"], r["seed"]): r for r in rows if r["knob"] == "defaults"}
+    lines = ["", "## Each knob against the defaults", "",
+             "Knob minus `defaults` on the same case and seed (AUC: higher is better;"
+             " Brier: lower is better).", "",
+             "| knob | case | seed | union AUC | union Brier | hits+near-wall AUC |"
+             " hits+near-wall Brier | cells AUC | cells Brier |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in sorted(rows, key=lambda r: (r["knob"], r["kind"], r["case"], r["seed"])):
+        d = base.get((r["case"], r["seed"]))
+        if r["knob"] == "defaults" or d is None:
+            continue
+        cells = []
+        for p in ("union", "hits+near-wall", "cells"):
+            if p in r["scores"] and p in d["scores"]:
+                a, b = r["scores"][p]["gp"], d["scores"][p]["gp"]
+                cells += [f"{a['auc'] - b['auc']:+.4f}", f"{a['brier'] - b['brier']:+.4f}"]
+            else:
+                cells += ["", ""]
+        lines.append(f"| {r['knob']} | {r['case']} | {r['seed']} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _commands(rows: list[dict]) -> list[str]:
+    """One ``bench/walls.py run`` line per (seed, cases) group of the gathered rows."""
+    groups: dict[tuple, list[str]] = {}
+    for r in rows:
+        cases = tuple(sorted({(x["kind"], x["case"]) for x in rows
+                              if x["knob"] == r["knob"] and x["seed"] == r["seed"]}))
+        knobs = groups.setdefault((r["seed"], cases), [])
+        if r["knob"] not in knobs:
+            knobs.append(r["knob"])
+    lines = []
+    for (seed, cases), knobs in groups.items():
+        logs = [c for k, c in cases if k == "real"]
+        worlds = [c for k, c in cases if k == "sim"]
+        lines.append(".venv/bin/python bench/walls.py run " + " ".join(f"'{k}'" for k in knobs)
+                     + " --logs " + " ".join(logs) + (" --worlds " + " ".join(worlds)
+                                                      if worlds else "")
+                     + f" --seeds {seed}")
+    return lines
+
+
 def page(rows: list[dict]) -> str:
     stamp = ex.stamp()
     lines = [
@@ -259,6 +319,18 @@ def page(rows: list[dict]) -> str:
         " scale `g`, Platt slope `a`, label-noise variance; `on bounds` lists what ended on"
         " a bound of its search.",
         "",
+        "## Reproduce",
+        "",
+        "```sh",
+        "make install && .venv/bin/python -m pip install -e '.[bench]'   # OctoMap rows",
+        *_commands(rows),
+        *_profile_commands(),
+        ".venv/bin/python bench/walls.py report",
+        "```",
+        "",
+        "Simulated worlds are scored for the GP alone (the peers' rows are in"
+        " docs/results.md); differences there are knob against `defaults`.",
+        "",
         "## Knobs",
         "",
         "| knob | overrides |",
@@ -268,6 +340,7 @@ def page(rows: list[dict]) -> str:
     for knob in used:
         over = ", ".join(f"`{k}: {v}`" for k, v in KNOBS.get(knob, {}).items()) or "(none)"
         lines.append(f"| {knob} | {over} |")
+    lines += _difference_table(rows)
     for kind, title in (("real", "Real logs"), ("sim", "Simulated worlds")):
         sel = [r for r in rows if r["kind"] == kind]
         if not sel:
