@@ -44,6 +44,7 @@ KNOBS: dict[str, dict[str, object]] = {
     "g<=1": {"model.training.max_input_noise_scale": 1.0},
     "clearance=0": {"samples.free_clearance_m": 0.0},
     "clearance=0.15": {"samples.free_clearance_m": 0.15},
+    "hit_gap=0.15": {"samples.hit_gap_m": 0.15},
     "hit_gap=0.1": {"samples.hit_gap_m": 0.1},
     "hit_gap=0.05": {"samples.hit_gap_m": 0.05},
     "hit_gap=0.05,clearance=0": {"samples.hit_gap_m": 0.05, "samples.free_clearance_m": 0.0},
