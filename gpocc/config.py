@@ -114,6 +114,11 @@ class SamplesConfig:
     Free samples lie along each beam every ``free_spacing_m`` from the sensor, stopping
     short of the hit by ``hit_gap_m`` or ``hit_gap_sigmas`` range standard deviations,
     whichever is larger (the true surface may be that much nearer than the reading).
+    The band this leaves without free samples is drawn occupied: the GP carries the hits'
+    +1 into it, which blurs walls. 0.15 m (0.25 before) gave a lower held-out union Brier
+    score and a higher AUC on both real logs at two split seeds, with the latent mean's
+    zero crossing within 0.05 m of a known wall; 0.05 m sharpened the front further but
+    lost AUC (docs/walls.md, ``bench/walls.py``).
     ``thin_cell_m`` keeps at most one sample of each label
     per square cell of that side (the most certain one), which bounds the training set by
     the mapped area instead of the log length; 0 disables thinning.
@@ -142,7 +147,7 @@ class SamplesConfig:
     """
 
     free_spacing_m: float = 0.4
-    hit_gap_m: float = 0.25
+    hit_gap_m: float = 0.15
     hit_gap_sigmas: float = 2.0
     beam_stride: int = 1
     scan_stride: int = 1
@@ -196,6 +201,11 @@ class TrainingConfig:
     as published, default) or ``scan`` (leave one scan out); see gpocc.gp.classify
     (leave-one-scan-out measured worse calibrated on held-out data: docs/results.md,
     'Summary', made with ``python -m bench.experiment --variant scan-cv``).
+    ``classifier_variance`` (with ``classifier_holdout: sample``): the variance of each
+    held-out prediction the classifier is fitted on, ``label`` (the leave-one-out
+    predictive variance of the noisy label, as published) or ``latent`` (of the latent
+    function: that minus the label-noise variance, the quantity a map cell's variance is;
+    gpocc.gp.classify).
     ``classifier_offset: beams`` then re-fits the classifier's offset on labelled points of
     every ``calibration_every``-th scan (those known to ``calibration_max_position_std_m``),
     predicted from the other scans' samples in up to ``calibration_blocks`` map blocks:
@@ -221,6 +231,7 @@ class TrainingConfig:
     min_noise_variance: float = 0.1
     classifier_holdout: str = "sample"
     classifier_offset: str = "holdout"
+    classifier_variance: str = "label"
     calibration_every: int = 10
     calibration_blocks: int = 64
     calibration_max_position_std_m: float = 0.075
@@ -636,6 +647,11 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'model.training.patch_centres' must be 'hits' or 'samples', "
             f"got {t.patch_centres!r}"
+        )
+    if t.classifier_variance not in ("latent", "label"):
+        raise GpoccError(
+            f"{source}: key 'model.training.classifier_variance' must be 'latent' or "
+            f"'label', got {t.classifier_variance!r}"
         )
     if t.classifier_offset not in ("holdout", "beams"):
         raise GpoccError(

@@ -94,7 +94,8 @@ def values_on_bounds(model: GPModel, rel_tol: float = REL_TOL) -> list[OnBound]:
     a_lower, a_upper = 1.0 / math.sqrt(S_MAX), 1.0 / math.sqrt(S_MIN)
     checks: list[tuple[str, float, float, float, bool, str]] = [
         ("classifier slope a", model.classifier.a, a_lower, a_upper, True,
-         "gpocc.gp.classify.S_MIN/S_MAX"),
+         "gpocc.gp.classify.S_MIN/S_MAX; model.training.classifier_variance: latent "
+         "fits it on the latent variance"),
         ("classifier offset c", model.classifier.offset, -C_BOUND, C_BOUND, False,
          "gpocc.gp.classify.C_BOUND"),
     ]

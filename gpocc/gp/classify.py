@@ -175,21 +175,28 @@ def leave_one_scan_out(kernel: Kernel, noise_variance: float, patch: LocalProble
 
 def patch_holdout_predictions(kernel: Kernel, noise_variance: float, patch: LocalProblem,
                               level: int, holdout: str = "sample", backend: str = "auto",
+                              latent: bool = False,
                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Held-out latent means, variances and labels of one patch's samples (``holdout``:
     scan or sample; with ``scan``, only the samples another scan of the patch can
-    predict)."""
+    predict). ``latent`` (with ``sample``): the variance of the latent function, the
+    leave-one-out variance of the label minus the label noise (``y_i = f_i + e_i`` with
+    ``e_i`` independent of the other labels), as a map cell's variance is; ``scan``'s
+    are latent already."""
     if holdout == "scan":
         mu, var, mask = leave_one_scan_out(kernel, noise_variance, patch, level, backend)
         return mu[mask], var[mask], patch.samples.labels[mask]
     chol = factor_training_covariance(kernel, noise_variance, patch.samples, level, backend)
     mu, var = leave_one_out(chol, patch.samples.labels)
+    if latent:
+        # 1/[K^-1]_ii >= noise_variance in exact arithmetic; round-off may cross it.
+        var = np.maximum(var - noise_variance, 0.0)
     return mu, var, patch.samples.labels
 
 
 def holdout_predictions(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
                         level: int, holdout: str = "sample", backend: str = "auto",
-                        map_fn: MapFunction = map,
+                        map_fn: MapFunction = map, latent: bool = False,
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Held-out latent means, variances and labels (concatenated over ``patches``);
     ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`), as everywhere here.
@@ -199,7 +206,7 @@ def holdout_predictions(kernel: Kernel, noise_variance: float, patches: list[Loc
     if holdout not in HOLDOUTS:
         raise ValueError(f"holdout must be one of {HOLDOUTS}, got {holdout!r}")
     one = functools.partial(patch_holdout_predictions, kernel, noise_variance,
-                            level=level, holdout=holdout, backend=backend)
+                            level=level, holdout=holdout, backend=backend, latent=latent)
     means, variances, labels = zip(*map_fn(one, patches), strict=True)
     return np.concatenate(means), np.concatenate(variances), np.concatenate(labels)
 
@@ -282,11 +289,11 @@ def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
 
 def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
                    level: int, holdout: str = "sample", backend: str = "auto",
-                   map_fn: MapFunction = map) -> PlattClassifier:
+                   map_fn: MapFunction = map, latent: bool = False) -> PlattClassifier:
     """Fit the classifier on held-out predictions over ``patches`` (``holdout``: scan or
-    sample; ``backend`` and ``map_fn`` as in :func:`holdout_predictions`)."""
+    sample; ``backend``, ``map_fn`` and ``latent`` as in :func:`holdout_predictions`)."""
     mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout, backend,
-                                     map_fn)
+                                     map_fn, latent)
     return fit_platt(mu, var, y)
 
 

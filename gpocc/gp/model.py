@@ -208,7 +208,7 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     patches = make_patches(samples, training, config.seed + 1)
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
                                 model_cfg.quadrature_level, training.classifier_holdout,
-                                backend, map_fn)
+                                backend, map_fn, training.classifier_variance == "latent")
     if training.classifier_offset != "beams" or calibration is None or not calibration.usable:
         return classifier, "holdout", 0
     mean, variance, labels = beam_holdout_predictions(

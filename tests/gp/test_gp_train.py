@@ -267,6 +267,30 @@ def test_leave_one_scan_out_matches_brute_force_refit(noisy):
         np.testing.assert_allclose(var[held], oracle.variance, rtol=1e-6, atol=1e-8)
 
 
+def test_latent_leave_one_out_variance_is_a_brute_force_refit_at_the_sample():
+    """``classifier_variance: latent``: each sample's held-out variance is that of the
+    latent function at its position (what a map cell gets), here checked by refitting
+    the GP on the other samples and predicting there exactly; ``label`` is that plus
+    the label noise."""
+    from gpocc.gp.classify import patch_holdout_predictions
+    from gpocc.gp.local import LocalProblem, predict_local
+
+    samples = _scan_case(5, n=40, noisy=False)
+    patch = LocalProblem(centre=np.zeros(2), samples=samples, index=np.arange(len(samples)))
+    kernel = NeuralNetworkKernel(1.5, 1.0, (2.0, 2.5))
+    noise = 0.07
+    mean, var, _ = patch_holdout_predictions(kernel, noise, patch, 3, "sample", latent=True)
+    _, label_var, _ = patch_holdout_predictions(kernel, noise, patch, 3, "sample")
+    for i in range(len(samples)):
+        keep = np.arange(len(samples)) != i
+        refit = LocalProblem(centre=np.zeros(2), samples=samples.subset(keep),
+                             index=np.flatnonzero(keep))
+        oracle = predict_local(kernel, noise, refit, samples.means[i:i + 1], 3)
+        np.testing.assert_allclose(mean[i], oracle.mean[0], rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(var[i], oracle.variance[0], rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(label_var[i], oracle.variance[0] + noise, rtol=1e-6)
+
+
 def test_scan_holdout_classifier_maximises_held_out_log_probability():
     from gpocc.gp.classify import holdout_predictions
 
