@@ -114,11 +114,6 @@ class SamplesConfig:
     Free samples lie along each beam every ``free_spacing_m`` from the sensor, stopping
     short of the hit by ``hit_gap_m`` or ``hit_gap_sigmas`` range standard deviations,
     whichever is larger (the true surface may be that much nearer than the reading).
-    The band this leaves without free samples is drawn occupied: the GP carries the hits'
-    +1 into it, which blurs walls. 0.15 m (0.25 before) gave a lower held-out union Brier
-    score and a higher AUC on both real logs at two split seeds, with the latent mean's
-    zero crossing within 0.05 m of a known wall; 0.05 m sharpened the front further but
-    lost AUC (docs/walls.md, ``bench/walls.py``).
     ``thin_cell_m`` keeps at most one sample of each label
     per square cell of that side (the most certain one), which bounds the training set by
     the mapped area instead of the log length; 0 disables thinning.
@@ -147,7 +142,7 @@ class SamplesConfig:
     """
 
     free_spacing_m: float = 0.4
-    hit_gap_m: float = 0.15
+    hit_gap_m: float = 0.25
     hit_gap_sigmas: float = 2.0
     beam_stride: int = 1
     scan_stride: int = 1
