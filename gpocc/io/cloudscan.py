@@ -178,14 +178,7 @@ def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
     in_band = (z >= band[0]) & (z <= band[1])
     if valid is not None:
         in_band &= valid
-    bx, by = dx[in_band], dy[in_band]
-    index = _bin_index(bx, by, bins)
-    dist = np.hypot(bx, by)
-    near = dist >= range_min
-    ranges = np.full(bins, np.inf)
-    np.minimum.at(ranges, index[near], dist[near].astype(np.float64))
-    heard = np.zeros(bins, bool)
-    heard[index] = True
+    ranges, heard = _nearest_per_bin(dx[in_band], dy[in_band], bins, range_min)
     if np.count_nonzero(heard) >= enough * bins:
         return ranges, heard
     out = ~in_band if valid is None else ~in_band & valid
@@ -259,13 +252,7 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
             if not ok.all():
                 x, y, zz = x[ok], y[ok], zz[ok]
         dx, dy = bearings(x, y, zz)
-        bin_of = _bin_index(dx, dy, bins)
-        dist = np.hypot(dx, dy)
-        near = dist >= range_min
-        ranges = np.full(bins, np.inf)
-        np.minimum.at(ranges, bin_of[near], dist[near].astype(np.float64))
-        heard = np.zeros(bins, bool)
-        heard[bin_of] = True
+        ranges, heard = _nearest_per_bin(dx, dy, bins, range_min)
         if np.count_nonzero(heard) >= enough * bins:
             return ranges, heard, z
         # The floor's and ceiling's returns, in :func:`bin_returns`'s order and stride.
@@ -304,3 +291,18 @@ def height_histogram(z: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Counts of heights ``z`` (N,) in the bins ``edges`` (K + 1,, increasing), the outer
     bins open: (K + 2,) = [below edges[0], the K bins, at or above edges[-1]]."""
     return np.bincount(np.searchsorted(edges, z, side="right"), minlength=edges.size + 1)
+
+
+def _nearest_per_bin(dx: np.ndarray, dy: np.ndarray, bins: int,
+                     range_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per bearing bin, the nearest return at least ``range_min`` metres away ((bins,),
+    inf where none) and whether any return fell in the bin; ``dx``, ``dy`` (N,) metres
+    from the lidar in the base plane."""
+    index = _bin_index(dx, dy, bins)
+    dist = np.hypot(dx, dy)
+    near = dist >= range_min
+    ranges = np.full(bins, np.inf)
+    np.minimum.at(ranges, index[near], dist[near].astype(np.float64))
+    heard = np.zeros(bins, bool)
+    heard[index] = True
+    return ranges, heard
