@@ -109,6 +109,8 @@ VARIANTS: dict[str, dict[str, object]] = {
     "two-draw": {"model.diagonal": "two-draw"},
     "two-draw-fixed-scale": {"model.diagonal": "two-draw",
                              "model.training.learn_input_noise_scale": False},
+    "hit-gap-0.15": {"samples.hit_gap_m": 0.15},
+    "hit-gap-0.1": {"samples.hit_gap_m": 0.1},
 }
 
 #: Every step the page's results depend on, in order (the page's "Commands" section):
