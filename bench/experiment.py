@@ -84,7 +84,8 @@ _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "model.training.learn_input_noise_scale": False,
               "model.training.patch_centres": "samples",
               "samples.free_clearance_m": 0.0,
-              "model.blend_overlap": 1.0}
+              "model.blend_overlap": 1.0,
+              "model.training.classifier_temperature": "none"}
 _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}
 _HIT_PATCHES = {**_LEARNED, "model.training.patch_centres": "hits",
@@ -111,6 +112,12 @@ VARIANTS: dict[str, dict[str, object]] = {
                              "model.training.learn_input_noise_scale": False},
     "hit-gap-0.15": {"samples.hit_gap_m": 0.15},
     "hit-gap-0.1": {"samples.hit_gap_m": 0.1},
+    "no-temperature": {"model.training.classifier_temperature": "none"},
+    "temperature": {"model.training.classifier_temperature": "samples"},
+    "temperature-beams": {"model.training.classifier_temperature": "beams"},
+    "temperature-latent": {"model.training.classifier_temperature": "samples",
+                           "model.training.classifier_variance": "latent"},
+    "label-map": {"model.training.classifier_variance": "label-map"},
 }
 
 #: Every step the page's results depend on, in order (the page's "Commands" section):

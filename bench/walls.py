@@ -41,7 +41,8 @@ DOC = ROOT / "docs" / "walls.md"
 #: the defaults the knobs were measured against (before hit_gap_m became 0.15), so that
 #: every row keeps its meaning; the others change one setting from it.
 BASELINE: dict[str, object] = {"samples.hit_gap_m": 0.25,
-                               "model.training.classifier_variance": "label"}
+                               "model.training.classifier_variance": "label",
+                               "model.training.classifier_temperature": "none"}
 KNOBS: dict[str, dict[str, object]] = {
     "baseline": BASELINE,
     "g=1": {"model.training.learn_input_noise_scale": False},
@@ -320,7 +321,8 @@ def page(rows: list[dict]) -> str:
         "",
         "Each row trains the GP with input noise (`gpocc train --input-noise on`, `gpocc map`"
         " at 0.1 m) with ONE setting changed from `baseline` (the log's config with"
-        " `samples.hit_gap_m: 0.25` and `model.training.classifier_variance: label`,"
+        " `samples.hit_gap_m: 0.25`, `model.training.classifier_variance: label` and"
+        " `model.training.classifier_temperature: none`,"
         " gpocc's defaults when these were measured; `hit_gap=0.15` is today's default)."
         " Real logs: `gpocc split --every 10 --seed S`, the"
         " training scans' poses perturbed by stretch as in `bench/experiment.py` (seed S);"

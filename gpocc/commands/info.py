@@ -130,7 +130,9 @@ def format_model(path: Path, model: GPModel) -> list[str]:
            if model.input_noise and model.input_noise_scale != 1.0 else ""),
         f"  classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
         f"{model.classifier.offset:.4g}, extra variance "
-        f"{model.classifier.extra_variance:.3g}), thresholds "
+        f"{model.classifier.extra_variance:.3g}"
+        + (f", temperature {model.classifier.temperature:.4g}"
+           if model.classifier.temperature != 1.0 else "") + "), thresholds "
         f"occupied {model.config.classify.occupied:g}, free {model.config.classify.free:g}",
         f"  samples: {len(samples)} ({occupied} occupied, {len(samples) - occupied} free) "
         f"from {len(np.unique(samples.scan_ids))} scans",

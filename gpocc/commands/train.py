@@ -92,7 +92,8 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
     calibration = (calibration_points(
         batches, cfg, training_cfg.calibration_every,
         max_position_std_m=training_cfg.calibration_max_position_std_m)
-        if training_cfg.classifier_offset == "beams" else None)
+        if "beams" in (training_cfg.classifier_offset, training_cfg.classifier_temperature)
+        else None)
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
     budget = 2 + training_cfg.anneal_maxfun + 2 * training_cfg.lbfgs_maxiter
@@ -129,7 +130,10 @@ def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
         typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}")
     typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
                f"{model.classifier.offset:.4g}, extra variance "
-               f"{model.classifier.extra_variance:.3g}; {_fitted_on(model.training)})")
+               f"{model.classifier.extra_variance:.3g}"
+               + (f", temperature {model.classifier.temperature:.4g}"
+                  if model.classifier.temperature != 1.0 else "")
+               + f"; {_fitted_on(model.training)})")
     timings = model.training["timings_s"]
     typer.echo(f"stages: read {timings['read']:.1f} s, samples {timings['samples']:.1f} s, "
                f"hyperparameters+classifier {timings['learn']:.1f} s")
@@ -141,6 +145,12 @@ def _fitted_on(training: dict) -> str:
     """What the classifier was fitted on, for the summary line."""
     how = ("fitted leaving one scan out" if training.get("classifier_holdout") == "scan"
            else "fitted leaving one sample out")
+    beams = []
     if training.get("classifier_offset") == "beams":
-        how += f"; offset from {training['classifier_points']} points of held-out scans"
+        beams.append("offset")
+    if training.get("classifier_temperature") == "beams" and training.get("classifier_points"):
+        beams.append("temperature")
+    if beams:
+        how += (f"; {' and '.join(beams)} from {training['classifier_points']} points of "
+                "held-out scans")
     return how

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gpocc.gp.classify import C_BOUND, S_MAX, S_MIN
+from gpocc.gp.classify import C_BOUND, S_MAX, S_MIN, T_MAX, T_MIN
 from gpocc.gp.kernels import make_kernel
 from gpocc.gp.model import GPModel
 from gpocc.gp.train import search_bounds
@@ -99,6 +99,9 @@ def values_on_bounds(model: GPModel, rel_tol: float = REL_TOL) -> list[OnBound]:
         ("classifier offset c", model.classifier.offset, -C_BOUND, C_BOUND, False,
          "gpocc.gp.classify.C_BOUND"),
     ]
+    if model.config.model.training.classifier_temperature != "none":
+        checks.append(("classifier temperature T", model.classifier.temperature, T_MIN, T_MAX,
+                       True, "gpocc.gp.classify.T_MIN/T_MAX"))
     cfg = model.config.model
     training = cfg.training
     if training.learn:

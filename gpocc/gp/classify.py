@@ -38,6 +38,15 @@ Brier on Intel 0.0439 -> 0.0420, Freiburg 0.0715 -> 0.0660), while the default i
 calibrated for map cells (simulated truth rasters: the beam offset doubled the Brier
 score there; docs/results.md, 'Protocol `cells`', made with ``--variant beam-offset``
 against ``--variant learned-scale-floor-0.1``).
+
+``model.training.classifier_temperature`` then divides the classifier's argument by a
+temperature ``T`` fitted on the same held-out predictions, their variances taken as a map
+cell's are (of the latent function: with ``sample``, the leave-one-out variance of the
+label minus the label noise). The fit of ``c`` and ``s`` uses the label's variance, as
+published, but a map cell has only the latent one: without ``T`` the map divides by a
+smaller variance than the fit did and comes out overconfident (p of 0 or 1 within a
+cell of walls). ``Phi(z / T)`` is increasing in ``z``, so the map's ranking, its AUC and
+FPR at any TPR, stay as they were; only the probabilities move.
 """
 
 from __future__ import annotations
@@ -79,18 +88,23 @@ POINTS_PER_BLOCK = 256
 #: Bounds of the fit: extra variance s = 1/a^2 (a in [1e-3, 1e3]) and offset c = b/a.
 S_MIN, S_MAX = 1e-6, 1e6
 C_BOUND = 1e2
+#: Bounds of the fitted temperature (``model.training.classifier_temperature``).
+T_MIN, T_MAX = 1e-2, 1e3
 
 
 @dataclass(frozen=True)
 class PlattClassifier:
-    """p = Phi((mu + offset) / sqrt(extra_variance + var)).
+    """p = Phi((mu + offset) / (temperature * sqrt(extra_variance + var))).
 
     ``offset`` is c = b / a and ``extra_variance`` s = 1 / a^2 > 0 of the published form
     Phi((a mu + b) / sqrt(1 + a^2 var)); ``a`` and ``b`` are derived for display.
+    ``temperature`` T > 0 (1: the published form) rescales the argument; see the module
+    docstring.
     """
 
     offset: float = 0.0
     extra_variance: float = 1.0
+    temperature: float = 1.0
 
     @classmethod
     def from_ab(cls, a: float, b: float) -> PlattClassifier:
@@ -107,13 +121,16 @@ class PlattClassifier:
 
     def probability(self, mean: np.ndarray, variance: np.ndarray) -> np.ndarray:
         """p(occupied) for latent means and variances of any (matching) shape."""
-        return ndtr((mean + self.offset) / np.sqrt(self.extra_variance + variance))
+        return ndtr((mean + self.offset)
+                    / (self.temperature * np.sqrt(self.extra_variance + variance)))
 
 
 def held_out_log_probability(offset: float, extra_variance: float, mean: np.ndarray,
-                             variance: np.ndarray, labels: np.ndarray) -> float:
-    """Sum of log Phi(y_i (mu_i + c) / sqrt(s + var_i)) over held-out predictions (N,)."""
-    z = labels * (mean + offset) / np.sqrt(extra_variance + variance)
+                             variance: np.ndarray, labels: np.ndarray,
+                             temperature: float = 1.0) -> float:
+    """Sum of log Phi(y_i (mu_i + c) / (T sqrt(s + var_i))) over held-out predictions
+    (N,)."""
+    z = labels * (mean + offset) / (temperature * np.sqrt(extra_variance + variance))
     return float(log_ndtr(z).sum())
 
 
@@ -276,25 +293,55 @@ def _predict_block(kernel: Kernel, noise_variance: float,
 
 
 def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
-               extra_variance: float) -> PlattClassifier:
+               extra_variance: float, temperature: float = 1.0) -> PlattClassifier:
     """The offset c maximising :func:`held_out_log_probability` of held-out predictions
-    (N,) with the extra variance s fixed (bounded Brent search in [-C_BOUND, C_BOUND])."""
+    (N,) with the extra variance s and temperature T fixed (bounded Brent search in
+    [-C_BOUND, C_BOUND])."""
     from scipy.optimize import minimize_scalar  # here: `gpocc map` never fits
 
     best = minimize_scalar(
-        lambda c: -held_out_log_probability(c, extra_variance, mean, variance, labels),
+        lambda c: -held_out_log_probability(c, extra_variance, mean, variance, labels,
+                                            temperature),
         bounds=(-C_BOUND, C_BOUND), method="bounded", options={"xatol": 1e-6})
-    return PlattClassifier(offset=float(best.x), extra_variance=extra_variance)
+    return PlattClassifier(offset=float(best.x), extra_variance=extra_variance,
+                           temperature=temperature)
+
+
+def fit_temperature(classifier: PlattClassifier, mean: np.ndarray, variance: np.ndarray,
+                    labels: np.ndarray) -> PlattClassifier:
+    """``classifier`` with the temperature T maximising :func:`held_out_log_probability`
+    of held-out predictions (N,; ``variance`` of the latent function, as a map cell's),
+    its offset and extra variance kept (bounded Brent search on log T in
+    [log T_MIN, log T_MAX])."""
+    if not has_both_labels(labels):
+        return classifier
+    from scipy.optimize import minimize_scalar  # here: `gpocc map` never fits
+
+    c, s = classifier.offset, classifier.extra_variance
+    best = minimize_scalar(
+        lambda log_t: -held_out_log_probability(c, s, mean, variance, labels,
+                                                float(np.exp(log_t))),
+        bounds=(np.log(T_MIN), np.log(T_MAX)), method="bounded", options={"xatol": 1e-6})
+    return PlattClassifier(offset=c, extra_variance=s, temperature=float(np.exp(best.x)))
 
 
 def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
                    level: int, holdout: str = "sample", backend: str = "auto",
-                   map_fn: MapFunction = map, latent: bool = False) -> PlattClassifier:
+                   map_fn: MapFunction = map, latent: bool = False,
+                   temperature: bool = False) -> PlattClassifier:
     """Fit the classifier on held-out predictions over ``patches`` (``holdout``: scan or
-    sample; ``backend``, ``map_fn`` and ``latent`` as in :func:`holdout_predictions`)."""
+    sample; ``backend``, ``map_fn`` and ``latent`` as in :func:`holdout_predictions`);
+    with ``temperature``, then its temperature on the same predictions with the variance
+    of the latent function (:func:`fit_temperature`)."""
     mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout, backend,
                                      map_fn, latent)
-    return fit_platt(mu, var, y)
+    classifier = fit_platt(mu, var, y)
+    if not temperature:
+        return classifier
+    if holdout == "sample" and not latent:
+        # 1/[K^-1]_ii >= noise_variance in exact arithmetic; round-off may cross it.
+        var = np.maximum(var - noise_variance, 0.0)
+    return fit_temperature(classifier, mu, var, y)
 
 
 def class_counts(classes: np.ndarray) -> dict[str, int]:

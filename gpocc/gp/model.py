@@ -29,6 +29,7 @@ from gpocc.gp.classify import (
     beam_holdout_predictions,
     fit_classifier,
     fit_offset,
+    fit_temperature,
 )
 from gpocc.gp.growth import Growth
 from gpocc.gp.inputscale import scale_input_noise
@@ -48,7 +49,7 @@ FORMAT_NAME = "gpocc-model"
 #: ``input_noise_scale`` (absent: 1). 3: the growth state for ``gpocc update`` (optional
 #: ``pool_*``, ``vote_*`` and ``calibration_*`` arrays and a ``growth`` record); files of
 #: formats 1 and 2 load without it.
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 _ARRAYS = ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")
 
 
@@ -155,6 +156,7 @@ def build_model(
         "patches": list(result.patches),
         "classifier_holdout": model_cfg.training.classifier_holdout,
         "classifier_offset": offset,
+        "classifier_temperature": model_cfg.training.classifier_temperature,
         "classifier_points": points,
     }
     if warm_start is not None:
@@ -186,7 +188,9 @@ def refit_model(
         samples = scale_input_noise(samples, kept.input_noise_scale)
         classifier, offset, points = _fit_classifier(result, samples, config, calibration)
     training = {**kept.training, "classifier_holdout": config.model.training.classifier_holdout,
-                "classifier_offset": offset, "classifier_points": points}
+                "classifier_offset": offset,
+                "classifier_temperature": config.model.training.classifier_temperature,
+                "classifier_points": points}
     return GPModel(
         kernel=kept.kernel, noise_variance=kept.noise_variance, classifier=classifier,
         samples=samples, config=config, input_noise=config.model.input_noise,
@@ -208,8 +212,15 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     patches = make_patches(samples, training, config.seed + 1)
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
                                 model_cfg.quadrature_level, training.classifier_holdout,
-                                backend, map_fn, training.classifier_variance == "latent")
-    if training.classifier_offset != "beams" or calibration is None or not calibration.usable:
+                                backend, map_fn, training.classifier_variance == "latent",
+                                training.classifier_temperature == "samples")
+    if training.classifier_variance == "label-map":
+        # Fitted on the label's variance, applied to a cell's latent variance plus the
+        # label noise: the same quantity.
+        classifier = dataclasses.replace(
+            classifier, extra_variance=classifier.extra_variance + result.noise_variance)
+    beams = training.classifier_offset == "beams" or training.classifier_temperature == "beams"
+    if not beams or calibration is None or not calibration.usable:
         return classifier, "holdout", 0
     mean, variance, labels = beam_holdout_predictions(
         result.kernel, result.noise_variance, samples, calibration,
@@ -218,8 +229,13 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         backend, map_fn)
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0
-    return (fit_offset(mean, variance, labels, classifier.extra_variance), "beams",
-            int(labels.size))
+    offset = "holdout"
+    if training.classifier_offset == "beams":
+        classifier, offset = fit_offset(mean, variance, labels, classifier.extra_variance,
+                                        classifier.temperature), "beams"
+    if training.classifier_temperature == "beams":
+        classifier = fit_temperature(classifier, mean, variance, labels)
+    return classifier, offset, int(labels.size)
 
 
 def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:
@@ -244,7 +260,8 @@ def write_model(model: GPModel, path: str | Path) -> None:
         "kernel_name": model.config.model.kernel,
         "noise_variance": model.noise_variance,
         "classifier": {"offset": model.classifier.offset,
-                       "extra_variance": model.classifier.extra_variance},
+                       "extra_variance": model.classifier.extra_variance,
+                       "temperature": model.classifier.temperature},
         "input_noise": model.input_noise,
         "input_noise_scale": model.input_noise_scale,
         "training": model.training,

@@ -133,20 +133,23 @@ def _samples(arrays: dict[str, np.ndarray]) -> SampleSet:
 
 
 def _classifier(record: Any, version: Any) -> PlattClassifier:
-    """Format 1 stored the published (a, b); format 2 stores (offset, extra_variance)."""
+    """Format 1 stored the published (a, b); formats 2 and 3 (offset, extra_variance);
+    format 4 adds the temperature."""
     if version == 1:
         if not isinstance(record, dict) or set(record) != {"a", "b"}:
             raise _Damaged(f"the classifier must hold exactly 'a' and 'b', got {record!r}")
         a = _finite_number(record["a"], "classifier 'a'", positive=True)
         b = _finite_number(record["b"], "classifier 'b'")
         return PlattClassifier.from_ab(a, b)
-    keys = {"offset", "extra_variance"}
+    keys = {"offset", "extra_variance"} | ({"temperature"} if version >= 4 else set())
     if not isinstance(record, dict) or set(record) != keys:
         raise _Damaged(f"the classifier must hold exactly {sorted(keys)}, got {record!r}")
     return PlattClassifier(
         offset=_finite_number(record["offset"], "classifier 'offset'"),
         extra_variance=_finite_number(record["extra_variance"], "classifier 'extra_variance'",
-                                      positive=True))
+                                      positive=True),
+        temperature=(_finite_number(record["temperature"], "classifier 'temperature'",
+                                    positive=True) if version >= 4 else 1.0))
 
 
 #: Settings whose default changed after model files were written without them: the value

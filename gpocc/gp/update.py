@@ -37,7 +37,7 @@ from gpocc.io.scans import ScanBatch
 from gpocc.progress import log
 from gpocc.samples.beams import build_pool, finish_samples, merge_pools
 from gpocc.samples.coverage import beam_coverage, sample_coverage, union_coverage
-from gpocc.samples.heldout import CalibrationPoints, calibration_points
+from gpocc.samples.heldout import calibration_points
 from gpocc.samples.sampleset import SampleSet
 
 #: Config sections an update takes from the model: its samples were built and its
@@ -141,10 +141,11 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
         optimiser.result()
     calibration = growth.calibration
     training = config.model.training
-    if training.classifier_offset == "beams":
-        calibration = join_calibration(calibration, _offset(calibration_points(
+    if "beams" in (training.classifier_offset, training.classifier_temperature):
+        calibration = join_calibration(calibration, calibration_points(
             batches, config, training.calibration_every,
-            max_position_std_m=training.calibration_max_position_std_m), old.n_scans))
+            max_position_std_m=training.calibration_max_position_std_m,
+            scan_offset=old.n_scans))
     inputs = model.inputs + tuple(r.path for r in records)
     samples_s = time.perf_counter() - started
     if hyperparameters not in ("refined", "kept", "relearned"):
@@ -205,7 +206,3 @@ def kept_fit(model: GPModel, samples: SampleSet, config: Config) -> tuple[float,
                 (model.kernel, model.noise_variance, model.input_noise_scale),
                 (initial, model_cfg.hyperparameters.noise_variance, 1.0))]
     return values[0], values[1]
-
-
-def _offset(points: CalibrationPoints, scans: int) -> CalibrationPoints:
-    return dataclasses.replace(points, scan_ids=points.scan_ids + scans)

@@ -196,17 +196,20 @@ def position_std(batch: ScanBatch, sensor: SensorConfig, scans: np.ndarray,
 
 def calibration_points(batches: list[ScanBatch], config: Config, every: int,
                        free_per_beam: int = 3,
-                       max_position_std_m: float | None = None) -> CalibrationPoints:
+                       max_position_std_m: float | None = None,
+                       scan_offset: int = 0) -> CalibrationPoints:
     """Every ``every``-th scan of each batch as labelled points (:func:`labelled_points`,
-    free points drawn with the config's seed), keeping only those whose position is
-    known to ``max_position_std_m`` (:func:`position_std`; None keeps all): a hit placed
-    by a wrong pose lies in free space and would teach the classifier that free space
-    is occupied."""
-    rng = np.random.default_rng(config.seed)
+    free points drawn with the config's seed and the batch's first scan id), keeping only
+    those whose position is known to ``max_position_std_m`` (:func:`position_std`; None
+    keeps all): a hit placed by a wrong pose lies in free space and would teach the
+    classifier that free space is occupied. Scan ids start at ``scan_offset`` (a model's
+    scan count when logs are added to it), so that adding logs one by one draws the
+    points training on all of them does."""
     points, labels, scan_ids = [np.zeros((0, 2))], [np.zeros(0)], [np.zeros(0, np.int64)]
-    offset = 0
+    offset = scan_offset
     for batch in batches:
         held = np.flatnonzero(heldout_mask(batch.n_scans, every))
+        rng = np.random.default_rng([config.seed, offset])
         if held.size:
             sensor = beam_rules.sensor_config(batch, config)
             p, lab, scans, dist = labelled_points(subset_batch(batch, held), sensor,

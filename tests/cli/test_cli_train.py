@@ -47,7 +47,9 @@ def test_train_writes_a_self_contained_model(trained):
     # The summary says how the classifier was fitted (the published leave-one-out).
     assert model.training["classifier_holdout"] == "sample"
     assert model.training["classifier_offset"] == "holdout"
-    assert "fitted leaving one sample out)" in output
+    assert "fitted leaving one sample out; temperature from " in output
+    assert model.training["classifier_temperature"] == "beams"
+    assert model.training["classifier_points"] > 0
 
 
 def test_train_can_take_the_classifier_offset_from_heldout_scans(tmp_path):
@@ -61,7 +63,7 @@ def test_train_can_take_the_classifier_offset_from_heldout_scans(tmp_path):
     model = load_model(out)
     points = model.training["classifier_points"]
     assert model.training["classifier_offset"] == "beams" and points > 100
-    assert f"offset from {points} points of held-out scans" in output
+    assert f"offset and temperature from {points} points of held-out scans" in output
 
 
 def test_training_is_reproducible_with_a_seed(trained, tmp_path):

@@ -48,7 +48,7 @@ def test_defaults_and_round_trip():
         ("model:\n  training:\n    patch_centres: walls\n",
          "'model.training.patch_centres' must be 'hits' or 'samples'"),
         ("model:\n  training:\n    classifier_variance: noisy\n",
-         "'model.training.classifier_variance' must be 'latent' or 'label'"),
+         "'model.training.classifier_variance' must be 'label', 'label-map' or 'latent'"),
         ("samples:\n  free_clearance_m: -0.1\n", "free_clearance_m"),
         ("model:\n  training:\n    calibration_every: 1\n",
          "'model.training.calibration_every' must be at least 2"),

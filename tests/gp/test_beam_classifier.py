@@ -33,15 +33,21 @@ def test_calibration_points_are_the_heldout_scans_numbered_like_the_samples():
     np.testing.assert_array_equal(calib.scan_ids, [4, 9, 14, 19, 27, 32, 37])
     samples = build_samples([first, second], CONFIG)
     assert set(calib.scan_ids) <= set(samples.scan_ids.tolist())
-    # The points are those of the held-out scans alone, drawn with the config's seed.
-    rng = np.random.default_rng(CONFIG.seed)
-    a = labelled_points(subset_batch(first, np.array([4, 9, 14, 19])), SENSOR, 3, rng)
-    b = labelled_points(subset_batch(second, np.array([4, 9, 14])), SENSOR, 3, rng)
+    # The points are those of the held-out scans alone, drawn with the config's seed and
+    # the batch's first scan id (so that a batch added later draws the same points).
+    a = labelled_points(subset_batch(first, np.array([4, 9, 14, 19])), SENSOR, 3,
+                        np.random.default_rng([CONFIG.seed, 0]))
+    b = labelled_points(subset_batch(second, np.array([4, 9, 14])), SENSOR, 3,
+                        np.random.default_rng([CONFIG.seed, 23]))
     np.testing.assert_array_equal(calib.points, np.concatenate([a[0], b[0]]))
     np.testing.assert_array_equal(calib.labels, np.where(np.concatenate([a[1], b[1]]) > 0,
                                                          1.0, -1.0))
     assert calib.usable
     assert not CalibrationPoints(calib.points[:2], np.ones(2), calib.scan_ids).usable
+    # The second batch alone, added after the first's 23 scans, gives the same points.
+    later = calibration_points([second], CONFIG, every=5, scan_offset=23)
+    np.testing.assert_array_equal(later.scan_ids, [27, 32, 37])
+    np.testing.assert_array_equal(later.points, b[0])
 
 
 def test_heldout_predictions_equal_the_gp_of_the_other_scans():
@@ -91,7 +97,8 @@ def _training(offset: str) -> Config:
     return dataclasses.replace(CONFIG, model=ModelConfig(
         neighbours=64, block_size_m=1.0,
         training=TrainingConfig(patches=2, patch_size=60, anneal_maxfun=4, lbfgs_maxiter=3,
-                                classifier_offset=offset, calibration_blocks=20)))
+                                classifier_offset=offset, calibration_blocks=20,
+                                classifier_temperature="none")))
 
 
 def test_offset_maximises_the_heldout_log_probability():

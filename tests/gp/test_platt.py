@@ -14,6 +14,7 @@ from gpocc.gp.classify import (
     PlattClassifier,
     fit_classifier,
     fit_platt,
+    fit_temperature,
     held_out_log_probability,
 )
 from gpocc.gp.kernels import NeuralNetworkKernel
@@ -128,6 +129,8 @@ def test_format_1_model_files_with_a_and_b_still_load(tmp_path):
     (1, {"offset": 0.1, "extra_variance": 1e-3}),  # today's keys in an old file
     (2, {"a": 2.0, "b": 0.1}),                      # old keys in a new file
     (2, {"offset": 0.1, "extra_variance": 0.0}),    # a = infinity
+    (4, {"offset": 0.1, "extra_variance": 1e-3}),   # format 4 without its temperature
+    (4, {"offset": 0.1, "extra_variance": 1e-3, "temperature": 0.0}),
 ])
 def test_classifier_record_of_the_wrong_form_is_a_clear_error(tmp_path, version, record):
     path, arrays, meta = _saved_model(tmp_path, PlattClassifier())
@@ -139,7 +142,53 @@ def test_classifier_record_of_the_wrong_form_is_a_clear_error(tmp_path, version,
 
 
 def test_saved_classifier_round_trips_exactly(tmp_path):
-    clf = PlattClassifier(offset=-0.0184823, extra_variance=S_MIN)
+    clf = PlattClassifier(offset=-0.0184823, extra_variance=S_MIN, temperature=3.25)
     path, _, meta = _saved_model(tmp_path, clf)
-    assert meta["format_version"] >= 2  # (offset, extra_variance) since format 2
+    assert meta["format_version"] >= 4  # the temperature since format 4
     assert load_model(path).classifier == clf
+
+
+def test_format_3_model_files_load_with_temperature_one(tmp_path):
+    path, arrays, meta = _saved_model(tmp_path, PlattClassifier(offset=0.2, extra_variance=0.5))
+    meta["format_version"] = 3
+    meta["classifier"] = {"offset": 0.2, "extra_variance": 0.5}
+    write_model_file(path, arrays, meta)
+    assert load_model(path).classifier == PlattClassifier(offset=0.2, extra_variance=0.5)
+
+
+def test_temperature_divides_the_argument_and_keeps_the_order():
+    rng = np.random.default_rng(3)
+    mean, var = rng.normal(0, 1, 200), rng.uniform(0, 0.3, 200)
+    plain = PlattClassifier(offset=0.1, extra_variance=0.02)
+    warm = PlattClassifier(offset=0.1, extra_variance=0.02, temperature=4.0)
+    np.testing.assert_allclose(warm.probability(mean, var),
+                               ndtr((mean + 0.1) / (4.0 * np.sqrt(0.02 + var))), rtol=1e-12)
+    # Phi(z / T) is increasing in z: ordered by z, both are non-decreasing (the cells'
+    # ranking, and so the AUC, is kept; T > 1 only separates what saturated at 1).
+    z = (mean + 0.1) / np.sqrt(0.02 + var)
+    for clf in (plain, warm):
+        assert np.all(np.diff(clf.probability(mean, var)[np.argsort(z)]) >= 0)
+
+
+def test_fitted_temperature_recovers_the_one_that_drew_the_labels():
+    # Labels drawn from Phi(z / 3) for a known (c, s): the maximum-likelihood temperature
+    # must be 3 to the sampling error of 40000 labels; (c, s) are kept as given.
+    rng = np.random.default_rng(4)
+    n = 40000
+    mean, var = rng.normal(0, 1, n), rng.uniform(0.0, 0.2, n)
+    given = PlattClassifier(offset=-0.05, extra_variance=0.01)
+    truth = PlattClassifier(offset=-0.05, extra_variance=0.01, temperature=3.0)
+    labels = np.where(rng.random(n) < truth.probability(mean, var), 1.0, -1.0)
+    fitted = fit_temperature(given, mean, var, labels)
+    assert fitted.temperature == pytest.approx(3.0, rel=0.05)
+    assert (fitted.offset, fitted.extra_variance) == (given.offset, given.extra_variance)
+    # ... and no temperature on a grid of them does better (brute force).
+    grid = np.geomspace(0.5, 20, 400)
+    best = max(held_out_log_probability(-0.05, 0.01, mean, var, labels, t) for t in grid)
+    assert held_out_log_probability(-0.05, 0.01, mean, var, labels,
+                                    fitted.temperature) >= best - 1e-6
+
+
+def test_temperature_of_one_label_only_is_left_alone():
+    given = PlattClassifier(offset=0.3, extra_variance=0.1)
+    assert fit_temperature(given, np.ones(5), np.ones(5), np.ones(5)) == given
