@@ -78,13 +78,15 @@ DOC = ROOT / "docs" / "results.md"
 #: Config overrides (dotted keys) of the GP rows per variant; ``defaults`` is gpocc as
 #: shipped. The others pin every setting they depend on (the classifier hold-out, the
 #: label-noise floor, whether g is learned, the patch centres, the free-sample clearance,
-#: the blend overlap), so that they keep their meaning when defaults change.
+#: the blend overlap, the hit gap, the classifier temperature), so that they keep their
+#: meaning when defaults change.
 _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "model.training.min_noise_variance": 0.01,
               "model.training.learn_input_noise_scale": False,
               "model.training.patch_centres": "samples",
               "samples.free_clearance_m": 0.0,
               "model.blend_overlap": 1.0,
+              "samples.hit_gap_m": 0.25,
               "model.training.classifier_temperature": "none"}
 _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}

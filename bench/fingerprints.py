@@ -52,7 +52,7 @@ def fingerprints(ctx: Context) -> Result:
     rows.append(["Intel model arrays", f"{len(model.samples)} samples", digest(*arrays)])
     learned = np.array([*np.asarray(model.kernel.theta, float), model.noise_variance,
                         model.input_noise_scale, model.classifier.offset,
-                        model.classifier.extra_variance])
+                        model.classifier.extra_variance, model.classifier.temperature])
     lml = model.training.get("log_marginal_likelihood", float("nan"))
     rows.append(["Intel learned parameters", f"LML {lml:.6f}", digest(learned)])
     out = ctx.work / "fingerprint-map"

@@ -666,6 +666,12 @@ def _validate(config: Config, source: str) -> Config:
             f"{source}: key 'model.training.classifier_temperature' must be 'none', "
             f"'samples' or 'beams', got {t.classifier_temperature!r}"
         )
+    if t.classifier_variance == "label-map" and t.classifier_temperature == "samples":
+        raise GpoccError(
+            f"{source}: 'model.training.classifier_temperature: samples' fits T on the "
+            f"held-out samples' latent variance, which 'classifier_variance: label-map' does "
+            f"not use; set classifier_temperature to 'beams' or 'none'"
+        )
     if t.classifier_offset not in ("holdout", "beams"):
         raise GpoccError(
             f"{source}: key 'model.training.classifier_offset' must be 'holdout' or 'beams', "

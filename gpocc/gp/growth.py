@@ -6,7 +6,8 @@ learned input-noise scale. New logs change every link after thinning (a door see
 in one recording and closed in the next: the votes of both decide), so the model keeps
 the chain's state after thinning (:class:`~gpocc.samples.beams.SamplePool`: thinned
 samples as built, label votes, scans read), the held-out calibration points of
-``classifier_offset: beams``, and a record of each input. Adding logs to that state
+``classifier_offset: beams`` and ``classifier_temperature: beams``, and a record of each
+input. Adding logs to that state
 gives the state that training on all logs at once builds.
 """
 
@@ -31,7 +32,8 @@ class Growth:
     Attributes:
         pool: thinned samples (unscaled), label votes and scans read so far.
         records: one per input, in the order they were added.
-        calibration: held-out points of ``classifier_offset: beams`` (None: not used).
+        calibration: held-out points of ``classifier_offset: beams`` or
+            ``classifier_temperature: beams`` (None: not used).
     """
 
     pool: SamplePool

@@ -38,6 +38,7 @@ from gpocc.gp.modelfile import GROWTH_ARRAYS, validate_contents, validate_covera
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_output_file
 from gpocc.parallel import cluster_map
+from gpocc.progress import log
 from gpocc.samples.coverage import Coverage
 from gpocc.samples.heldout import CalibrationPoints
 from gpocc.samples.sampleset import SampleSet, has_both_labels
@@ -48,7 +49,8 @@ FORMAT_NAME = "gpocc-model"
 #: still load. The samples' covariances and pose factors are stored already scaled by
 #: ``input_noise_scale`` (absent: 1). 3: the growth state for ``gpocc update`` (optional
 #: ``pool_*``, ``vote_*`` and ``calibration_*`` arrays and a ``growth`` record); files of
-#: formats 1 and 2 load without it.
+#: formats 1 and 2 load without it. 4: the classifier's temperature; earlier files load
+#: with temperature 1 (and ``classifier_temperature: none`` in their config).
 FORMAT_VERSION = 4
 _ARRAYS = ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")
 
@@ -220,7 +222,13 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         classifier = dataclasses.replace(
             classifier, extra_variance=classifier.extra_variance + result.noise_variance)
     beams = training.classifier_offset == "beams" or training.classifier_temperature == "beams"
-    if not beams or calibration is None or not calibration.usable:
+    if not beams:
+        return classifier, "holdout", 0
+    if calibration is None or not calibration.usable:
+        log("note: too few labelled points of held-out scans (every "
+            f"{training.calibration_every}th scan) to fit the classifier's "
+            + ("offset and temperature" if training.classifier_offset == "beams"
+               else "temperature") + " on; kept the held-out samples' fit")
         return classifier, "holdout", 0
     mean, variance, labels = beam_holdout_predictions(
         result.kernel, result.noise_variance, samples, calibration,

@@ -154,7 +154,8 @@ def _classifier(record: Any, version: Any) -> PlattClassifier:
 
 #: Settings whose default changed after model files were written without them: the value
 #: such a file was trained with (dotted key, value).
-_OLDER_DEFAULTS = (("samples.free_clearance_m", 0.0), ("model.training.patch_centres", "samples"))
+_OLDER_DEFAULTS = (("samples.free_clearance_m", 0.0), ("model.training.patch_centres", "samples"),
+                   ("model.training.classifier_temperature", "none"))
 
 
 def _with_settings_of_older_files(config: dict) -> dict:

@@ -49,6 +49,11 @@ def test_defaults_and_round_trip():
          "'model.training.patch_centres' must be 'hits' or 'samples'"),
         ("model:\n  training:\n    classifier_variance: noisy\n",
          "'model.training.classifier_variance' must be 'label', 'label-map' or 'latent'"),
+        ("model:\n  training:\n    classifier_temperature: always\n",
+         "'model.training.classifier_temperature' must be 'none', 'samples' or 'beams'"),
+        ("model:\n  training:\n    classifier_variance: label-map\n"
+         "    classifier_temperature: samples\n",
+         "set classifier_temperature to 'beams' or 'none'"),
         ("samples:\n  free_clearance_m: -0.1\n", "free_clearance_m"),
         ("model:\n  training:\n    calibration_every: 1\n",
          "'model.training.calibration_every' must be at least 2"),

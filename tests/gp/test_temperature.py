@@ -38,9 +38,15 @@ def _train_and_map(tmp_path: Path, name: str, temperature: str) -> tuple[Path, n
     return model, read_raster(tmp_path / name / "probability.tif")[0]
 
 
+@pytest.fixture(scope="module")
+def plain_map(tmp_path_factory) -> tuple[Path, np.ndarray]:
+    return _train_and_map(tmp_path_factory.mktemp("plain"), "plain", "none")
+
+
 @pytest.mark.parametrize("fitted_on", ["samples", "beams"])
-def test_temperature_keeps_the_map_ranking_and_moves_its_probabilities(tmp_path, fitted_on):
-    plain_model, plain = _train_and_map(tmp_path, "plain", "none")
+def test_temperature_keeps_the_map_ranking_and_moves_its_probabilities(tmp_path, plain_map,
+                                                                        fitted_on):
+    plain_model, plain = plain_map
     warm_model, warm = _train_and_map(tmp_path, "warm", fitted_on)
     before, after = load_model(plain_model), load_model(warm_model)
     # Same samples, hyperparameters, offset and extra variance: only T differs.

@@ -122,6 +122,9 @@ def test_relearned_update_is_the_model_of_all_logs(logs, tmp_path):
     np.testing.assert_array_equal(both.growth.pool.vote_counts, up.growth.pool.vote_counts)
     assert both.kernel == up.kernel and both.noise_variance == up.noise_variance
     assert both.classifier == up.classifier
+    # ... its temperature included, fitted on the same held-out beam points.
+    assert both.training["classifier_points"] == up.training["classifier_points"] > 0
+    assert both.classifier.temperature != 1.0
     assert both.input_noise_scale == up.input_noise_scale
     # Coverage: the union of A's raster and B's is the raster of all beams.
     np.testing.assert_array_equal(both.coverage.covered, up.coverage.covered)
@@ -221,15 +224,20 @@ def test_an_older_model_file_loads_and_updates(logs, tmp_path):
     meta["format_version"] = 2
     del meta["growth"]
     del meta["classifier"]["temperature"]  # since format 4
+    del meta["config"]["model"]["training"]["classifier_temperature"]
     write_model_file(old, {k: v for k, v in arrays.items() if not k.startswith(
         ("pool_", "vote_", "calibration_"))}, meta)
     loaded = load_model(old)
     assert loaded.growth is None
+    # Trained before the temperature existed: it had none, and an update adds none.
+    assert loaded.config.model.training.classifier_temperature == "none"
+    assert loaded.classifier.temperature == 1.0
     result = runner.invoke(app, ["update", str(old), str(logs["b"]), "--out",
                                  str(tmp_path / "new.npz")])
     assert result.exit_code == 0, result.output
     assert "does not keep the label votes" in result.output
     new = load_model(tmp_path / "new.npz")
+    assert new.classifier.temperature == 1.0
     first_new = int(loaded.samples.scan_ids.max()) + 1
     b_ids = new.growth.pool.samples.scan_ids[new.growth.pool.samples.sensor_ids == 1]
     assert b_ids.min() >= first_new
