@@ -247,6 +247,12 @@ class TrainingConfig:
     min_input_noise_scale: float = 0.05
     max_input_noise_scale: float = 4.0
 
+    @property
+    def uses_beam_points(self) -> bool:
+        """Whether the classifier's offset or temperature is fitted on labelled points of
+        held-out scans (gpocc.samples.heldout.calibration_points)."""
+        return "beams" in (self.classifier_offset, self.classifier_temperature)
+
 
 @dataclass(frozen=True)
 class ModelConfig:

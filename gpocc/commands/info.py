@@ -128,11 +128,7 @@ def format_model(path: Path, model: GPModel) -> list[str]:
         f"  input noise: {'on' if model.input_noise else 'off'}"
         + (f", input covariances scaled by {model.input_noise_scale:.4g}"
            if model.input_noise and model.input_noise_scale != 1.0 else ""),
-        f"  classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
-        f"{model.classifier.offset:.4g}, extra variance "
-        f"{model.classifier.extra_variance:.3g}"
-        + (f", temperature {model.classifier.temperature:.4g}"
-           if model.classifier.temperature != 1.0 else "") + "), thresholds "
+        f"  classifier: {model.classifier.summary()}), thresholds "
         f"occupied {model.config.classify.occupied:g}, free {model.config.classify.free:g}",
         f"  samples: {len(samples)} ({occupied} occupied, {len(samples) - occupied} free) "
         f"from {len(np.unique(samples.scan_ids))} scans",

@@ -92,8 +92,7 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
     calibration = (calibration_points(
         batches, cfg, training_cfg.calibration_every,
         max_position_std_m=training_cfg.calibration_max_position_std_m)
-        if "beams" in (training_cfg.classifier_offset, training_cfg.classifier_temperature)
-        else None)
+        if training_cfg.uses_beam_points else None)
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
     budget = 2 + training_cfg.anneal_maxfun + 2 * training_cfg.lbfgs_maxiter
@@ -128,12 +127,7 @@ def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
                f"(initial {model.training['initial_log_marginal_likelihood']:.3f})")
     if model.input_noise_scale != 1.0:
         typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}")
-    typer.echo(f"classifier: a={model.classifier.a:.4g} b={model.classifier.b:.4g} (offset "
-               f"{model.classifier.offset:.4g}, extra variance "
-               f"{model.classifier.extra_variance:.3g}"
-               + (f", temperature {model.classifier.temperature:.4g}"
-                  if model.classifier.temperature != 1.0 else "")
-               + f"; {_fitted_on(model.training)})")
+    typer.echo(f"classifier: {model.classifier.summary()}; {_fitted_on(model.training)})")
     timings = model.training["timings_s"]
     typer.echo(f"stages: read {timings['read']:.1f} s, samples {timings['samples']:.1f} s, "
                f"hyperparameters+classifier {timings['learn']:.1f} s")

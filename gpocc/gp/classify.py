@@ -119,6 +119,13 @@ class PlattClassifier:
     def b(self) -> float:
         return float(self.offset / np.sqrt(self.extra_variance))
 
+    def summary(self) -> str:
+        """``a=.. b=.. (offset .., extra variance ..[, temperature ..]``, without the
+        closing parenthesis (a command adds what the classifier was fitted on)."""
+        return (f"a={self.a:.4g} b={self.b:.4g} (offset {self.offset:.4g}, extra variance "
+                f"{self.extra_variance:.3g}"
+                + (f", temperature {self.temperature:.4g}" if self.temperature != 1.0 else ""))
+
     def probability(self, mean: np.ndarray, variance: np.ndarray) -> np.ndarray:
         """p(occupied) for latent means and variances of any (matching) shape."""
         return ndtr((mean + self.offset)
@@ -206,9 +213,15 @@ def patch_holdout_predictions(kernel: Kernel, noise_variance: float, patch: Loca
     chol = factor_training_covariance(kernel, noise_variance, patch.samples, level, backend)
     mu, var = leave_one_out(chol, patch.samples.labels)
     if latent:
-        # 1/[K^-1]_ii >= noise_variance in exact arithmetic; round-off may cross it.
-        var = np.maximum(var - noise_variance, 0.0)
+        var = latent_variance(var, noise_variance)
     return mu, var, patch.samples.labels
+
+
+def latent_variance(label_variance: np.ndarray, noise_variance: float) -> np.ndarray:
+    """The latent function's leave-one-out variances (N,) from the label's (N,): minus
+    the label noise (``y_i = f_i + e_i``, ``e_i`` independent of the other labels)."""
+    # 1/[K^-1]_ii >= noise_variance in exact arithmetic; round-off may cross it.
+    return np.maximum(label_variance - noise_variance, 0.0)
 
 
 def holdout_predictions(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
@@ -339,8 +352,7 @@ def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalPro
     if not temperature:
         return classifier
     if holdout == "sample" and not latent:
-        # 1/[K^-1]_ii >= noise_variance in exact arithmetic; round-off may cross it.
-        var = np.maximum(var - noise_variance, 0.0)
+        var = latent_variance(var, noise_variance)
     return fit_temperature(classifier, mu, var, y)
 
 

@@ -7,8 +7,8 @@ in one recording and closed in the next: the votes of both decide), so the model
 the chain's state after thinning (:class:`~gpocc.samples.beams.SamplePool`: thinned
 samples as built, label votes, scans read), the held-out calibration points of
 ``classifier_offset: beams`` and ``classifier_temperature: beams``, and a record of each
-input. Adding logs to that state
-gives the state that training on all logs at once builds.
+input. Adding logs to that state gives the state that training on all logs at once
+builds.
 """
 
 from __future__ import annotations

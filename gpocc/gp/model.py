@@ -221,8 +221,7 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         # label noise: the same quantity.
         classifier = dataclasses.replace(
             classifier, extra_variance=classifier.extra_variance + result.noise_variance)
-    beams = training.classifier_offset == "beams" or training.classifier_temperature == "beams"
-    if not beams:
+    if not training.uses_beam_points:
         return classifier, "holdout", 0
     if calibration is None or not calibration.usable:
         log("note: too few labelled points of held-out scans (every "

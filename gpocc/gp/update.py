@@ -141,7 +141,7 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
         optimiser.result()
     calibration = growth.calibration
     training = config.model.training
-    if "beams" in (training.classifier_offset, training.classifier_temperature):
+    if training.uses_beam_points:
         calibration = join_calibration(calibration, calibration_points(
             batches, config, training.calibration_every,
             max_position_std_m=training.calibration_max_position_std_m,
