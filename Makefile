@@ -64,8 +64,13 @@ bench: $(BENCH_STAMP) bytecode
 	$(BIN)/python -m bench.run_bench
 
 # The bench extra gives the suite its OctoMap rows (left out with a note without it).
+# The variants the defaults are compared with on the page ("Against other settings"):
+# each changes one default (bench/experiment.py VARIANTS).
+EXPERIMENT_COMPARE ?= hit-gap-0.25 no-temperature label-map
 experiment: $(BENCH_STAMP) bytecode
-	$(BIN)/python -m bench.experiment
+	for v in $(EXPERIMENT_COMPARE); do \
+		$(BIN)/python -m bench.experiment sim real --variant $$v --doc /dev/null > /dev/null || exit 1; done
+	$(BIN)/python -m bench.experiment $(addprefix --compare ,$(EXPERIMENT_COMPARE))
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache build gpocc/_kernels*.so

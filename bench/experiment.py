@@ -112,6 +112,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "two-draw": {"model.diagonal": "two-draw"},
     "two-draw-fixed-scale": {"model.diagonal": "two-draw",
                              "model.training.learn_input_noise_scale": False},
+    "hit-gap-0.25": {"samples.hit_gap_m": 0.25},
     "hit-gap-0.15": {"samples.hit_gap_m": 0.15},
     "hit-gap-0.1": {"samples.hit_gap_m": 0.1},
     "no-temperature": {"model.training.classifier_temperature": "none"},
@@ -420,6 +421,28 @@ def summary_table(cases: list[dict]) -> list[str]:
     return lines
 
 
+def variant_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
+    """The GP with input noise at these settings against the same GP of each of
+    ``variants`` (name -> that run's cases), on the cases both ran, per protocol: wins
+    count the cases where this run's GP is better."""
+    lines = ["| protocol | comparison | AUC wins | mean AUC diff | worst AUC diff | "
+             "FPR@TPR0.97 wins | Brier wins | mean Brier diff |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    ours = "gp-input-noise"
+    for name, other in variants.items():
+        theirs = f"{ours} ({name})"
+        by_case = {c["case"]: c["scores"] for c in other}
+        merged = [{**c, "scores": {p: {**s, theirs: by_case[c["case"]][p][ours]}
+                                   for p, s in c["scores"].items()
+                                   if ours in by_case.get(c["case"], {}).get(p, {})}}
+                  for c in cases]
+        for protocol in PROTOCOLS:
+            line = comparison(merged, protocol, ours, theirs)
+            if line:
+                lines.append(line)
+    return lines
+
+
 def family_table(cases: list[dict]) -> list[str]:
     """Per world family: input noise against none and the grid (wins, worst AUC
     difference), and whether the mean AUC and FPR@TPR0.97 follow the method paper's
@@ -456,8 +479,9 @@ def family_table(cases: list[dict]) -> list[str]:
     return lines
 
 
-def page(run: dict) -> str:
-    """docs/results.md from a run's summary (:func:`main` writes it as JSON too)."""
+def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
+    """docs/results.md from a run's summary (:func:`main` writes it as JSON too) and the
+    cases of the ``variants`` it is compared with (name -> cases)."""
     cases, st = run["cases"], run["stamp"]
     quick = run["quick"]
     work = run["work"].replace(str(ROOT) + "/", "")
@@ -526,6 +550,18 @@ def page(run: dict) -> str:
         *summary_table(cases),
         "",
     ]
+    if variants:
+        lines += ["## Against other settings", "",
+                  "The GP with input noise of this run against the same GP with one "
+                  "setting changed (each made with `.venv/bin/python -m bench.experiment "
+                  "sim real --variant NAME`, on the same worlds, logs and held-out points): "
+                  "how the defaults were chosen. Wins count the cases where this run is "
+                  "better; differences are this run minus the variant.", "",
+                  "| variant | overrides |", "|---|---|",
+                  *(f"| {name} | " + ", ".join(f"`{k}: {v}`" for k, v in
+                                               VARIANTS[name].items()) + " |"
+                    for name in variants), "",
+                  *variant_table(cases, variants), ""]
     by_family = family_table(cases)
     if by_family:
         lines += ["## By world family", "",
@@ -576,6 +612,9 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true",
                         help="one world and one log cut (the Intel sample); no loop closure")
     parser.add_argument("--doc", type=Path, default=DOC, help="page to write")
+    parser.add_argument("--compare", action="append", default=[], choices=list(VARIANTS),
+                        metavar="VARIANT", help="compare with this variant's run in the work "
+                        "folder (its summary-VARIANT.json; repeatable)")
     args = parser.parse_args()
     args.what = args.what or (["sim", "real"] if args.quick else ["sim", "real", "loop"])
     unknown = sorted(set(args.what) - set(steps))
@@ -602,7 +641,14 @@ def main() -> None:
                "quick": args.quick, "work": str(args.work), "cases": cases, "loop": loop,
                "commands": COMMANDS}
         summary.write_text(json.dumps(run, indent=2) + "\n")
-    text = page(run)
+    variants = {}
+    for name in args.compare:
+        other = args.work / f"summary-{name}{'-quick' if args.quick else ''}.json"
+        if not other.is_file():
+            parser.error(f"--compare {name}: {other} not found; run `python -m "
+                         f"bench.experiment sim real --variant {name}` first")
+        variants[name] = json.loads(other.read_text())["cases"]
+    text = page(run, variants)
     args.doc.write_text(text)
     print(text, flush=True)
     print(f"wrote {args.doc} and {summary}", file=sys.stderr)

@@ -117,8 +117,8 @@ class SamplesConfig:
     The band this leaves empty before each hit is what blurs walls (the GP carries the
     hits' +1 into it); 0.15 m (default; 0.25 before) lowers the held-out union Brier score
     on 21 of 23 cases of ``make experiment`` and raises union AUC on 17 (docs/results.md,
-    "Summary"; the variant ``hit-gap-0.15``); shorter gaps raise the learned label noise
-    and smooth the whole map (docs/walls.md).
+    "Against other settings", variant ``hit-gap-0.25``); shorter gaps raise the learned
+    label noise and smooth the whole map (docs/walls.md).
     ``thin_cell_m`` keeps at most one sample of each label
     per square cell of that side (the most certain one), which bounds the training set by
     the mapped area instead of the log length; 0 disables thinning.
@@ -210,9 +210,10 @@ class TrainingConfig:
     latent variance (``samples``) or on labelled points of held-out scans predicted as
     map cells are (``beams``, default: the points of ``classifier_offset: beams``): the
     probabilities of map cells move, their ranking (AUC) does not (gpocc.gp.classify).
-    ``beams`` against ``none`` on ``make experiment`` (variant ``temperature-beams``):
-    held-out union Brier score lower on 19 of 23 cases (mean -0.011), per-cell Brier on
-    16 of 21 worlds, both real logs 0.002-0.003 higher (docs/results.md, "Summary").
+    ``beams`` against ``none`` on ``make experiment``: held-out union Brier score lower on
+    19 of 23 cases (mean -0.011), per-cell Brier on 16 of 21 worlds, both real logs
+    0.002-0.003 higher (docs/results.md, "Against other settings", variant
+    ``no-temperature``).
     ``classifier_offset: beams`` then re-fits the classifier's offset on labelled points of
     every ``calibration_every``-th scan (those known to ``calibration_max_position_std_m``),
     predicted from the other scans' samples in up to ``calibration_blocks`` map blocks:

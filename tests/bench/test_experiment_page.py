@@ -52,6 +52,32 @@ def test_summary_counts_wins_per_protocol_and_the_page_is_stamped():
         assert f"## Protocol `{protocol}`" in text
 
 
+def test_the_page_compares_the_gp_with_each_variant_case_by_case():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    other = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+    rng = np.random.default_rng(5)
+    for case in other:  # the variant's GP differs; it ran one case fewer
+        for scores in case["scores"].values():
+            scores["gp-input-noise"] = _scores(rng)
+    other = other[1:]
+    text = experiment.page(run, {"hit-gap-0.25": other})
+    assert "| hit-gap-0.25 | `samples.hit_gap_m: 0.25` |" in text
+    ours = {c["case"]: c["scores"] for c in run["cases"]}
+    for protocol in ("union", "cells"):
+        pairs = [(ours[c["case"]][protocol]["gp-input-noise"],
+                  c["scores"][protocol]["gp-input-noise"])
+                 for c in other if protocol in c["scores"]]
+        auc = np.array([a["auc"] - b["auc"] for a, b in pairs])
+        brier = np.array([a["brier"] - b["brier"] for a, b in pairs])
+        line = next(x for x in text.splitlines() if x.startswith(
+            f"| {protocol} | gp-input-noise vs gp-input-noise (hit-gap-0.25) |"))
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        assert cells[2] == f"{(auc > 0).sum()}/{len(pairs)}"
+        assert cells[3] == f"{auc.mean():+.4f}" and cells[4] == f"{auc.min():+.4f}"
+        assert cells[6] == f"{(brier < 0).sum()}/{len(pairs)}"
+        assert cells[7] == f"{brier.mean():+.4f}"
+
+
 def test_octomap_rows_appear_when_the_run_has_them():
     text = experiment.page(_run(experiment.METHODS))
     assert "| union | gp-input-noise vs octomap |" in text
