@@ -121,6 +121,8 @@ VARIANTS: dict[str, dict[str, object]] = {
     "temperature-latent": {"model.training.classifier_temperature": "samples",
                            "model.training.classifier_variance": "latent"},
     "label-map": {"model.training.classifier_variance": "label-map"},
+    "thin-0.1": {"samples.thin_cell_m": 0.1},
+    "patches-20": {"model.training.patches": 20},
 }
 
 #: Every step the page's results depend on, in order (the page's "Commands" section):

@@ -226,7 +226,10 @@ class TrainingConfig:
     noise floor 0.1) were chosen on bench/experiment.py's suite (docs/results.md,
     'Summary', made with ``--variant learned-scale-floor-0.1``); the method as published
     is ``learn_input_noise_scale: false`` with ``min_noise_variance: 0.01`` (variant
-    ``published``).
+    ``published``). g often ends on its upper bound (the patches' likelihood keeps rising
+    with it); g = 1 (variant ``fixed-scale``, docs/results.md "Against other settings")
+    ranks better per cell but is less well calibrated on every held-out case and worse on
+    both real logs, so g stays learned.
     """
 
     learn: bool = True
