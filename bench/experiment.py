@@ -123,6 +123,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "label-map": {"model.training.classifier_variance": "label-map"},
     "thin-0.1": {"samples.thin_cell_m": 0.1},
     "patches-20": {"model.training.patches": 20},
+    "label-weights": {"samples.label_weights": "share"},
 }
 
 #: Every step the page's results depend on, in order (the page's "Commands" section):

@@ -110,6 +110,15 @@ def format_samples(batches: list[ScanBatch], config: Config) -> list[str]:
     ]
 
 
+def _weights_note(samples) -> str:
+    """How many samples carry a label-noise factor above 1 (``samples.label_weights``)."""
+    factors = samples.noise_factors
+    if factors is None:
+        return ""
+    return (f"; label weights by share: {int(np.count_nonzero(factors > 1.0))} with "
+            f"more label noise (factor up to {float(factors.max()):.3g})")
+
+
 def format_model(path: Path, model: GPModel) -> list[str]:
     """Lines describing a model file: versions, hyperparameters, samples, sensors, training."""
     samples = model.samples
@@ -131,7 +140,7 @@ def format_model(path: Path, model: GPModel) -> list[str]:
         f"  classifier: {model.classifier.summary()}), thresholds "
         f"occupied {model.config.classify.occupied:g}, free {model.config.classify.free:g}",
         f"  samples: {len(samples)} ({occupied} occupied, {len(samples) - occupied} free) "
-        f"from {len(np.unique(samples.scan_ids))} scans",
+        f"from {len(np.unique(samples.scan_ids))} scans" + _weights_note(samples),
         "  sensors: " + ", ".join(f"{n} ({c} samples)" for n, c in
                                   zip(names, per_sensor, strict=False)),
         *_input_lines(model),

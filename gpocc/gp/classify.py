@@ -212,12 +212,18 @@ def patch_holdout_predictions(kernel: Kernel, noise_variance: float, patch: Loca
         return mu[mask], var[mask], patch.samples.labels[mask]
     chol = factor_training_covariance(kernel, noise_variance, patch.samples, level, backend)
     mu, var = leave_one_out(chol, patch.samples.labels)
+    factors = patch.samples.noise_factors
     if latent:
-        var = latent_variance(var, noise_variance)
+        var = latent_variance(var, patch.samples.label_noise(noise_variance))
+    elif factors is not None:
+        # The variance of one new label there: a weighted sample's own noise stands for
+        # its cell's count, a new label has the base noise.
+        var = np.maximum(var - noise_variance * (factors - 1.0), noise_variance)
     return mu, var, patch.samples.labels
 
 
-def latent_variance(label_variance: np.ndarray, noise_variance: float) -> np.ndarray:
+def latent_variance(label_variance: np.ndarray, noise_variance: float | np.ndarray
+                    ) -> np.ndarray:
     """The latent function's leave-one-out variances (N,) from the label's (N,): minus
     the label noise (``y_i = f_i + e_i``, ``e_i`` independent of the other labels)."""
     # 1/[K^-1]_ii >= noise_variance in exact arithmetic; round-off may cross it.

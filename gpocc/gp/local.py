@@ -83,6 +83,7 @@ def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -
         scan_ids=samples.scan_ids[index],
         pose_factors=samples.pose_factors[index],
         sensor_ids=samples.sensor_ids[index],
+        noise_factors=None if samples.noise_factors is None else samples.noise_factors[index],
     )
     return LocalProblem(centre=centre, samples=local, index=index)
 
@@ -153,7 +154,7 @@ def training_covariance(
         pose_factors=samples.pose_factors if correlated else None,
         backend=backend,
     )
-    k[np.diag_indices_from(k)] += noise_variance + JITTER
+    k[np.diag_indices_from(k)] += samples.label_noise(noise_variance) + JITTER
     return k
 
 
@@ -229,6 +230,8 @@ def _predict(kernel: Kernel, noise_variance: float, problem: LocalProblem,
     chol = None
     if system is not None:
         k, k_cross, prior = system
+        if samples.noise_factors is not None:  # the system's diagonal has the base noise
+            k[np.diag_indices_from(k)] += noise_variance * (samples.noise_factors - 1.0)
         chol = try_cholesky(k)
     if chol is None:  # no one-pass system, or the fallbacks of factor_training_covariance
         chol = factor_training_covariance(kernel, noise_variance, samples, level, backend)
@@ -272,7 +275,8 @@ def negative_log_likelihood(
             kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
             pose_factors=s.pose_factors, input_scale=input_scale, backend=backend,
         )
-    cov[np.diag_indices_from(cov)] += noise + JITTER
+    label_noise = s.label_noise(noise)
+    cov[np.diag_indices_from(cov)] += label_noise + JITTER
     chol = try_cholesky(cov, jitter=False)
     if chol is None:
         return None
@@ -285,7 +289,8 @@ def negative_log_likelihood(
     grad = np.empty(nkernel + (2 if scale_gradient else 1))
     # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
     grad[:nkernel] = 0.5 * np.einsum("ij,pij->p", inner, dcov[:nkernel])
-    grad[nkernel] = 0.5 * noise * np.trace(inner)
+    grad[nkernel] = (0.5 * noise * np.trace(inner) if s.noise_factors is None
+                     else 0.5 * float(np.diagonal(inner) @ label_noise))
     if scale_gradient:
         grad[nkernel + 1] = 0.5 * np.einsum("ij,ij->", inner, dcov[nkernel])
     return float(value), grad

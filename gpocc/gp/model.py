@@ -34,7 +34,13 @@ from gpocc.gp.classify import (
 from gpocc.gp.growth import Growth
 from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import Kernel, make_kernel
-from gpocc.gp.modelfile import GROWTH_ARRAYS, validate_contents, validate_coverage, validate_growth
+from gpocc.gp.modelfile import (
+    GROWTH_ARRAYS,
+    validate_contents,
+    validate_coverage,
+    validate_growth,
+    validate_noise_factors,
+)
 from gpocc.gp.train import TrainingResult, learn_hyperparameters, make_patches
 from gpocc.io.atomic import atomic_output_file
 from gpocc.parallel import cluster_map
@@ -50,8 +56,10 @@ FORMAT_NAME = "gpocc-model"
 #: ``input_noise_scale`` (absent: 1). 3: the growth state for ``gpocc update`` (optional
 #: ``pool_*``, ``vote_*`` and ``calibration_*`` arrays and a ``growth`` record); files of
 #: formats 1 and 2 load without it. 4: the classifier's temperature; earlier files load
-#: with temperature 1 (and ``classifier_temperature: none`` in their config).
-FORMAT_VERSION = 4
+#: with temperature 1 (and ``classifier_temperature: none`` in their config). 5: an
+#: optional ``noise_factors`` array (``samples.label_weights: share``), which a format 4
+#: reader would ignore; earlier files load with every factor 1.
+FORMAT_VERSION = 5
 _ARRAYS = ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")
 
 
@@ -276,6 +284,8 @@ def write_model(model: GPModel, path: str | Path) -> None:
         "config": config_to_dict(model.config),
     }
     arrays = {name: getattr(model.samples, name) for name in _ARRAYS}
+    if model.samples.noise_factors is not None:
+        arrays["noise_factors"] = model.samples.noise_factors
     if model.coverage is not None:
         cov = model.coverage
         meta["coverage"] = {"x0": cov.x0, "y0": cov.y0, "cell_m": cov.cell_m,
@@ -322,6 +332,7 @@ def load_model(path: str | Path) -> GPModel:
             meta = json.loads(bytes(data["metadata"]).decode())
             arrays = {name: data[name] for name in _ARRAYS}
             coverage_bits = data["coverage"] if "coverage" in data.files else None
+            factors = data["noise_factors"] if "noise_factors" in data.files else None
             growth_arrays = {name: data[name] for name in GROWTH_ARRAYS if name in data.files}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError,
             EOFError, UnicodeDecodeError):
@@ -339,6 +350,9 @@ def load_model(path: str | Path) -> GPModel:
             f"({FORMAT_VERSION}); upgrade gpocc or re-train with this version"
         )
     parts = validate_contents(meta, arrays, p)
+    if factors is not None:
+        parts = dataclasses.replace(parts, samples=dataclasses.replace(
+            parts.samples, noise_factors=validate_noise_factors(factors, len(parts.samples), p)))
     # ModelContents holds GPModel's fields but the coverage, field for field.
     return GPModel(
         **vars(parts),

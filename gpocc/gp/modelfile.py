@@ -212,6 +212,16 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelCon
     )
 
 
+def validate_noise_factors(factors: np.ndarray, n: int, path: str | Path) -> np.ndarray:
+    """The samples' (N,) label-noise factors (``samples.label_weights``), checked: finite
+    numbers of at least 1, one per sample."""
+    if factors.dtype.kind != "f" or factors.shape != (n,) or not np.isfinite(factors).all() \
+            or (factors < 1.0).any():
+        raise GpoccError(f"{path}: damaged model file: array 'noise_factors' is not {n} finite "
+                         "numbers of at least 1; re-create it with `gpocc train`")
+    return factors.astype(np.float64)
+
+
 def validate_contents(meta: Any, arrays: dict[str, np.ndarray], path: str | Path) -> ModelContents:
     """Check a model file's metadata and arrays; return them as typed pieces.
 

@@ -142,7 +142,8 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
     # again equals thinning everything at the end; the union is re-thinned only when the
     # thinned chunks have grown to twice what it held, which keeps the work linear.
     thinned_size, pending = 0, 0
-    votes = LabelVotes(thin_cell) if thin_cell > 0 and min_share > 0 else None
+    counted = min_share > 0 or config.samples.label_weights != "none"
+    votes = LabelVotes(thin_cell) if thin_cell > 0 and counted else None
 
     def chunk(job: Callable[[], SampleSet]) -> tuple[SampleSet, int, np.ndarray | None,
                                                      np.ndarray | None]:
@@ -189,16 +190,28 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
     return SamplePool(result, *votes.table(), offset)
 
 
+#: Largest label-noise factor of ``samples.label_weights: share`` (a label seen in
+#: under 0.1% of its cell's samples).
+MAX_NOISE_FACTOR = 1000.0
+
+
 def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
     """The training samples of ``pool``: ``samples.min_label_share`` (by the pool's
     votes), then ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)."""
     result = pool.samples
     cell = float(config.samples.thin_cell_m)
     min_share = float(config.samples.min_label_share)
-    if cell > 0 and min_share > 0 and pool.vote_keys.size:
+    weighted = config.samples.label_weights == "share"
+    if cell > 0 and (min_share > 0 or weighted) and pool.vote_keys.size:
         votes = LabelVotes(cell)
         votes.add_counts(pool.vote_keys, pool.vote_counts)
-        result = result.subset(votes.share(result) >= min_share)
+        share = votes.share(result)
+        if min_share > 0:
+            keep = share >= min_share
+            result, share = result.subset(keep), share[keep]
+        if weighted:
+            factors = 1.0 / np.clip(np.nan_to_num(share, nan=1.0), 1.0 / MAX_NOISE_FACTOR, 1.0)
+            result = dataclasses.replace(result, noise_factors=factors)
     return clear_free_near_hits(result, float(config.samples.free_clearance_m))
 
 

@@ -32,6 +32,8 @@ class SampleSet:
         sensor_ids: (N,) int16 index into ``sensor_names``.
         sensor_names: the job's sensor names, in ``sensor_ids`` order (empty when not
             known, e.g. a local problem's copy).
+        noise_factors: (N,) >= 1 or None (all 1): each label's noise variance is the
+            learned label noise times its factor (``samples.label_weights``).
     """
 
     means: np.ndarray
@@ -41,6 +43,14 @@ class SampleSet:
     pose_factors: np.ndarray
     sensor_ids: np.ndarray
     sensor_names: tuple[str, ...] = ()
+    noise_factors: np.ndarray | None = None
+
+    def label_noise(self, noise_variance: float) -> float | np.ndarray:
+        """The label-noise variance of each sample: ``noise_variance`` (a scalar) when
+        every factor is 1, else (N,) ``noise_variance * noise_factors``."""
+        if self.noise_factors is None:
+            return noise_variance
+        return noise_variance * self.noise_factors
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -55,6 +65,7 @@ class SampleSet:
             pose_factors=self.pose_factors[index],
             sensor_ids=self.sensor_ids[index],
             sensor_names=self.sensor_names,
+            noise_factors=None if self.noise_factors is None else self.noise_factors[index],
         )
 
     def without_input_noise(self) -> SampleSet:
@@ -67,6 +78,7 @@ class SampleSet:
             pose_factors=np.zeros_like(self.pose_factors),
             sensor_ids=self.sensor_ids,
             sensor_names=self.sensor_names,
+            noise_factors=self.noise_factors,
         )
 
     @staticmethod
@@ -90,4 +102,7 @@ class SampleSet:
             pose_factors=np.concatenate([p.pose_factors for p in parts]),
             sensor_ids=np.concatenate([p.sensor_ids for p in parts]),
             sensor_names=max((p.sensor_names for p in parts), key=len),
+            noise_factors=(None if all(p.noise_factors is None for p in parts) else
+                           np.concatenate([np.ones(len(p)) if p.noise_factors is None
+                                           else p.noise_factors for p in parts])),
         )

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 from modelfiles import read_model_file, write_model_file
+from samplesets import samples_from
 from scipy.special import ndtr
 
 from gpocc.config import TrainingConfig
@@ -25,22 +26,12 @@ from gpocc.gp.train import (
     negative_log_likelihood,
     resident_patch_pool,
 )
-from gpocc.samples.sampleset import SampleSet
 
 
-def samples_from(means, labels, covariances=None, scan_ids=None, pose_factors=None):
-    n = len(means)
-    return SampleSet(
-        means=np.asarray(means, float),
-        covariances=np.zeros((n, 2, 2)) if covariances is None else covariances,
-        labels=np.asarray(labels, float),
-        scan_ids=np.arange(n) if scan_ids is None else scan_ids,
-        pose_factors=np.zeros((n, 2, 3)) if pose_factors is None else pose_factors,
-        sensor_ids=np.zeros(n, dtype=np.int16),
-    )
-
-
-def test_likelihood_gradient_matches_finite_differences():
+@pytest.mark.parametrize("weighted", [False, True])
+def test_likelihood_gradient_matches_finite_differences(weighted):
+    """``weighted``: label-noise factors (``samples.label_weights: share``) on the samples,
+    so the noise derivative is a weighted trace."""
     rng = np.random.default_rng(0)
     n = 300
     means = rng.uniform(-3, 3, (n, 2))
@@ -49,7 +40,10 @@ def test_likelihood_gradient_matches_finite_differences():
     pose_factors = rng.normal(0, 0.03, (n, 2, 3))
     labels = np.where(rng.random(n) < 0.3, 1.0, -1.0)
     samples = samples_from(means, labels, covs, scan_ids, pose_factors)
+    if weighted:
+        samples = dataclasses.replace(samples, noise_factors=1.0 / rng.uniform(0.05, 1.0, n))
     patches = make_patches(samples, TrainingConfig(patches=2, patch_size=40), seed=1)
+    assert all((p.samples.noise_factors is not None) == weighted for p in patches)
     kernel = NeuralNetworkKernel(1.0, 0.8, (2.0, 3.0))
     x = np.append(kernel.theta, math.log(0.2))
     _, grad = negative_log_likelihood(x, kernel, patches, 3)

@@ -135,6 +135,25 @@ def test_relearned_update_is_the_model_of_all_logs(logs, tmp_path):
     assert up.growth.records[1].start_s == 100.0 and up.growth.records[1].end_s == 109.0
 
 
+def test_label_weights_of_an_update_count_every_log(logs, tmp_path):
+    """With ``samples.label_weights: share`` (and no ``min_label_share``, so the votes are
+    kept for the weights alone) the updated model's factors are those of training on all
+    logs: the votes of both logs add up."""
+    (tmp_path / "job.yaml").write_text(CONFIG.replace("min_label_share: 0.1",
+                                                      "label_weights: share"))
+    job = str(tmp_path / "job.yaml")
+    gpocc("train", str(logs["a"]), "--config", job, "--out", str(tmp_path / "a.npz"))
+    gpocc("train", str(logs["a"]), str(logs["b"]), "--config", job,
+          "--out", str(tmp_path / "ab.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--relearn",
+          "--out", str(tmp_path / "up.npz"))
+    both, up = (load_model(tmp_path / n) for n in ("ab.npz", "up.npz"))
+    _same_samples(both.samples, up.samples)
+    assert both.samples.noise_factors is not None and both.samples.noise_factors.max() > 1
+    np.testing.assert_array_equal(both.samples.noise_factors, up.samples.noise_factors)
+    assert both.kernel == up.kernel and both.classifier == up.classifier
+
+
 def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_path):
     """The default update starts L-BFGS-B from the model's values on the patches training
     on all logs draws (same samples, same seed): run to convergence it reaches the point

@@ -1,0 +1,151 @@
+"""``samples.label_weights: share``: a thinned sample's label noise grows as its label's
+share of its cell falls, so a kept sample stands for the labels counted there."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from samplesets import samples_from
+from typer.testing import CliRunner
+
+from gpocc.cli import app
+from gpocc.config import Config, SamplesConfig, load_config
+from gpocc.errors import GpoccError
+from gpocc.gp.kernels import NeuralNetworkKernel
+from gpocc.gp.local import predict_full
+from gpocc.gp.model import load_model
+from gpocc.io.rasters import read_raster
+from gpocc.samples.beams import LabelVotes, SamplePool, finish_samples
+from gpocc.samples.sampleset import SampleSet
+
+ROOT = Path(__file__).resolve().parents[2]
+SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
+SAMPLE_CONFIG = ROOT / "data" / "sample" / "sample.yaml"
+
+
+def test_a_weighted_pair_predicts_as_every_counted_label_would():
+    """Oracle: the dense GP on the raw labels, n_hit copies of +1 and n_free of -1 at each
+    site, each with noise sigma^2 N (N the site's count), solved with plain numpy. Two
+    samples per site with noise sigma^2 / share carry the same sufficient statistics, so
+    the predictions are equal."""
+    rng = np.random.default_rng(3)
+    sites = rng.uniform(-2, 2, (12, 2))
+    hits, frees = rng.integers(1, 9, 12), rng.integers(1, 30, 12)
+    kernel = NeuralNetworkKernel(2.0, 1.5, (4.0, 6.0))
+    noise = 0.2
+    raw_means = np.repeat(np.vstack([sites, sites]), np.concatenate([hits, frees]), axis=0)
+    raw_labels = np.repeat(np.r_[np.ones(12), -np.ones(12)], np.concatenate([hits, frees]))
+    raw_noise = noise * np.repeat(np.tile(hits + frees, 2), np.concatenate([hits, frees]))
+    queries = rng.uniform(-2.5, 2.5, (30, 2))
+    k = kernel(raw_means) + np.diag(raw_noise)
+    cross = kernel(queries, raw_means)
+    mean = cross @ np.linalg.solve(k, raw_labels)
+    variance = kernel.diag(queries) - np.einsum("qi,iq->q", cross, np.linalg.solve(k, cross.T))
+
+    total = np.tile(hits + frees, 2)
+    pair = samples_from(np.vstack([sites, sites]), np.r_[np.ones(12), -np.ones(12)],
+                    noise_factors=total / np.concatenate([hits, frees]))
+    pred = predict_full(kernel, noise, pair, queries, level=1)
+    np.testing.assert_allclose(pred.mean, mean, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(pred.variance, variance, rtol=1e-5, atol=1e-8)
+
+
+def test_factors_of_one_are_the_unweighted_model():
+    rng = np.random.default_rng(0)
+    means = rng.uniform(-2, 2, (40, 2))
+    labels = np.where(rng.random(40) < 0.4, 1.0, -1.0)
+    kernel = NeuralNetworkKernel(1.0, 1.0, (3.0, 3.0))
+    queries = rng.uniform(-2, 2, (10, 2))
+    plain = predict_full(kernel, 0.1, samples_from(means, labels), queries, level=1)
+    ones = predict_full(kernel, 0.1, samples_from(means, labels, noise_factors=np.ones(40)),
+                        queries, level=1)
+    np.testing.assert_allclose(ones.mean, plain.mean, rtol=1e-12)
+    np.testing.assert_allclose(ones.variance, plain.variance, rtol=1e-12)
+
+
+def _pool(cell: float) -> tuple[SamplePool, SampleSet]:
+    """Raw samples of three cells: 1 hit among 9 free, 6 hits with 2 free, 4 free alone;
+    the pool keeps one sample per label and cell and counts the rest."""
+    centre = np.array([[0.05, 0.05], [0.35, 0.05], [0.65, 0.05]])
+    counts = [(1, 9), (6, 2), (0, 4)]
+    means, labels = [], []
+    for c, (h, f) in zip(centre, counts, strict=True):
+        means += [c] * (h + f)
+        labels += [1.0] * h + [-1.0] * f
+    raw = samples_from(np.array(means), labels)
+    votes = LabelVotes(cell)
+    votes.add(raw)
+    first = np.unique(np.c_[np.floor(raw.means / cell), raw.labels], axis=0,
+                      return_index=True)[1]
+    kept = raw.subset(np.sort(first))
+    return SamplePool(kept, *votes.table(), n_scans=len(raw)), kept
+
+
+def test_finish_samples_weights_each_label_by_its_share():
+    pool, kept = _pool(0.25)
+    config = Config(samples=SamplesConfig(thin_cell_m=0.25, free_clearance_m=0.0,
+                                          label_weights="share"))
+    samples = finish_samples(pool, config)
+    by_cell = {(round(m[0], 2), int(lab)): f for m, lab, f in
+               zip(samples.means, samples.labels, samples.noise_factors, strict=True)}
+    assert by_cell == pytest.approx({(0.05, 1): 10.0, (0.05, -1): 10 / 9, (0.35, 1): 8 / 6,
+                                     (0.35, -1): 4.0, (0.65, -1): 1.0})
+    plain = finish_samples(pool, Config(samples=SamplesConfig(thin_cell_m=0.25,
+                                                              free_clearance_m=0.0)))
+    assert plain.noise_factors is None and len(plain) == len(kept)
+    # With min_label_share the rare label goes first; the rest keep their factors.
+    both = finish_samples(pool, Config(samples=SamplesConfig(
+        thin_cell_m=0.25, free_clearance_m=0.0, label_weights="share", min_label_share=0.2)))
+    assert len(both) == len(kept) - 1 and both.noise_factors.max() == pytest.approx(4.0)
+
+
+def test_a_bad_label_weights_value_is_one_clear_error(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("samples:\n  label_weights: counts\n")
+    with pytest.raises(GpoccError, match="samples.label_weights' must be 'none' or 'share'"):
+        load_config(path)
+
+
+def _train(tmp_path: Path, weights: str, name: str) -> Path:
+    config = yaml.safe_load(SAMPLE_CONFIG.read_text()) or {}
+    config.setdefault("samples", {})["label_weights"] = weights
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(config))
+    model = tmp_path / f"{name}.npz"
+    result = CliRunner().invoke(app, ["train", str(SAMPLE), "--config", str(path), "--out",
+                                      str(model)])
+    assert result.exit_code == 0, result.output
+    return model
+
+
+def test_cli_train_and_map_with_label_weights(tmp_path):
+    plain = load_model(_train(tmp_path, "none", "plain"))
+    path = _train(tmp_path, "share", "weighted")
+    weighted = load_model(path)
+    assert plain.samples.noise_factors is None
+    factors = weighted.samples.noise_factors
+    np.testing.assert_array_equal(weighted.samples.means, plain.samples.means)
+    assert factors.shape == (len(weighted.samples),) and factors.min() == 1.0
+    assert factors.max() > 1.0  # the sample log has cells seen both free and occupied
+    runner = CliRunner()
+    maps = []
+    for out in ("map-a", "map-b"):
+        result = runner.invoke(app, ["map", str(path), "--out", str(tmp_path / out),
+                                     "--resolution", "0.2", "--workers", "1"])
+        assert result.exit_code == 0, result.output
+        maps.append(read_raster(tmp_path / out / "probability.tif")[0])
+    np.testing.assert_array_equal(maps[0], maps[1])
+    result = runner.invoke(app, ["info", str(path)])
+    assert result.exit_code == 0 and f"factor up to {factors.max():.3g}" in result.output
+    # A damaged factor array is refused with one line naming the file.
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["noise_factors"] = arrays["noise_factors"] * 0.5
+    broken = tmp_path / "broken.npz"
+    np.savez(broken, **arrays)
+    result = runner.invoke(app, ["info", str(broken)])
+    assert result.exit_code != 0 and "noise_factors" in result.output
+    assert "Traceback" not in result.output
