@@ -12,6 +12,7 @@ import dataclasses
 import json
 import math
 import zipfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -334,8 +335,8 @@ def load_model(path: str | Path) -> GPModel:
             coverage_bits = data["coverage"] if "coverage" in data.files else None
             factors = data["noise_factors"] if "noise_factors" in data.files else None
             growth_arrays = {name: data[name] for name in GROWTH_ARRAYS if name in data.files}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError,
-            EOFError, UnicodeDecodeError):
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, zlib.error,
+            json.JSONDecodeError, EOFError, UnicodeDecodeError):
         raise GpoccError(f"{p}: not a gpocc model file or corrupt; re-create it with "
                          "`gpocc train`") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
@@ -350,9 +351,10 @@ def load_model(path: str | Path) -> GPModel:
             f"({FORMAT_VERSION}); upgrade gpocc or re-train with this version"
         )
     parts = validate_contents(meta, arrays, p)
-    if factors is not None:
+    checked = validate_noise_factors(factors, parts.config, len(parts.samples), p)
+    if checked is not None:
         parts = dataclasses.replace(parts, samples=dataclasses.replace(
-            parts.samples, noise_factors=validate_noise_factors(factors, len(parts.samples), p)))
+            parts.samples, noise_factors=checked))
     # ModelContents holds GPModel's fields but the coverage, field for field.
     return GPModel(
         **vars(parts),

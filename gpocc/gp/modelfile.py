@@ -23,7 +23,7 @@ from gpocc.gp.classify import PlattClassifier
 from gpocc.gp.kernels import KERNELS, Kernel
 from gpocc.limits import max_cells
 from gpocc.samples.coverage import Coverage
-from gpocc.samples.sampleset import SampleSet
+from gpocc.samples.sampleset import MAX_NOISE_FACTOR, SampleSet
 
 #: name -> (dtype it is stored as, shape after the sample axis N)
 ARRAY_LAYOUT: dict[str, tuple[type, tuple[int, ...]]] = {
@@ -212,14 +212,27 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelCon
     )
 
 
-def validate_noise_factors(factors: np.ndarray, n: int, path: str | Path) -> np.ndarray:
-    """The samples' (N,) label-noise factors (``samples.label_weights``), checked: finite
-    numbers of at least 1, one per sample."""
-    if factors.dtype.kind != "f" or factors.shape != (n,) or not np.isfinite(factors).all() \
-            or (factors < 1.0).any():
-        raise GpoccError(f"{path}: damaged model file: array 'noise_factors' is not {n} finite "
-                         "numbers of at least 1; re-create it with `gpocc train`")
-    return factors.astype(np.float64)
+def validate_noise_factors(factors: np.ndarray | None, config: Config, n: int,
+                           path: str | Path) -> np.ndarray | None:
+    """The samples' (N,) label-noise factors, checked: present exactly when the model's
+    config weighs labels (``samples.label_weights: share`` with thinning), and numbers in
+    [1, :data:`MAX_NOISE_FACTOR`], one per sample."""
+    expected = config.samples.label_weights == "share" and config.samples.thin_cell_m > 0
+    if factors is None:
+        if expected:
+            raise GpoccError(f"{path}: damaged model file: its config weighs labels "
+                             "(samples.label_weights: share) but the array 'noise_factors' is "
+                             "missing; re-create it with `gpocc train`")
+        return None
+    converted = (factors.astype(np.float64)
+                 if factors.dtype.kind == "f" and factors.dtype.itemsize <= 8 else None)
+    if not expected or converted is None or converted.shape != (n,) \
+            or not np.isfinite(converted).all() or (converted < 1.0).any() \
+            or (converted > MAX_NOISE_FACTOR).any():
+        raise GpoccError(f"{path}: damaged model file: array 'noise_factors' is not "
+                         f"{n} numbers in [1, {MAX_NOISE_FACTOR:g}] of a config with "
+                         "samples.label_weights: share; re-create it with `gpocc train`")
+    return converted
 
 
 def validate_contents(meta: Any, arrays: dict[str, np.ndarray], path: str | Path) -> ModelContents:

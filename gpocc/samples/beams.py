@@ -25,7 +25,7 @@ from gpocc.limits import MAX_SAMPLES_PER_SCAN
 from gpocc.parallel import default_workers, thread_map
 from gpocc.samples import beam_rules
 from gpocc.samples.beam_unscented import beam_unscented
-from gpocc.samples.sampleset import SampleSet, has_both_labels
+from gpocc.samples.sampleset import MAX_NOISE_FACTOR, SampleSet, has_both_labels
 from gpocc.samples.unscented import matrix_sqrt
 
 #: Upper bound (approximately: whole scans are never split) on the samples pushed through
@@ -188,11 +188,6 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
     if votes is None:
         return SamplePool(result, np.zeros(0, np.int64), np.zeros(0, np.int64), offset)
     return SamplePool(result, *votes.table(), offset)
-
-
-#: Largest label-noise factor of ``samples.label_weights: share`` (a label seen in
-#: under 0.1% of its cell's samples).
-MAX_NOISE_FACTOR = 1000.0
 
 
 def finish_samples(pool: SamplePool, config: Config) -> SampleSet:

@@ -6,6 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: Largest label-noise factor (``SampleSet.noise_factors``, ``samples.label_weights:
+#: share``): a label seen in under 0.1% of its cell's samples.
+MAX_NOISE_FACTOR = 1000.0
+
 
 def has_both_labels(labels: np.ndarray) -> bool:
     """Whether ``labels`` (+1 occupied, -1 free) hold both classes: what fitting a
