@@ -149,13 +149,14 @@ class SamplesConfig:
     sample the learned label noise; ``share`` multiplies it by 1 / (the share of the
     sample's label among all samples counted in its cell, up to 1000), so a kept sample
     weighs as the labels it stands for: in a cell seen free 90 times and occupied 10
-    times, the GP's mean there is the count-weighted -0.8, not the 0 of one sample each
-    (exactly so for samples at one point; tests/gp/test_label_weights.py). Against the
-    defaults on ``make experiment`` (docs/results.md, "Against other settings", variant
-    ``label-weights``) it ranks better (held-out union AUC higher on 22 of 23 cases, mean
-    +0.005; per cell on 15 of 21 worlds) and is less well calibrated (union Brier higher
-    on 20 of 23, median +0.003; on one world the hyperparameter search lands elsewhere
-    and its per-cell Brier rises by 0.15), so it is a knob, not the default.
+    times, the GP's mean there leans to the count-weighted -0.8 instead of the 0 of one
+    sample each (for samples at one point, the GP of every counted label exactly).
+    Against the defaults on ``make experiment`` (docs/results.md, "Against other
+    settings", variant ``label-weights``) it ranks better (held-out union AUC higher on
+    22 of 23 cases, mean +0.005; per cell on 15 of 21 worlds) and is less well
+    calibrated (union Brier higher on 20 of 23, median +0.003; on one world the
+    hyperparameter search lands elsewhere and its per-cell Brier rises by 0.15), so it
+    is a knob, not the default.
     """
 
     free_spacing_m: float = 0.4
