@@ -171,6 +171,18 @@ class SamplesConfig:
     label_weights: str = "none"
     unscented: UnscentedConfig = field(default_factory=UnscentedConfig)
 
+    @property
+    def counts_labels(self) -> bool:
+        """Whether thinning counts each cell's labels (for ``min_label_share`` or
+        ``label_weights``)."""
+        return self.thin_cell_m > 0 and (self.min_label_share > 0
+                                         or self.label_weights != "none")
+
+    @property
+    def weighs_labels(self) -> bool:
+        """Whether kept samples carry label-noise factors (``label_weights: share``)."""
+        return self.thin_cell_m > 0 and self.label_weights == "share"
+
 
 @dataclass(frozen=True)
 class HyperparametersConfig:

@@ -17,6 +17,7 @@ from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
+from gpocc.samples.sampleset import SampleSet
 
 
 def _span(summary: InputSummary) -> str:
@@ -110,7 +111,7 @@ def format_samples(batches: list[ScanBatch], config: Config) -> list[str]:
     ]
 
 
-def _weights_note(samples) -> str:
+def _weights_note(samples: SampleSet) -> str:
     """How many samples carry a label-noise factor above 1 (``samples.label_weights``)."""
     factors = samples.noise_factors
     if factors is None:

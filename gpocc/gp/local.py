@@ -9,7 +9,7 @@ samples' input distributions (correlated within a scan); queries are exact point
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg.blas import dtrsm
@@ -76,15 +76,8 @@ class NeighbourIndex:
 
 def centred_problem(samples: SampleSet, index: np.ndarray, centre: np.ndarray) -> LocalProblem:
     """The local problem of ``samples[index]`` with ``centre`` (2,) moved to the origin."""
-    local = SampleSet(
-        means=samples.means[index] - centre,
-        covariances=samples.covariances[index],
-        labels=samples.labels[index],
-        scan_ids=samples.scan_ids[index],
-        pose_factors=samples.pose_factors[index],
-        sensor_ids=samples.sensor_ids[index],
-        noise_factors=None if samples.noise_factors is None else samples.noise_factors[index],
-    )
+    subset = samples.subset(index)
+    local = replace(subset, means=subset.means - centre, sensor_names=())
     return LocalProblem(centre=centre, samples=local, index=index)
 
 

@@ -217,7 +217,7 @@ def validate_noise_factors(factors: np.ndarray | None, config: Config, n: int,
     """The samples' (N,) label-noise factors, checked: present exactly when the model's
     config weighs labels (``samples.label_weights: share`` with thinning), and numbers in
     [1, :data:`MAX_NOISE_FACTOR`], one per sample."""
-    expected = config.samples.label_weights == "share" and config.samples.thin_cell_m > 0
+    expected = config.samples.weighs_labels
     if factors is None:
         if expected:
             raise GpoccError(f"{path}: damaged model file: its config weighs labels "

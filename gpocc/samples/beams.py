@@ -136,14 +136,12 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
         raise GpoccError("no scans to build training samples from; check the input files")
     sensor_index: dict[str, int] = {name: i for i, name in enumerate(sensor_names)}
     thin_cell = float(config.samples.thin_cell_m)
-    min_share = float(config.samples.min_label_share)
     parts: list[SampleSet] = []
     # Thinning keeps a per-cell minimum, so thinning each chunk and thinning their union
     # again equals thinning everything at the end; the union is re-thinned only when the
     # thinned chunks have grown to twice what it held, which keeps the work linear.
     thinned_size, pending = 0, 0
-    counted = min_share > 0 or config.samples.label_weights != "none"
-    votes = LabelVotes(thin_cell) if thin_cell > 0 and counted else None
+    votes = LabelVotes(thin_cell) if config.samples.counts_labels else None
 
     def chunk(job: Callable[[], SampleSet]) -> tuple[SampleSet, int, np.ndarray | None,
                                                      np.ndarray | None]:
@@ -194,17 +192,15 @@ def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
     """The training samples of ``pool``: ``samples.min_label_share`` (by the pool's
     votes), then ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)."""
     result = pool.samples
-    cell = float(config.samples.thin_cell_m)
     min_share = float(config.samples.min_label_share)
-    weighted = config.samples.label_weights == "share"
-    if cell > 0 and (min_share > 0 or weighted) and pool.vote_keys.size:
-        votes = LabelVotes(cell)
+    if config.samples.counts_labels and pool.vote_keys.size:
+        votes = LabelVotes(float(config.samples.thin_cell_m))
         votes.add_counts(pool.vote_keys, pool.vote_counts)
         share = votes.share(result)
         if min_share > 0:
             keep = share >= min_share
             result, share = result.subset(keep), share[keep]
-        if weighted:
+        if config.samples.weighs_labels:
             factors = 1.0 / np.clip(np.nan_to_num(share, nan=1.0), 1.0 / MAX_NOISE_FACTOR, 1.0)
             result = dataclasses.replace(result, noise_factors=factors)
     return clear_free_near_hits(result, float(config.samples.free_clearance_m))
