@@ -124,6 +124,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "thin-0.1": {"samples.thin_cell_m": 0.1},
     "patches-20": {"model.training.patches": 20},
     "label-weights": {"samples.label_weights": "share"},
+    "anneal-1": {"model.training.anneal_maxfun": 1},
 }
 
 #: Every step the page's results depend on, in order (the page's "Commands" section):
