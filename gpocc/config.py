@@ -154,8 +154,8 @@ class SamplesConfig:
     Against the defaults on ``make experiment`` (docs/results.md, "Against other
     settings", variant ``label-weights``) it ranks better (held-out union AUC higher on
     22 of 23 cases, mean +0.005; per cell on 15 of 21 worlds) and is less well
-    calibrated (union Brier higher on 20 of 23, median +0.003; on one world the
-    hyperparameter search lands elsewhere and its per-cell Brier rises by 0.15), so it
+    calibrated (union Brier higher on 20 of 23, mean +0.005; per-cell Brier mean
+    +0.007), so it
     is a knob, not the default.
     """
 
