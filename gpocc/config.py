@@ -155,8 +155,7 @@ class SamplesConfig:
     settings", variant ``label-weights``) it ranks better (held-out union AUC higher on
     22 of 23 cases, mean +0.005; per cell on 15 of 21 worlds) and is less well
     calibrated (union Brier higher on 20 of 23, mean +0.005; per-cell Brier mean
-    +0.007), so it
-    is a knob, not the default.
+    +0.007), so it is a knob, not the default.
     """
 
     free_spacing_m: float = 0.4
