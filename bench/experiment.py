@@ -125,7 +125,19 @@ VARIANTS: dict[str, dict[str, object]] = {
     "patches-20": {"model.training.patches": 20},
     "label-weights": {"samples.label_weights": "share"},
     "anneal-1": {"model.training.anneal_maxfun": 1},
+    "overlap-0.5": {"model.blend_overlap": 0.5},
+    "bounds-6": {"model.training.log_bounds_width": 6.0},
+    "g-max-16": {"model.training.max_input_noise_scale": 16.0},
+    "floor-0.03": {"model.training.min_noise_variance": 0.03},
 }
+
+#: The variants that widen the box of learned values (:mod:`gpocc.gp.bounds`), and the
+#: values (name prefixes, as :func:`gpocc.gp.bounds.values_on_bounds` names them) whose
+#: bound each moves: the page's "Learned values on their bounds" compares where those
+#: values end and what the maps gain.
+WIDENING = {"bounds-6": ("kernel ", "label-noise variance"),
+            "g-max-16": ("input-noise scale g",),
+            "floor-0.03": ("label-noise variance",)}
 
 #: Every step the page's results depend on, in order (the page's "Commands" section):
 #: ``{"command": line, "reused": bool}``, a ``gpocc ...`` command or a ``# library: ...``
@@ -271,6 +283,24 @@ def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
     return maps, seconds
 
 
+def learned_values(model: Path) -> dict:
+    """What the bounds section reads from a GP model file: its patch log marginal
+    likelihood (nats), its learned values by name and which of them ended on a bound of
+    their search (name -> ``lower`` or ``upper``; :func:`gpocc.gp.bounds.values_on_bounds`)."""
+    from gpocc.gp.bounds import theta_names, values_on_bounds
+    from gpocc.gp.model import load_model
+
+    m = load_model(model)
+    values = dict(zip((f"kernel {n}" for n in theta_names(m.kernel)),
+                      (float(v) for v in np.exp(m.kernel.theta)), strict=True))
+    values.update({"label-noise variance": m.noise_variance,
+                   "input-noise scale g": m.input_noise_scale,
+                   "classifier slope a": m.classifier.a})
+    return {"log_marginal_likelihood": float(m.training["log_marginal_likelihood"]),
+            "values": values,
+            "on_bounds": {b.name: b.side for b in values_on_bounds(m)}}
+
+
 def split(log: Path, config: Path, out: Path, every: int) -> Path:
     gpocc("split", log, "--every", str(every), "--config", config, "--out", out, "--force",
           creates=out / "heldout.csv")
@@ -295,7 +325,8 @@ def run_sim(work: Path, variant: str, worlds: list[str], seed: int) -> list[dict
         result["cells-noisy-only"] = evaluate(maps, region,
                                               vdir / "evaluation-cells-noisy-only")["all"]
         cases.append({"case": f"{world} (seed {seed})", "kind": "sim", "scores": result,
-                      "family": world_family(world), "gp_seconds": seconds})
+                      "family": world_family(world), "gp_seconds": seconds,
+                      "learned": learned_values(vdir / "gp-input-noise.npz")})
     return cases
 
 
@@ -362,7 +393,8 @@ def run_real(work: Path, variant: str, logs: list[tuple[str, Path, Path, int]],
         result = evaluate(maps, held / "heldout.csv", vdir / "evaluation-heldout")
         cases.append({"case": f"{path.name} (every {every}th scan held out, pose noise by "
                               f"stretch)", "kind": "real", "scores": result,
-                      "gp_seconds": seconds})
+                      "gp_seconds": seconds,
+                      "learned": learned_values(vdir / "gp-input-noise.npz")})
     return cases
 
 
@@ -445,6 +477,77 @@ def variant_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[st
             if line:
                 lines.append(line)
     return lines
+
+
+def _learned(cases: list[dict]) -> dict[str, dict]:
+    """case -> its ``learned`` record, for the cases that have one."""
+    return {c["case"]: c["learned"] for c in cases if c.get("learned")}
+
+
+def bounds_table(cases: list[dict]) -> list[str]:
+    """Per learned value that ended on a bound of its search in some case: how many
+    cases on its lower and upper bound, and its median over the cases."""
+    learned = _learned(cases)
+    names = sorted({n for rec in learned.values() for n in rec["on_bounds"]})
+    if not names:
+        return []
+    lines = ["| learned value | on its lower bound | on its upper bound | median |",
+             "|---|---:|---:|---:|"]
+    for name in names:
+        sides = [rec["on_bounds"].get(name) for rec in learned.values()]
+        median = np.median([rec["values"][name] for rec in learned.values()
+                            if name in rec["values"]])
+        lines.append(f"| {name} | {sides.count('lower')}/{len(sides)} | "
+                     f"{sides.count('upper')}/{len(sides)} | {median:.4g} |")
+    return lines
+
+
+def widening_tables(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
+    """For each compared variant of :data:`WIDENING`, on the cases both runs recorded:
+    where the values whose box it widens end (cases on a bound and median, here and in
+    the variant), then what it gains: the patch log marginal likelihood (variant minus
+    this run, nats) and the GP's held-out scores (variant minus this run, mean over the
+    cases; wins count the cases where the variant is better)."""
+    ours = _learned(cases)
+    values, gains = [], []
+    for name, prefixes in WIDENING.items():
+        theirs = _learned(variants.get(name, []))
+        both = [c for c in ours if c in theirs]
+        if not both:
+            continue
+        names = sorted({n for c in both for rec in (ours[c], theirs[c])
+                        for n in rec["on_bounds"] if n.startswith(prefixes)})
+        for value in names:
+            here = sum(value in ours[c]["on_bounds"] for c in both)
+            there = sum(value in theirs[c]["on_bounds"] for c in both)
+            med_here = np.median([ours[c]["values"][value] for c in both])
+            med_there = np.median([theirs[c]["values"][value] for c in both])
+            values.append(f"| {name} | {value} | {here}/{len(both)} | {there}/{len(both)} | "
+                          f"{med_here:.4g} | {med_there:.4g} |")
+        lml = np.array([theirs[c]["log_marginal_likelihood"]
+                        - ours[c]["log_marginal_likelihood"] for c in both])
+        row = [f"| {name} | {np.median(lml):+.1f} | {lml.max():+.1f}"]
+        by_case = {c["case"]: c["scores"] for c in variants[name]}
+        for protocol in ("union", "cells"):
+            pairs = [(c["scores"][protocol]["gp-input-noise"],
+                      by_case[c["case"]][protocol]["gp-input-noise"])
+                     for c in cases if c["case"] in by_case and protocol in c["scores"]
+                     and protocol in by_case[c["case"]]]
+            auc = np.array([b["auc"] - a["auc"] for a, b in pairs])
+            brier = np.array([b["brier"] - a["brier"] for a, b in pairs])
+            row.append(f"{int((auc > 0).sum())}/{auc.size} | {auc.mean():+.4f} | "
+                       f"{int((brier < 0).sum())}/{brier.size} | {brier.mean():+.4f}"
+                       if pairs else "| | |")
+        gains.append(" | ".join(row) + " |")
+    if not gains:
+        return []
+    return ["| variant | learned value | on its bound here | on its bound in the variant | "
+            "median here | median in the variant |", "|---|---|---:|---:|---:|---:|",
+            *values, "",
+            "| variant | LML gain, median nats | LML gain, largest | union AUC wins | "
+            "union AUC diff | union Brier wins | union Brier diff | cells AUC wins | "
+            "cells AUC diff | cells Brier wins | cells Brier diff |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|", *gains]
 
 
 def family_table(cases: list[dict]) -> list[str]:
@@ -566,6 +669,22 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
                                                VARIANTS[name].items()) + " |"
                     for name in variants), "",
                   *variant_table(cases, variants), ""]
+    on_bounds = bounds_table(cases)
+    if on_bounds:
+        lines += ["## Learned values on their bounds", "",
+                  "A learned value on a bound of its search (`gpocc train` warns, `gpocc "
+                  "info` lists it) was stopped by the box, not chosen by the data. The GP "
+                  "with input noise of this run, per learned value that ended on a bound in "
+                  "some case:", "", *on_bounds, ""]
+        widened = widening_tables(cases, variants or {})
+        if widened:
+            lines += ["Each variant below widens the box of some of them (its overrides are "
+                      "in the table above): where those values end, and what the wider box "
+                      "gains, variant minus this run (log marginal likelihood of the "
+                      "training patches; held-out scores of the maps, mean over the cases, "
+                      "wins where the variant is better). A likelihood that keeps rising "
+                      "while the maps do not improve says the bound is not what limits the "
+                      "maps.", "", *widened, ""]
     by_family = family_table(cases)
     if by_family:
         lines += ["## By world family", "",

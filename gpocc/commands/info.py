@@ -12,7 +12,7 @@ import typer
 from gpocc.commands.options import ConfigFile
 from gpocc.config import Config, load_config
 from gpocc.errors import GpoccError
-from gpocc.gp.bounds import values_on_bounds
+from gpocc.gp.bounds import GUIDE_SECTION, values_on_bounds
 from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters, load_model
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
@@ -148,7 +148,7 @@ def format_model(path: Path, model: GPModel) -> list[str]:
     ]
     on_bounds = values_on_bounds(model)
     lines.append("  learned values on a bound: " + ("none" if not on_bounds
-                                                      else f"{len(on_bounds)}"))
+                                                      else f"{len(on_bounds)} ({GUIDE_SECTION})"))
     lines += [f"    {b.message()}" for b in on_bounds]
     if "log_marginal_likelihood" in training:
         lines.append(f"  log marginal likelihood: {training['log_marginal_likelihood']:.3f} "

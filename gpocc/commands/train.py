@@ -21,7 +21,7 @@ from gpocc.commands.options import (
     scheduler_errors,
 )
 from gpocc.config import Config, load_config
-from gpocc.gp.bounds import values_on_bounds
+from gpocc.gp.bounds import GUIDE_SECTION, values_on_bounds
 from gpocc.gp.growth import Growth
 from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
 from gpocc.gp.train import load_optimiser
@@ -102,8 +102,11 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
                             on_evaluation=advance, coverage=coverage,
                             calibration=calibration, client=client)
     learn_s = time.perf_counter() - started - read_s - samples_s
-    for on_bound in values_on_bounds(model):
+    on_bounds = values_on_bounds(model)
+    for on_bound in on_bounds:
         log(f"warning: {on_bound.message()}: the fit stopped at the bound, not at an optimum")
+    if on_bounds:
+        log(f"note: what each warning above means and what widening it does: {GUIDE_SECTION}")
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
     growth = Growth(pool, input_records(inputs, batches, cfg), calibration)

@@ -26,6 +26,10 @@ from gpocc.gp.train import search_bounds
 #: Relative distance to a bound that counts as on it.
 REL_TOL = 0.01
 
+#: Where users read what each value on its bound means and what a wider box did on the
+#: results page's worlds and logs.
+GUIDE_SECTION = "docs/guide.md, 'Learned values on their bounds'"
+
 
 @dataclass(frozen=True)
 class OnBound:

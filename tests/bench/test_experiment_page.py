@@ -170,3 +170,61 @@ def test_a_summary_of_plain_command_strings_still_makes_a_page():
     run = _run(("grid", "gp-input-noise"))
     assert "gpocc split data/x.mcap --every 10\n```" in experiment.page(run)
     assert "not run again" not in experiment.page(run)
+
+
+def _learned(rng: np.random.Generator, g_bound: float) -> dict:
+    """A model's learned record with g drawn up to ``g_bound`` (on it when drawn above)."""
+    g = min(float(rng.uniform(1.0, 2.0 * g_bound)), g_bound)
+    on = {"input-noise scale g": "upper"} if g == g_bound else {}
+    if rng.uniform() < 0.5:
+        on["label-noise variance"] = "lower"
+    return {"log_marginal_likelihood": float(rng.uniform(-1500, -900)),
+            "values": {"input-noise scale g": g, "label-noise variance": 0.1,
+                       "classifier slope a": 1000.0},
+            "on_bounds": on}
+
+
+def test_the_bounds_section_counts_values_on_bounds_and_what_widening_gains():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    wide = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+    rng = np.random.default_rng(3)
+    for ours, theirs in zip(run["cases"], wide, strict=True):
+        ours["learned"] = _learned(rng, 4.0)
+        theirs["learned"] = _learned(rng, 16.0)
+        for scores in theirs["scores"].values():
+            scores["gp-input-noise"] = _scores(rng)
+    text = experiment.page(run, {"g-max-16": wide})
+    assert "## Learned values on their bounds" in text
+    lines = text.splitlines()
+
+    def row(start: str, width: int = 0) -> list[str]:
+        rows = ([c.strip() for c in x.split("|")[1:-1]] for x in lines if x.startswith(start))
+        return next(r for r in rows if not width or len(r) == width)
+
+    g_here = [c["learned"]["values"]["input-noise scale g"] for c in run["cases"]]
+    on_here = sum("input-noise scale g" in c["learned"]["on_bounds"] for c in run["cases"])
+    assert row("| input-noise scale g |") == ["input-noise scale g", "0/5", f"{on_here}/5",
+                                              f"{np.median(g_here):.4g}"]
+    on_there = sum("input-noise scale g" in c["learned"]["on_bounds"] for c in wide)
+    g_there = [c["learned"]["values"]["input-noise scale g"] for c in wide]
+    assert row("| g-max-16 | input-noise scale g |")[2:] == [
+        f"{on_here}/5", f"{on_there}/5", f"{np.median(g_here):.4g}",
+        f"{np.median(g_there):.4g}"]
+    # The variant's rows read variant minus this run: the sign opposite to the
+    # "Against other settings" table's.
+    lml = np.array([b["learned"]["log_marginal_likelihood"]
+                    - a["learned"]["log_marginal_likelihood"]
+                    for a, b in zip(run["cases"], wide, strict=True)])
+    pairs = [(a["scores"]["cells"]["gp-input-noise"], b["scores"]["cells"]["gp-input-noise"])
+             for a, b in zip(run["cases"], wide, strict=True) if "cells" in a["scores"]]
+    auc = np.array([b["auc"] - a["auc"] for a, b in pairs])
+    brier = np.array([b["brier"] - a["brier"] for a, b in pairs])
+    gains = row("| g-max-16 | ", width=11)
+    assert gains[1:3] == [f"{np.median(lml):+.1f}", f"{lml.max():+.1f}"]
+    assert gains[7:11] == [f"{(auc > 0).sum()}/{auc.size}", f"{auc.mean():+.4f}",
+                           f"{(brier < 0).sum()}/{brier.size}", f"{brier.mean():+.4f}"]
+
+
+def test_a_run_without_learned_records_has_no_bounds_section():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    assert "## Learned values on their bounds" not in experiment.page(run)

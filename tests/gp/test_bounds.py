@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from gpocc.cli import app
 from gpocc.config import Config, ModelConfig, TrainingConfig
-from gpocc.gp.bounds import side_on_bound, values_on_bounds
+from gpocc.gp.bounds import GUIDE_SECTION, side_on_bound, values_on_bounds
 from gpocc.gp.classify import fit_platt
 from gpocc.gp.kernels import make_kernel
 from gpocc.gp.model import GPModel, load_model
@@ -140,8 +140,16 @@ def test_train_warns_and_info_shows_exactly_the_values_on_their_bounds(tmp_path)
     warned = {line.split("warning: ", 1)[1].split(" = ")[0]
               for line in result.stderr.splitlines() if " bound " in line}
     assert warned == expected
+    assert (GUIDE_SECTION in result.stderr) == bool(expected)
     info = CliRunner().invoke(app, ["info", str(out)])
     assert info.exit_code == 0, info.output
     assert f"learned values on a bound: {len(expected) or 'none'}" in info.stdout
+    assert (GUIDE_SECTION in info.stdout) == bool(expected)
     for name in expected:
         assert f"    {name} = " in info.stdout
+
+
+def test_the_guide_section_the_warnings_point_to_exists():
+    path, title = GUIDE_SECTION.split(", ", 1)
+    text = (Path(__file__).resolve().parents[2] / path).read_text()
+    assert f"### {title.strip(chr(39))}\n" in text
