@@ -135,11 +135,10 @@ class SamplesConfig:
     ``free_clearance_m`` drops free samples within that distance of an occupied sample
     (after thinning): beams that graze a wall leave free samples centimetres from its
     hits, and held-out hits on that wall then come out free. 0 keeps them (the method as
-    published). With ``patch_centres: hits``, 0.05 (default) gave a better held-out Brier
-    score on both real logs, dense and sparse, at two seeds, and a higher AUC in all 8
-    cases of the experiment suite; alone (with the older patches) its results were mixed
-    (``bench/experiment.py`` variants ``clearance-0.05`` and ``hit-patches-clearance-0.05``;
-    commit 3198d15).
+    published). Against 0 (docs/results.md, "Against other settings", variant
+    ``clearance-0``) 0.05 ranks better on the simulated worlds (per-cell AUC on all 21,
+    union AUC on 21 of 23 cases) but calibrates worse where beams graze walls: the real
+    logs' held-out union Brier is 0.0855 and 0.1009 with it, 0.0741 and 0.0832 without.
 
     ``free_range_variance``: free samples of a beam that hit carry that beam's range
     variance, like its hit (false: free samples carry no range variance, as published);
