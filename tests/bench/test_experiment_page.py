@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bench import experiment
 
@@ -228,3 +230,59 @@ def test_the_bounds_section_counts_values_on_bounds_and_what_widening_gains():
 def test_a_run_without_learned_records_has_no_bounds_section():
     run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
     assert "## Learned values on their bounds" not in experiment.page(run)
+
+
+def test_free_points_by_wall_distance_against_brute_force(tmp_path):
+    from gpocc.constants import NO_DATA
+    from gpocc.gridspec import GridSpec
+    from gpocc.io.rasters import write_geotiff
+
+    rng = np.random.default_rng(7)
+    # 7 cm cells: no distance between cell centres falls on a bucket edge.
+    spec = GridSpec(0.0, 0.0, 0.07, 20, 10)
+    values = rng.uniform(0, 1, (spec.height, spec.width)).astype(np.float32)
+    values[0, :] = NO_DATA  # the north row has no data: p = 0.5 there
+    (tmp_path / "m").mkdir()
+    write_geotiff(tmp_path / "m" / "probability.tif", values, spec, nodata=NO_DATA)
+    # Points at cell centres (no nearest-cell ambiguity), some off the map.
+    cols, rows = rng.integers(-2, spec.width + 2, 300), rng.integers(0, spec.height, 300)
+    xs, ys = spec.cell_centres_at(rows, cols)
+    kinds = np.where(rng.uniform(size=300) < 0.3, "hit", "free")
+    lines = ["x,y,label,kind"] + [f"{x:.6f},{y:.6f},{1 if k == 'hit' else 0},{k}"
+                                  for x, y, k in zip(xs, ys, kinds, strict=True)]
+    (tmp_path / "heldout.csv").write_text("\n".join(lines) + "\n")
+    got = experiment.free_by_wall_distance(tmp_path / "heldout.csv", {"m": tmp_path / "m"})
+    hits = [(x, y) for x, y, k in zip(xs, ys, kinds, strict=True) if k == "hit"]
+    edges = experiment.WALL_DISTANCE_EDGES
+    buckets: list[list[float]] = [[] for _ in edges]
+    for x, y, r, c, k in zip(xs, ys, rows, cols, kinds, strict=True):
+        if k != "free":
+            continue
+        d = min(((x - hx) ** 2 + (y - hy) ** 2) ** 0.5 for hx, hy in hits)
+        b = max(i for i, e in enumerate(edges) if d >= e)
+        inside = 0 <= c < spec.width and values[r, c] != NO_DATA
+        buckets[b].append(float(values[r, c]) if inside else 0.5)
+    for (n, mean, brier), want in zip(got["m"], buckets, strict=True):
+        assert n == len(want)
+        if want:
+            assert mean == pytest.approx(np.mean(want)) and brier == pytest.approx(
+                np.mean(np.square(want)))
+
+
+def test_the_wall_distance_table_lists_each_method_per_real_log():
+    run = _run(("grid", "bhm", "gp-input-noise"))
+    record = {"grid": [[3, 0.25, 0.1], [0, math.nan, math.nan], [1, 0.5, 0.25],
+                       [2, 0.125, 0.02], [5, 0.01, 0.0001]],
+              "bhm": [[3, 0.2, 0.05], [0, math.nan, math.nan], [1, 0.1, 0.01],
+                      [2, 0.1, 0.01], [5, 0.02, 0.0004]]}
+    run["cases"][3]["free_by_wall_distance"] = record
+    lines = experiment.page(run).splitlines()
+    at = lines.index("## Free space next to walls (real logs)")
+    table = lines[at:]
+    assert table[4] == ("| case | method | 0-0.05 m | 0.05-0.1 m | 0.1-0.2 m | 0.2-0.3 m | "
+                        ">= 0.3 m |")
+    assert table[6] == "| case 3 | free points | 3 | 0 | 1 | 2 | 5 |"
+    assert table[7] == ("|  | grid | 0.250 / 0.1000 |  | 0.500 / 0.2500 | 0.125 / 0.0200 | "
+                        "0.010 / 0.0001 |")
+    assert table[8].startswith("|  | bhm | 0.200 / 0.0500 |")
+    assert not table[9].startswith("|  | gp-input-noise")  # no record for it
