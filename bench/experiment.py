@@ -16,7 +16,8 @@ the loop-closure figure) are library calls in this file and its neighbours.
   perturbed by a covariance that changes every ``STRETCH_SCANS`` scans (quiet, noisy,
   very noisy; :data:`REAL_LEVELS`) and written with that covariance to
   ``train-noisy.mcap``; every method is trained on it and scored on the held-out scans
-  (whose points use the recorded poses). Real logs have no per-cell truth.
+  (whose points use the recorded poses), and on their free points by distance to the
+  nearest held-out hit. Real logs have no per-cell truth.
 * ``loop``: intel_poses_odom_vs_corrected.txt, the Intel log mapped before and after
   loop closure (bench/loop_closure.py).
 * ``report``: rewrite the page from the last run's summary without running anything.
@@ -29,7 +30,9 @@ raster) and ``cells-noisy-only`` (the cells only platform II saw).
 ``--quick``: one world (``default``) and one log cut (the repository's 50-scan Intel
 sample, every 5th scan held out), to check the pipeline and the page generator in
 minutes. ``--variant`` picks config overrides for the GP rows (:data:`VARIANTS`;
-``defaults``: none, gpocc as shipped).
+``defaults``: none, gpocc as shipped); ``--compare`` adds a variant's run to the page,
+and the variants of :data:`WIDENING` also to its section on learned values on bounds.
+Each case records the GP's learned values (:func:`learned_values`).
 """
 
 from __future__ import annotations
