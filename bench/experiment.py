@@ -649,6 +649,11 @@ def family_table(cases: list[dict]) -> list[str]:
     return lines
 
 
+def section(title: str, text: str, table: list[str]) -> list[str]:
+    """A page section's lines: its title, ``text`` and ``table``; none without a table."""
+    return ["## " + title, "", text, "", *table, ""] if table else []
+
+
 def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
     """docs/results.md from a run's summary (:func:`main` writes it as JSON too) and the
     cases of the ``variants`` it is compared with (name -> cases)."""
@@ -748,22 +753,20 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
                       "wins where the variant is better). A likelihood that keeps rising "
                       "while the maps do not improve says the bound is not what limits the "
                       "maps.", "", *widened, ""]
-    near_walls = wall_distance_table(cases)
-    if near_walls:
-        lines += ["## Free space next to walls (real logs)", "",
-                  "The held-out free points of the real logs (their training poses "
-                  "perturbed, the held-out points on the recorded ones) by their distance to "
-                  "the nearest held-out hit: how many, then each map's mean p / Brier score "
-                  "on them. Free points a few centimetres from a hit are the free space just "
-                  "in front of walls that grazing beams cross; a map that blurs its walls "
-                  "scores them high.", "", *near_walls, ""]
-    by_family = family_table(cases)
-    if by_family:
-        lines += ["## By world family", "",
-                  "Simulated worlds by generator family (the second generator's `offices`, "
-                  "`hall` and `clutter` draw their platforms' noise around Table I's): "
-                  "`gp-input-noise` against `gp-no-input-noise` and `grid`; Table II order "
-                  "compares the family's mean AUC and FPR@TPR0.97.", "", *by_family, ""]
+    lines += section(
+        "Free space next to walls (real logs)",
+        "The held-out free points of the real logs (their training poses perturbed, the "
+        "held-out points on the recorded ones) by their distance to the nearest held-out "
+        "hit: how many, then each map's mean p / Brier score on them. Free points a few "
+        "centimetres from a hit are the free space just in front of walls that grazing "
+        "beams cross; a map that blurs its walls scores them high.",
+        wall_distance_table(cases))
+    lines += section(
+        "By world family",
+        "Simulated worlds by generator family (the second generator's `offices`, `hall` and "
+        "`clutter` draw their platforms' noise around Table I's): `gp-input-noise` against "
+        "`gp-no-input-noise` and `grid`; Table II order compares the family's mean AUC and "
+        "FPR@TPR0.97.", family_table(cases))
     for protocol in PROTOCOLS:
         table = protocol_table(cases, protocol)
         if table:
