@@ -253,7 +253,9 @@ class TrainingConfig:
     ``published``). g often ends on its upper bound (the patches' likelihood keeps rising
     with it); g = 1 (variant ``fixed-scale``, docs/results.md "Against other settings")
     ranks better per cell but is less well calibrated on every held-out case and worse on
-    both real logs, so g stays learned.
+    both real logs, so g stays learned. ``input_noise_scale_part``: what g scales,
+    ``all`` of each input's covariance (default) or only its ``pose`` part (the scan's
+    pose error, ``pose_factors``; the sensor's range and bearing noise stay as stated).
     """
 
     learn: bool = True
@@ -274,6 +276,7 @@ class TrainingConfig:
     learn_input_noise_scale: bool = True
     min_input_noise_scale: float = 0.05
     max_input_noise_scale: float = 4.0
+    input_noise_scale_part: str = "all"
 
     @property
     def uses_beam_points(self) -> bool:
@@ -687,6 +690,11 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(
             f"{source}: key 'model.training.classifier_holdout' must be 'scan' or 'sample', "
             f"got {t.classifier_holdout!r}"
+        )
+    if t.input_noise_scale_part not in ("all", "pose"):
+        raise GpoccError(
+            f"{source}: key 'model.training.input_noise_scale_part' must be 'all' or "
+            f"'pose', got {t.input_noise_scale_part!r}"
         )
     if t.patch_centres not in ("hits", "samples"):
         raise GpoccError(

@@ -9,12 +9,18 @@ the stated input noise (``g < 1``: less noise than stated, ``g > 1``: more). It 
 learned with the kernel hyperparameters by the patch log marginal likelihood
 (:mod:`gpocc.gp.train`) and the model's samples are stored already scaled, so
 prediction and mapping use it without a switch. ``g = 1`` is the model as published.
+
+With ``part="pose"`` (``model.training.input_noise_scale_part: pose``) g scales only the
+pose part ``A_i A_i'`` of each covariance: ``S_i -> S_i + (g - 1) A_i A_i'``, ``A_i ->
+sqrt(g) A_i``; the sensor's range and bearing noise stay as stated.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+
+import numpy as np
 
 from gpocc.samples.sampleset import SampleSet
 
@@ -24,10 +30,31 @@ from gpocc.samples.sampleset import SampleSet
 LOG_SCALE_STEP = 1e-3
 
 
-def scale_input_noise(samples: SampleSet, scale: float) -> SampleSet:
-    """``samples`` with covariances (N, 2, 2) m^2 times ``scale`` and pose factors
-    (N, 2, 3) m times ``sqrt(scale)``; ``scale == 1`` returns ``samples`` itself."""
+#: What g scales: every input covariance, or its pose part only.
+SCALE_PARTS = ("all", "pose")
+
+
+def scale_input_noise(samples: SampleSet, scale: float, part: str = "all") -> SampleSet:
+    """``samples`` with pose factors (N, 2, 3) m times ``sqrt(scale)`` and covariances
+    (N, 2, 2) m^2 times ``scale`` (``part="all"``) or with their pose part ``A A'`` times
+    ``scale`` (``part="pose"``); ``scale == 1`` returns ``samples`` itself."""
+    if part not in SCALE_PARTS:
+        raise ValueError(f"part must be one of {SCALE_PARTS}, not {part!r}")
     if scale == 1.0:
         return samples
-    return dataclasses.replace(samples, covariances=samples.covariances * scale,
-                               pose_factors=samples.pose_factors * math.sqrt(scale))
+    factors = samples.pose_factors
+    if part == "all":
+        covariances = samples.covariances * scale
+    else:
+        pose = np.einsum("nik,njk->nij", factors, factors)
+        if scale >= 1.0:
+            covariances = samples.covariances + (scale - 1.0) * pose
+        else:
+            # The sensor part S - A A' is PSD only up to the unscented transform's
+            # nonlinearity (A is the pose Jacobian's factor): clipped to PSD before the
+            # pose part shrinks.
+            values, vectors = np.linalg.eigh(samples.covariances - pose)
+            sensor = np.einsum("nij,nj,nkj->nik", vectors, np.maximum(values, 0.0), vectors)
+            covariances = sensor + scale * pose
+    return dataclasses.replace(samples, covariances=covariances,
+                               pose_factors=factors * math.sqrt(scale))

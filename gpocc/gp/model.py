@@ -156,7 +156,8 @@ def build_model(
             backend=backend, client=client, warm_start=start,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
-        samples = scale_input_noise(samples, result.input_noise_scale)
+        samples = scale_input_noise(samples, result.input_noise_scale,
+                                    model_cfg.training.input_noise_scale_part)
         map_fn = map if client is None else cluster_map(client)
         classifier, offset, points = _fit_classifier(result, samples, config, calibration,
                                                      map_fn)
@@ -196,7 +197,8 @@ def refit_model(
         kept.training.get("initial_log_marginal_likelihood", math.nan), 0, (0, 0),
         kept.input_noise_scale)
     with single_threaded_blas():
-        samples = scale_input_noise(samples, kept.input_noise_scale)
+        samples = scale_input_noise(samples, kept.input_noise_scale,
+                                    config.model.training.input_noise_scale_part)
         classifier, offset, points = _fit_classifier(result, samples, config, calibration)
     training = {**kept.training, "classifier_holdout": config.model.training.classifier_holdout,
                 "classifier_offset": offset,

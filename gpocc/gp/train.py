@@ -30,7 +30,7 @@ from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp import backends
 from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
-from gpocc.gp.inputscale import LOG_SCALE_STEP
+from gpocc.gp.inputscale import LOG_SCALE_STEP, scale_input_noise
 from gpocc.gp.kernels import Kernel
 from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.parallel import default_workers, wait_for, worker_pool
@@ -123,14 +123,22 @@ def _patch_negative_log_likelihood(
 def _patch_negative_log_likelihoods(
     kernel: Kernel, noise: float, patches: list[LocalProblem], *, level: int,
     with_gradient: bool, input_scale: float = 1.0, scale_gradient: bool = False,
-    backend: str = "auto",
+    backend: str = "auto", scale_part: str = "all",
 ) -> Iterator[tuple[float, np.ndarray | None] | None]:
     """Each patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
     in log g), or None where K is not a covariance, in patch order: one batch for the
-    backend (``KernelLoops.patch_likelihoods``)."""
+    backend (``KernelLoops.patch_likelihoods``). ``scale_part``: what ``input_scale``
+    scales (:func:`gpocc.gp.inputscale.scale_input_noise`); the loops scale whole
+    covariances themselves, so a pose-only scale is applied to the samples first."""
     chosen = backends.get(backend)
+    samples = [p.samples for p in patches]
+    if scale_part != "all":
+        if scale_gradient:
+            raise ValueError("the loops give d/dlog g for a scale of whole covariances only")
+        samples = [scale_input_noise(s, input_scale, scale_part) for s in samples]
+        input_scale = 1.0
     return chosen.loops(kernel).patch_likelihoods(
-        kernel, noise, [p.samples for p in patches], level, with_gradient=with_gradient,
+        kernel, noise, samples, level, with_gradient=with_gradient,
         input_scale=input_scale, scale_gradient=scale_gradient, backend=chosen)
 
 
@@ -219,6 +227,7 @@ def negative_log_likelihood(
     with_gradient: bool = True,
     executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
     input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
+    scale_part: str = "all",
 ) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood over patches and its gradient in log-parameters.
 
@@ -231,12 +240,14 @@ def negative_log_likelihood(
     the result does not depend on it.
     ``input_scale``: g of :mod:`gpocc.gp.inputscale` (the patches' inputs as stated: 1);
     ``scale_gradient`` (with gradients): the gradient gains d/dlog g.
-    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`).
+    ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`). ``scale_part``: what g
+    scales (:func:`gpocc.gp.inputscale.scale_input_noise`).
     """
     # Partials of module-level functions, so that worker processes can receive them.
     arguments = (kernel.with_theta(params[:-1]), math.exp(params[-1]))
     options = {"level": level, "with_gradient": with_gradient, "input_scale": input_scale,
-               "scale_gradient": scale_gradient and with_gradient, "backend": backend}
+               "scale_gradient": scale_gradient and with_gradient, "backend": backend,
+               "scale_part": scale_part}
     # One patch per task: patches differ in cost (3-12 ms), and Pool.map's default chunks of
     # two left one worker idle (gradient evaluations about 9% slower on 2 workers).
     if isinstance(executor, ResidentPatches | ClusterPatches):
@@ -274,7 +285,7 @@ def negative_log_likelihood_with_scale(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
     with_gradient: bool = True,
     executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
-    backend: str = "auto",
+    backend: str = "auto", scale_part: str = "all",
 ) -> tuple[float, np.ndarray]:
     """:func:`negative_log_likelihood` with the patches' input noise scaled by g.
 
@@ -282,7 +293,9 @@ def negative_log_likelihood_with_scale(
     ``log g`` is analytic for the compiled NN kernel (every quadrature node moves away
     from its mean as sqrt(g)); for other kernels it is a central difference of two
     value-only evaluations, step :data:`LOG_SCALE_STEP`. At ``log g = 0`` the value and
-    the other derivatives are exactly those of the unscaled likelihood.
+    the other derivatives are exactly those of the unscaled likelihood. ``scale_part``:
+    what g scales (:func:`gpocc.gp.inputscale.scale_input_noise`); a pose-only scale
+    always takes the central difference.
     """
     log_g = float(params[-1])
 
@@ -291,9 +304,10 @@ def negative_log_likelihood_with_scale(
         return negative_log_likelihood(params[:-1], kernel, patches, level,
                                        with_gradient=gradient, executor=executor,
                                        input_scale=math.exp(log_scale),
-                                       scale_gradient=scale_gradient, backend=backend)
+                                       scale_gradient=scale_gradient, backend=backend,
+                                       scale_part=scale_part)
 
-    if with_gradient and supports_scale_gradient(kernel, backend):
+    if with_gradient and scale_part == "all" and supports_scale_gradient(kernel, backend):
         return at(log_g, True, scale_gradient=True)
     value, grad = at(log_g, with_gradient)
     if not with_gradient or value >= _REJECTED:
@@ -336,7 +350,9 @@ def learn_hyperparameters(
     patches = make_patches(samples, config, seed)
     # g only matters (and is only learned) when some input has a covariance.
     learn_scale = config.learn_input_noise_scale and bool(samples.covariances.any())
-    objective = negative_log_likelihood_with_scale if learn_scale else negative_log_likelihood
+    objective = (functools.partial(negative_log_likelihood_with_scale,
+                                   scale_part=config.input_noise_scale_part)
+                 if learn_scale else negative_log_likelihood)
     # Processes, not threads: much of a patch's work is numpy glue that holds the GIL
     # (threads gave 1.4x on 2 cores). The workers receive the patches once.
     workers = min(len(patches), workers or default_workers())

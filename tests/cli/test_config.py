@@ -43,6 +43,8 @@ def test_defaults_and_round_trip():
         ("model:\n  kernel: matern\n", "'model.kernel' must be 'nn' or 'se'"),
         ("model:\n  training:\n    classifier_holdout: beam\n",
          "'model.training.classifier_holdout' must be 'scan' or 'sample'"),
+        ("model:\n  training:\n    input_noise_scale_part: sensor\n",
+         "'model.training.input_noise_scale_part' must be 'all' or 'pose'"),
         ("model:\n  training:\n    classifier_offset: beam\n",
          "'model.training.classifier_offset' must be 'holdout' or 'beams'"),
         ("model:\n  training:\n    patch_centres: walls\n",

@@ -200,3 +200,87 @@ def test_scaled_likelihood_equals_the_likelihood_of_scaled_patches():
         ref, ref_grad = negative_log_likelihood(params, kernel, scale_patches(patches, g), 2)
         assert value == pytest.approx(ref, rel=1e-12)
         np.testing.assert_allclose(grad, ref_grad, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [0.3, 2.5])
+def test_a_pose_only_scale_gives_the_closed_form_of_its_joint_law(scale):
+    # Girard's closed form with the sensor part as stated and the pose part, within a
+    # sample and across same-scan samples, times g.
+    rng = np.random.default_rng(3)
+    s = _samples(12, rng, scans=2)
+    scaled = scale_input_noise(s, scale, "pose")
+    pose = np.einsum("nik,njk->nij", s.pose_factors, s.pose_factors)
+    sensor = s.covariances - pose
+    kernel = SquaredExponentialKernel(1.3, (0.4, 0.6))
+    k = expected_kernel_matrix(kernel, scaled.means, scaled.covariances, 8,
+                               scan_ids=scaled.scan_ids, pose_factors=scaled.pose_factors)
+    i, j = np.triu_indices(len(s), 1)
+    cross = np.einsum("pik,pjk->pij", s.pose_factors[i], s.pose_factors[j])
+    cross[s.scan_ids[i] != s.scan_ids[j]] = 0.0
+    oracle = expected_se_closed_form_pairs(
+        kernel, s.means[i], sensor[i] + scale * pose[i], s.means[j],
+        sensor[j] + scale * pose[j], scale * cross)
+    np.testing.assert_allclose(k[i, j], oracle, rtol=0, atol=2e-4)
+    assert scale_input_noise(s, 1.0, "pose") is s
+    with pytest.raises(ValueError, match="part"):
+        scale_input_noise(s, scale, "sensor")
+
+
+def test_a_pose_only_scale_leaves_inputs_without_pose_error_as_stated():
+    rng = np.random.default_rng(4)
+    s = _samples(20, rng)
+    s = dataclasses.replace(s, pose_factors=np.zeros_like(s.pose_factors))
+    scaled = scale_input_noise(s, 3.0, "pose")
+    np.testing.assert_allclose(scaled.covariances, s.covariances, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("kernel", [SquaredExponentialKernel(1.0, (0.3, 0.3)),
+                                    NeuralNetworkKernel(1.5, 20.0, (30.0, 50.0))],
+                         ids=["se", "nn"])
+def test_pose_only_likelihood_and_gradient_against_patches_scaled_by_hand(kernel):
+    rng = np.random.default_rng(5)
+    patches = make_patches(_samples(150, rng), TrainingConfig(patches=2, patch_size=60), 0)
+    params = np.append(kernel.theta, math.log(0.05))
+    log_g, h = math.log(1.7), 1e-2
+
+    def by_hand(g: float) -> tuple[float, np.ndarray]:
+        scaled = [dataclasses.replace(p, samples=scale_input_noise(p.samples, g, "pose"))
+                  for p in patches]
+        return negative_log_likelihood(params, kernel, scaled, 2)
+
+    value, grad = negative_log_likelihood_with_scale(np.append(params, log_g), kernel,
+                                                     patches, 2, scale_part="pose")
+    ref, ref_grad = by_hand(math.exp(log_g))
+    assert value == pytest.approx(ref, rel=1e-12)
+    np.testing.assert_allclose(grad[:-1], ref_grad, rtol=1e-10, atol=1e-12)
+    slope = (by_hand(math.exp(log_g + h))[0] - by_hand(math.exp(log_g - h))[0]) / (2 * h)
+    assert grad[-1] == pytest.approx(slope, rel=1e-3, abs=1e-3)
+    # Different from scaling whole covariances, whose sensor part is not small here.
+    assert abs(negative_log_likelihood_with_scale(np.append(params, log_g), kernel,
+                                                  patches, 2)[0] - value) > 1e-3
+
+
+def test_a_model_scales_the_pose_part_when_told_to(tmp_path):
+    from gpocc.gp.model import build_model, load_model, save_model
+
+    samples, _ = _synthetic(3.0, seed=4)
+    # The stated noise as the pose part (one scan per sample), plus a small sensor part.
+    sd = np.sqrt(samples.covariances[:, 0, 0])
+    factors = np.zeros((len(samples), 2, 3))
+    factors[:, 0, 0] = factors[:, 1, 1] = sd
+    samples = dataclasses.replace(samples, labels=np.where(samples.labels > 0, 1.0, -1.0),
+                                  covariances=samples.covariances + 1e-4 * np.eye(2),
+                                  pose_factors=factors)
+    config = Config(model=ModelConfig(kernel="se", quadrature_level=3, training=TrainingConfig(
+        patches=3, patch_size=80, anneal_maxfun=5, lbfgs_maxiter=10,
+        learn_input_noise_scale=True, input_noise_scale_part="pose")))
+    model = build_model(samples, config)
+    g = model.input_noise_scale
+    assert g != 1.0
+    pose = np.einsum("nik,njk->nij", samples.pose_factors, samples.pose_factors)
+    np.testing.assert_allclose(model.samples.covariances,
+                               samples.covariances + (g - 1.0) * pose, atol=1e-15)
+    save_model(model, tmp_path / "m.npz")
+    again = load_model(tmp_path / "m.npz")
+    assert again.config.model.training.input_noise_scale_part == "pose"
+    np.testing.assert_array_equal(again.samples.covariances, model.samples.covariances)

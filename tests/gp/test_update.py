@@ -480,3 +480,21 @@ def test_split_of_a_moved_recording_writes_poses_in_the_job_frame(tmp_path):
     world, = read_inputs([write_log(tmp_path / "room_w.log", 12, door_closed=True)], Config())
     kept = np.flatnonzero(np.arange(12) % 4 != 3)
     np.testing.assert_allclose(moved.poses[:, :2], world.poses[kept, :2], atol=1e-5)
+
+
+def test_a_pose_only_scale_survives_an_update(logs, tmp_path):
+    """A model that scales the pose part of its inputs only: relearned on all logs by
+    ``update`` it is the model of training on all logs (samples, scale, kernel)."""
+    (tmp_path / "job.yaml").write_text(CONFIG.replace(
+        "lbfgs_maxiter: 4}", "lbfgs_maxiter: 4, input_noise_scale_part: pose}"))
+    job = str(tmp_path / "job.yaml")
+    gpocc("train", str(logs["a"]), "--config", job, "--out", str(tmp_path / "a.npz"))
+    gpocc("train", str(logs["a"]), str(logs["b"]), "--config", job,
+          "--out", str(tmp_path / "ab.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--relearn",
+          "--out", str(tmp_path / "up.npz"))
+    both, up = (load_model(tmp_path / n) for n in ("ab.npz", "up.npz"))
+    assert up.config.model.training.input_noise_scale_part == "pose"
+    _same_samples(both.samples, up.samples)
+    assert both.input_noise_scale == up.input_noise_scale != 1.0
+    assert both.kernel == up.kernel and both.classifier == up.classifier
