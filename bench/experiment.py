@@ -132,6 +132,8 @@ VARIANTS: dict[str, dict[str, object]] = {
     "overlap-0.5": {"model.blend_overlap": 0.5},
     "clearance-0": {"samples.free_clearance_m": 0.0},
     "pose-scale": {"model.training.input_noise_scale_part": "pose"},
+    "two-draw-pose-scale": {"model.diagonal": "two-draw",
+                            "model.training.input_noise_scale_part": "pose"},
     "bounds-6": {"model.training.log_bounds_width": 6.0},
     "g-max-16": {"model.training.max_input_noise_scale": 16.0},
     "floor-0.03": {"model.training.min_noise_variance": 0.03},
