@@ -132,6 +132,8 @@ VARIANTS: dict[str, dict[str, object]] = {
     "overlap-0.5": {"model.blend_overlap": 0.5},
     "clearance-0": {"samples.free_clearance_m": 0.0},
     "pose-scale": {"model.training.input_noise_scale_part": "pose"},
+    "clearance-0-pose-scale": {"samples.free_clearance_m": 0.0,
+                               "model.training.input_noise_scale_part": "pose"},
     "two-draw-pose-scale": {"model.diagonal": "two-draw",
                             "model.training.input_noise_scale_part": "pose"},
     "bounds-6": {"model.training.log_bounds_width": 6.0},
