@@ -23,9 +23,10 @@ from gpocc.gp.train import (
 from gpocc.samples.sampleset import SampleSet
 
 
-def scale_patches(patches: list[LocalProblem], scale: float) -> list[LocalProblem]:
+def scale_patches(patches: list[LocalProblem], scale: float,
+                  part: str = "all") -> list[LocalProblem]:
     """The oracle of ``input_scale``: every patch's samples scaled before any node is built."""
-    return [dataclasses.replace(p, samples=scale_input_noise(p.samples, scale))
+    return [dataclasses.replace(p, samples=scale_input_noise(p.samples, scale, part))
             for p in patches]
 
 
@@ -38,23 +39,29 @@ def _samples(n: int, rng: np.random.Generator, scans: int = 4) -> SampleSet:
                      rng.integers(0, scans, n), factors, np.zeros(n, dtype=np.int16))
 
 
+@pytest.mark.parametrize("part", ["all", "pose"])
 @pytest.mark.parametrize("scale", [0.3, 2.5])
-def test_scaled_samples_give_the_closed_form_of_the_scaled_joint_law(scale):
-    # Girard's closed form with every covariance, and the same-scan cross-covariance
-    # A_i A_j', multiplied by g: the oracle for what the scaled samples must mean.
+def test_scaled_samples_give_the_closed_form_of_the_scaled_joint_law(scale, part):
+    # Girard's closed form with the scaled joint law: every covariance times g (``all``),
+    # or the sensor part S_i - A_i A_i' as stated and the pose part times g (``pose``);
+    # the same-scan cross-covariance A_i A_j' times g either way.
     rng = np.random.default_rng(0)
     s = _samples(12, rng, scans=2)
-    scaled = scale_input_noise(s, scale)
+    scaled = scale_input_noise(s, scale, part)
+    pose = np.einsum("nik,njk->nij", s.pose_factors, s.pose_factors)
+    law = scale * s.covariances if part == "all" else s.covariances + (scale - 1) * pose
     kernel = SquaredExponentialKernel(1.3, (0.4, 0.6))
     k = expected_kernel_matrix(kernel, scaled.means, scaled.covariances, 8,
                                scan_ids=scaled.scan_ids, pose_factors=scaled.pose_factors)
     i, j = np.triu_indices(len(s), 1)
     cross = np.einsum("pik,pjk->pij", s.pose_factors[i], s.pose_factors[j])
     cross[s.scan_ids[i] != s.scan_ids[j]] = 0.0
-    oracle = expected_se_closed_form_pairs(kernel, s.means[i], scale * s.covariances[i],
-                                           s.means[j], scale * s.covariances[j],
+    oracle = expected_se_closed_form_pairs(kernel, s.means[i], law[i], s.means[j], law[j],
                                            scale * cross)
     np.testing.assert_allclose(k[i, j], oracle, rtol=0, atol=2e-4)
+    assert scale_input_noise(s, 1.0, part) is s
+    with pytest.raises(ValueError, match="part"):
+        scale_input_noise(s, scale, "sensor")
 
 
 def test_scale_one_is_the_published_model_exactly():
@@ -71,22 +78,29 @@ def test_scale_one_is_the_published_model_exactly():
     np.testing.assert_array_equal(grad_g[:-1], grad)
 
 
+@pytest.mark.parametrize("part", ["all", "pose"])
 @pytest.mark.parametrize("kernel", [SquaredExponentialKernel(1.0, (0.3, 0.3)),
                                     NeuralNetworkKernel(1.5, 20.0, (30.0, 50.0))],
-                         ids=["se-central-difference", "nn-analytic"])
-def test_log_scale_gradient_matches_the_likelihood_of_scaled_patches(kernel):
-    # The last gradient entry against a difference of the plain likelihood of patches
-    # scaled by hand (a wider step than the implementation's).
+                         ids=["se", "nn"])
+def test_log_scale_gradient_matches_the_likelihood_of_scaled_patches(kernel, part):
+    # Value and gradient against the plain likelihood of patches scaled by hand, the
+    # last entry against its difference (a wider step than the implementation's). The
+    # NN kernel's whole-covariance scale has an analytic derivative, the rest differences.
     rng = np.random.default_rng(2)
     patches = make_patches(_samples(150, rng), TrainingConfig(patches=2, patch_size=60), 0)
     params = np.append(kernel.theta, math.log(0.05))
     log_g, h = math.log(1.7), 1e-2
-    _, grad = negative_log_likelihood_with_scale(np.append(params, log_g), kernel, patches, 2)
-    up = negative_log_likelihood(params, kernel, scale_patches(patches, math.exp(log_g + h)),
-                                 2)[0]
-    down = negative_log_likelihood(params, kernel,
-                                   scale_patches(patches, math.exp(log_g - h)), 2)[0]
-    assert grad[-1] == pytest.approx((up - down) / (2 * h), rel=1e-3, abs=1e-3)
+
+    def by_hand(g: float) -> tuple[float, np.ndarray]:
+        return negative_log_likelihood(params, kernel, scale_patches(patches, g, part), 2)
+
+    value, grad = negative_log_likelihood_with_scale(np.append(params, log_g), kernel,
+                                                     patches, 2, scale_part=part)
+    ref, ref_grad = by_hand(math.exp(log_g))
+    assert value == pytest.approx(ref, rel=1e-12)
+    np.testing.assert_allclose(grad[:-1], ref_grad, rtol=1e-10, atol=1e-12)
+    slope = (by_hand(math.exp(log_g + h))[0] - by_hand(math.exp(log_g - h))[0]) / (2 * h)
+    assert grad[-1] == pytest.approx(slope, rel=1e-3, abs=1e-3)
 
 
 def _synthetic(true_scale: float, seed: int) -> tuple[SampleSet, SquaredExponentialKernel]:
@@ -202,30 +216,6 @@ def test_scaled_likelihood_equals_the_likelihood_of_scaled_patches():
         np.testing.assert_allclose(grad, ref_grad, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("scale", [0.3, 2.5])
-def test_a_pose_only_scale_gives_the_closed_form_of_its_joint_law(scale):
-    # Girard's closed form with the sensor part as stated and the pose part, within a
-    # sample and across same-scan samples, times g.
-    rng = np.random.default_rng(3)
-    s = _samples(12, rng, scans=2)
-    scaled = scale_input_noise(s, scale, "pose")
-    pose = np.einsum("nik,njk->nij", s.pose_factors, s.pose_factors)
-    sensor = s.covariances - pose
-    kernel = SquaredExponentialKernel(1.3, (0.4, 0.6))
-    k = expected_kernel_matrix(kernel, scaled.means, scaled.covariances, 8,
-                               scan_ids=scaled.scan_ids, pose_factors=scaled.pose_factors)
-    i, j = np.triu_indices(len(s), 1)
-    cross = np.einsum("pik,pjk->pij", s.pose_factors[i], s.pose_factors[j])
-    cross[s.scan_ids[i] != s.scan_ids[j]] = 0.0
-    oracle = expected_se_closed_form_pairs(
-        kernel, s.means[i], sensor[i] + scale * pose[i], s.means[j],
-        sensor[j] + scale * pose[j], scale * cross)
-    np.testing.assert_allclose(k[i, j], oracle, rtol=0, atol=2e-4)
-    assert scale_input_noise(s, 1.0, "pose") is s
-    with pytest.raises(ValueError, match="part"):
-        scale_input_noise(s, scale, "sensor")
-
-
 def test_a_pose_only_scale_leaves_inputs_without_pose_error_as_stated():
     rng = np.random.default_rng(4)
     s = _samples(20, rng)
@@ -234,30 +224,15 @@ def test_a_pose_only_scale_leaves_inputs_without_pose_error_as_stated():
     np.testing.assert_allclose(scaled.covariances, s.covariances, rtol=0, atol=1e-15)
 
 
-@pytest.mark.parametrize("kernel", [SquaredExponentialKernel(1.0, (0.3, 0.3)),
-                                    NeuralNetworkKernel(1.5, 20.0, (30.0, 50.0))],
-                         ids=["se", "nn"])
-def test_pose_only_likelihood_and_gradient_against_patches_scaled_by_hand(kernel):
+def test_a_pose_only_scale_differs_from_a_whole_one_where_sensors_are_noisy():
     rng = np.random.default_rng(5)
     patches = make_patches(_samples(150, rng), TrainingConfig(patches=2, patch_size=60), 0)
-    params = np.append(kernel.theta, math.log(0.05))
-    log_g, h = math.log(1.7), 1e-2
-
-    def by_hand(g: float) -> tuple[float, np.ndarray]:
-        scaled = [dataclasses.replace(p, samples=scale_input_noise(p.samples, g, "pose"))
-                  for p in patches]
-        return negative_log_likelihood(params, kernel, scaled, 2)
-
-    value, grad = negative_log_likelihood_with_scale(np.append(params, log_g), kernel,
-                                                     patches, 2, scale_part="pose")
-    ref, ref_grad = by_hand(math.exp(log_g))
-    assert value == pytest.approx(ref, rel=1e-12)
-    np.testing.assert_allclose(grad[:-1], ref_grad, rtol=1e-10, atol=1e-12)
-    slope = (by_hand(math.exp(log_g + h))[0] - by_hand(math.exp(log_g - h))[0]) / (2 * h)
-    assert grad[-1] == pytest.approx(slope, rel=1e-3, abs=1e-3)
-    # Different from scaling whole covariances, whose sensor part is not small here.
-    assert abs(negative_log_likelihood_with_scale(np.append(params, log_g), kernel,
-                                                  patches, 2)[0] - value) > 1e-3
+    kernel = SquaredExponentialKernel(1.0, (0.3, 0.3))
+    params = np.append(kernel.theta, [math.log(0.05), math.log(1.7)])
+    whole, pose = (negative_log_likelihood_with_scale(params, kernel, patches, 2,
+                                                      scale_part=part)[0]
+                   for part in ("all", "pose"))
+    assert abs(whole - pose) > 1e-3
 
 
 def test_a_model_scales_the_pose_part_when_told_to(tmp_path):

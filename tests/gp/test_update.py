@@ -135,19 +135,25 @@ def test_relearned_update_is_the_model_of_all_logs(logs, tmp_path):
     assert up.growth.records[1].start_s == 100.0 and up.growth.records[1].end_s == 109.0
 
 
-def test_label_weights_of_an_update_count_every_log(logs, tmp_path):
-    """With ``samples.label_weights: share`` (and no ``min_label_share``, so the votes are
-    kept for the weights alone) the updated model's factors are those of training on all
-    logs: the votes of both logs add up."""
-    (tmp_path / "job.yaml").write_text(CONFIG.replace("min_label_share: 0.1",
-                                                      "label_weights: share"))
+def _trained_and_relearned(logs: dict[str, Path], tmp_path: Path, config: str):
+    """The models of ``train a b`` and of ``train a`` then ``update --relearn`` with b,
+    both under ``config``."""
+    (tmp_path / "job.yaml").write_text(config)
     job = str(tmp_path / "job.yaml")
     gpocc("train", str(logs["a"]), "--config", job, "--out", str(tmp_path / "a.npz"))
     gpocc("train", str(logs["a"]), str(logs["b"]), "--config", job,
           "--out", str(tmp_path / "ab.npz"))
     gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--relearn",
           "--out", str(tmp_path / "up.npz"))
-    both, up = (load_model(tmp_path / n) for n in ("ab.npz", "up.npz"))
+    return tuple(load_model(tmp_path / n) for n in ("ab.npz", "up.npz"))
+
+
+def test_label_weights_of_an_update_count_every_log(logs, tmp_path):
+    """With ``samples.label_weights: share`` (and no ``min_label_share``, so the votes are
+    kept for the weights alone) the updated model's factors are those of training on all
+    logs: the votes of both logs add up."""
+    both, up = _trained_and_relearned(logs, tmp_path, CONFIG.replace(
+        "min_label_share: 0.1", "label_weights: share"))
     _same_samples(both.samples, up.samples)
     assert both.samples.noise_factors is not None and both.samples.noise_factors.max() > 1
     np.testing.assert_array_equal(both.samples.noise_factors, up.samples.noise_factors)
@@ -485,15 +491,8 @@ def test_split_of_a_moved_recording_writes_poses_in_the_job_frame(tmp_path):
 def test_a_pose_only_scale_survives_an_update(logs, tmp_path):
     """A model that scales the pose part of its inputs only: relearned on all logs by
     ``update`` it is the model of training on all logs (samples, scale, kernel)."""
-    (tmp_path / "job.yaml").write_text(CONFIG.replace(
+    both, up = _trained_and_relearned(logs, tmp_path, CONFIG.replace(
         "lbfgs_maxiter: 4}", "lbfgs_maxiter: 4, input_noise_scale_part: pose}"))
-    job = str(tmp_path / "job.yaml")
-    gpocc("train", str(logs["a"]), "--config", job, "--out", str(tmp_path / "a.npz"))
-    gpocc("train", str(logs["a"]), str(logs["b"]), "--config", job,
-          "--out", str(tmp_path / "ab.npz"))
-    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--relearn",
-          "--out", str(tmp_path / "up.npz"))
-    both, up = (load_model(tmp_path / n) for n in ("ab.npz", "up.npz"))
     assert up.config.model.training.input_noise_scale_part == "pose"
     _same_samples(both.samples, up.samples)
     assert both.input_noise_scale == up.input_noise_scale != 1.0
