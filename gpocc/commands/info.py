@@ -136,7 +136,8 @@ def format_model(path: Path, model: GPModel) -> list[str]:
         f"  kernel: {params}",
         f"  noise_variance: {model.noise_variance:.6g}",
         f"  input noise: {'on' if model.input_noise else 'off'}"
-        + (f", input covariances scaled by {model.input_noise_scale:.4g}"
+        + (f", input covariances{_scaled_part(model)} scaled by "
+           f"{model.input_noise_scale:.4g}"
            if model.input_noise and model.input_noise_scale != 1.0 else ""),
         f"  classifier: {model.classifier.summary()}), thresholds "
         f"occupied {model.config.classify.occupied:g}, free {model.config.classify.free:g}",
@@ -157,6 +158,12 @@ def format_model(path: Path, model: GPModel) -> list[str]:
         ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
         + f" (total {sum(timings.values()):.1f} s)" if timings else "(not recorded)"))
     return lines
+
+
+def _scaled_part(model: GPModel) -> str:
+    """`` (pose part)`` when the learned scale multiplies the pose part alone."""
+    return (" (pose part)" if model.config.model.training.input_noise_scale_part == "pose"
+            else "")
 
 
 def _input_lines(model: GPModel) -> list[str]:

@@ -129,7 +129,9 @@ def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
     typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
                f"(initial {model.training['initial_log_marginal_likelihood']:.3f})")
     if model.input_noise_scale != 1.0:
-        typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}")
+        part = model.config.model.training.input_noise_scale_part
+        typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}"
+                   + (" (pose part of the input covariances)" if part == "pose" else ""))
     typer.echo(f"classifier: {model.classifier.summary()}; {_fitted_on(model.training)})")
     timings = model.training["timings_s"]
     typer.echo(f"stages: read {timings['read']:.1f} s, samples {timings['samples']:.1f} s, "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from gpocc.gp.expected import expected_kernel_matrix, expected_se_closed_form_pa
 from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
 from gpocc.gp.local import LocalProblem
+from gpocc.gp.model import load_model
 from gpocc.gp.train import (
     learn_hyperparameters,
     make_patches,
@@ -259,3 +261,23 @@ def test_a_model_scales_the_pose_part_when_told_to(tmp_path):
     again = load_model(tmp_path / "m.npz")
     assert again.config.model.training.input_noise_scale_part == "pose"
     np.testing.assert_array_equal(again.samples.covariances, model.samples.covariances)
+
+
+def test_train_and_info_say_when_g_scales_the_pose_part(tmp_path):
+    import yaml
+    from typer.testing import CliRunner
+
+    from gpocc.cli import app
+
+    sample = Path(__file__).resolve().parents[2] / "data" / "sample"
+    config = yaml.safe_load((sample / "sample.yaml").read_text())
+    config.setdefault("model", {}).setdefault("training", {})["input_noise_scale_part"] = "pose"
+    (tmp_path / "pose.yaml").write_text(yaml.safe_dump(config))
+    out = tmp_path / "m.npz"
+    trained = CliRunner().invoke(app, ["train", str(sample / "intel_sample.mcap"), "--config",
+                                       str(tmp_path / "pose.yaml"), "--out", str(out)])
+    assert trained.exit_code == 0, trained.output
+    info = CliRunner().invoke(app, ["info", str(out)])
+    assert load_model(out).input_noise_scale != 1.0  # the sample's g is learned off 1
+    assert "(pose part of the input covariances)" in trained.stdout
+    assert "input covariances (pose part) scaled by" in info.stdout
