@@ -68,7 +68,7 @@ bench: $(BENCH_STAMP) bytecode
 # each changes one default (bench/experiment.py VARIANTS).
 EXPERIMENT_COMPARE ?= hit-gap-0.25 no-temperature label-map fixed-scale thin-0.1 patches-20 \
 	label-weights anneal-1 bounds-6 g-max-16 floor-0.03 overlap-0.5 clearance-0 \
-	pose-scale two-draw-pose-scale
+	pose-scale two-draw-pose-scale fixed-bias
 experiment: $(BENCH_STAMP) bytecode
 	for v in $(EXPERIMENT_COMPARE); do \
 		$(BIN)/python -m bench.experiment sim real --variant $$v --doc /dev/null > /dev/null || exit 1; done

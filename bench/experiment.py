@@ -134,6 +134,10 @@ VARIANTS: dict[str, dict[str, object]] = {
     "pose-scale": {"model.training.input_noise_scale_part": "pose"},
     "clearance-0-pose-scale": {"samples.free_clearance_m": 0.0,
                                "model.training.input_noise_scale_part": "pose"},
+    # The NN kernel's bias variance held where learning leaves it in most cases (its
+    # upper bound, 10 e^4), a likelihood ridge along which the maps do not change.
+    "fixed-bias": {"model.hyperparameters.bias_variance": 545.98,
+                   "model.training.fixed": ["bias_variance"]},
     "two-draw-pose-scale": {"model.diagonal": "two-draw",
                             "model.training.input_noise_scale_part": "pose"},
     "bounds-6": {"model.training.log_bounds_width": 6.0},

@@ -220,7 +220,10 @@ class TrainingConfig:
     ``min_noise_variance``: with uncertain inputs the one-point diagonal already carries
     input-induced noise, and without a floor the likelihood of a few patches can drive
     the label noise to zero and interpolate the accurate samples' labels exactly.
-    ``learn: false`` keeps the initial values. ``classifier_holdout``: how the Platt
+    ``learn: false`` keeps the initial values; ``fixed`` keeps only the named ones (the
+    kernel's parameter names, e.g. ``bias_variance`` or ``weight_variance_x``, and
+    ``noise_variance``) at their initial values while the others are learned.
+    ``classifier_holdout``: how the Platt
     classifier's training labels are held out, ``sample`` (leave one sample out, the method
     as published, default) or ``scan`` (leave one scan out); see gpocc.gp.classify
     (leave-one-scan-out measured worse calibrated on held-out data: docs/results.md,
@@ -264,6 +267,7 @@ class TrainingConfig:
     patch_centres: str = "hits"
     anneal_maxfun: int = 20
     lbfgs_maxiter: int = 40
+    fixed: tuple[str, ...] = ()
     log_bounds_width: float = 4.0
     min_noise_variance: float = 0.1
     classifier_holdout: str = "sample"
@@ -606,6 +610,27 @@ def _build(cls: Any, data: dict[str, Any], prefix: str, source: str) -> Any:
         raise GpoccError(f"{source}: {exc}") from None
 
 
+def _check_fixed(config: Config, source: str) -> None:
+    """``model.training.fixed`` names only values the model's kernel learns."""
+    from gpocc.gp.kernels import make_kernel  # the kernels import this module
+
+    learnable = (*make_kernel(config.model.kernel, config.model.hyperparameters)
+                 .parameter_names, "noise_variance")
+    for name in config.model.training.fixed:
+        if name not in learnable:
+            raise GpoccError(
+                f"{source}: key 'model.training.fixed' names {name!r}, which the "
+                f"'{config.model.kernel}' kernel does not learn; use some of "
+                f"{', '.join(learnable)}")
+    training = config.model.training
+    noise = config.model.hyperparameters.noise_variance
+    if "noise_variance" in training.fixed and noise < training.min_noise_variance:
+        raise GpoccError(
+            f"{source}: 'model.training.fixed' holds noise_variance at {noise:g}, below "
+            f"model.training.min_noise_variance ({training.min_noise_variance:g}); raise "
+            f"the one or lower the other")
+
+
 def _validate(config: Config, source: str) -> Config:
     if not 0 <= config.seed < 2**32:
         raise GpoccError(f"{source}: key 'seed' must be an integer in [0, 2^32), got "
@@ -686,6 +711,8 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(f"{source}: key 'samples.label_weights' must be 'none' or 'share', "
                          f"got {config.samples.label_weights!r}")
     t = config.model.training
+    if t.fixed:
+        _check_fixed(config, source)
     if t.classifier_holdout not in ("scan", "sample"):
         raise GpoccError(
             f"{source}: key 'model.training.classifier_holdout' must be 'scan' or 'sample', "

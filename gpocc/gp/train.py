@@ -436,12 +436,31 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         best_value = value_only(x0)
         evaluations += 1
     best = x0
+    # ``config.fixed`` values stay at their start: the optimisers see the others only.
+    free = np.ones(x0.shape[0], dtype=bool)
+    names = [*kernel.parameter_names, "noise_variance"]
+    free[[names.index(n) for n in config.fixed]] = False
+    free_bounds = [b for b, f in zip(bounds, free, strict=True) if f]
+
+    def lift(p: np.ndarray) -> np.ndarray:
+        full = x0.copy()
+        full[free] = p
+        return full
+
+    def value_only_free(p: np.ndarray) -> float:
+        return value_only(lift(p))
+
+    def objective_free(p: np.ndarray, *args: object) -> tuple[float, np.ndarray]:
+        value, grad = negative_log_likelihood_counted(lift(p), *args)
+        return value, grad[free]
+
     from_start = False
     if warm_start is not None:
         given = np.append(warm_start.kernel.theta, math.log(warm_start.noise_variance))
         if learn_scale:
             given = np.append(given, math.log(warm_start.input_noise_scale))
         given = np.clip(given, [lo for lo, _ in bounds], [hi for _, hi in bounds])
+        given[~free] = x0[~free]
         given_value = value_only(given)
         evaluations += 1
         # A start worse than the initial values (a model of few logs that learned a kernel
@@ -451,19 +470,19 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
             best, best_value = given, given_value
     if config.anneal_maxfun > 0 and not from_start:
         annealed = dual_annealing(
-            value_only, bounds, maxfun=config.anneal_maxfun, seed=seed, x0=x0,
-            no_local_search=True,
+            value_only_free, free_bounds, maxfun=config.anneal_maxfun, seed=seed,
+            x0=x0[free], no_local_search=True,
         )
         evaluations += int(annealed.nfev)
         if annealed.fun < initial:
-            best, best_value = annealed.x, float(annealed.fun)
+            best, best_value = lift(annealed.x), float(annealed.fun)
     refined = minimize(
-        negative_log_likelihood_counted, best, args=(kernel, patches, level), jac=True,
-        method="L-BFGS-B", bounds=bounds, options={"maxiter": config.lbfgs_maxiter},
+        objective_free, best[free], args=(kernel, patches, level), jac=True,
+        method="L-BFGS-B", bounds=free_bounds, options={"maxiter": config.lbfgs_maxiter},
     )
     evaluations += int(refined.nfev)
     if refined.fun <= best_value:
-        final, final_value = refined.x, float(refined.fun)
+        final, final_value = lift(refined.x), float(refined.fun)
     else:
         final, final_value = best, best_value
     return TrainingResult(

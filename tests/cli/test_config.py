@@ -45,6 +45,10 @@ def test_defaults_and_round_trip():
          "'model.training.classifier_holdout' must be 'scan' or 'sample'"),
         ("model:\n  training:\n    input_noise_scale_part: sensor\n",
          "'model.training.input_noise_scale_part' must be 'all' or 'pose'"),
+        ("model:\n  training:\n    fixed: [lengthscale_x]\n",
+         "'model.training.fixed' names 'lengthscale_x', which the 'nn' kernel does not learn"),
+        ("model:\n  hyperparameters:\n    noise_variance: 0.05\n  training:\n"
+         "    fixed: [noise_variance]\n", "below model.training.min_noise_variance (0.1)"),
         ("model:\n  training:\n    classifier_offset: beam\n",
          "'model.training.classifier_offset' must be 'holdout' or 'beams'"),
         ("model:\n  training:\n    patch_centres: walls\n",

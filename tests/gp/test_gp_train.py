@@ -160,16 +160,22 @@ def test_recovers_known_hyperparameters():
     assert 0.5 * 1.5 < result.kernel.signal_variance < 2.0 * 1.5
 
 
+def _se_draw(seed: int, lengthscale: tuple[float, float]):
+    """300 samples on 8 x 8 m labelled by a draw of an SE GP (signal variance 1.5, noise
+    variance 0.05)."""
+    rng = np.random.default_rng(seed)
+    means = rng.uniform(0, 8, (300, 2))
+    truth = SquaredExponentialKernel(1.5, lengthscale)
+    cov = truth(means, means) + 0.05 * np.eye(300)
+    return samples_from(means, np.linalg.cholesky(cov) @ rng.standard_normal(300))
+
+
 def test_a_warm_start_reaches_the_optimum_of_the_full_search():
     """L-BFGS-B alone from another start (``warm_start``, as ``gpocc update`` refines a
     model's values) ends where annealing then L-BFGS-B from the initial values ends on the
     same patches, in fewer evaluations; a start that fits worse than the initial values
     is dropped for the full search."""
-    rng = np.random.default_rng(7)
-    means = rng.uniform(0, 8, (300, 2))
-    truth = SquaredExponentialKernel(1.5, (0.7, 0.7))
-    cov = truth(means, means) + 0.05 * np.eye(300)
-    samples = samples_from(means, np.linalg.cholesky(cov) @ rng.standard_normal(300))
+    samples = _se_draw(7, (0.7, 0.7))
     config = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=30, lbfgs_maxiter=200,
                             min_noise_variance=0.01)
     start = SquaredExponentialKernel(0.5, (2.0, 2.0))
@@ -191,6 +197,33 @@ def test_a_warm_start_reaches_the_optimum_of_the_full_search():
     assert not dropped.warm_started
     np.testing.assert_array_equal(dropped.kernel.theta, full.kernel.theta)
     assert dropped.noise_variance == full.noise_variance
+
+
+@pytest.mark.parametrize("fixed", [("signal_variance",), ("lengthscale_y", "noise_variance")])
+def test_fixed_values_stay_and_the_others_reach_a_stationary_point(fixed):
+    """``fixed`` values end where they started; the likelihood's gradient in the others
+    vanishes at the result (central differences of the plain likelihood, an oracle
+    independent of the optimiser's own gradient), unless a bound holds them."""
+    samples = _se_draw(11, (0.7, 0.9))
+    config = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=10, lbfgs_maxiter=200,
+                            min_noise_variance=0.01, fixed=fixed)
+    start = SquaredExponentialKernel(1.0, (1.0, 1.0))
+    result = learn_hyperparameters(start, 0.2, samples, 1, config, seed=0, workers=1)
+    names = [*start.parameter_names, "noise_variance"]
+    initial = np.append(start.theta, math.log(0.2))
+    learned = np.append(result.kernel.theta, math.log(result.noise_variance))
+    held = np.array([n in fixed for n in names])
+    np.testing.assert_array_equal(learned[held], initial[held])
+    assert np.all(np.abs(learned[~held] - initial[~held]) > 1e-3)
+    patches = make_patches(samples, config, 0)
+    step = 1e-4
+    for i in np.flatnonzero(~held):
+        up, down = learned.copy(), learned.copy()
+        up[i] += step
+        down[i] -= step
+        slope = (negative_log_likelihood(up, start, patches, 1, with_gradient=False)[0]
+                 - negative_log_likelihood(down, start, patches, 1, with_gradient=False)[0])
+        assert abs(slope / (2 * step)) < 0.05, names[i]
 
 
 def test_classifier_maximises_loo_log_probability():
