@@ -199,6 +199,12 @@ class HyperparametersConfig:
     noise_variance: float = 0.1
 
 
+#: What the learned input-noise scale g multiplies (``input_noise_scale_part``;
+#: :func:`gpocc.gp.inputscale.scale_input_noise`): whole input covariances, or their pose
+#: part.
+INPUT_NOISE_SCALE_PARTS = ("all", "pose")
+
+
 @dataclass(frozen=True)
 class TrainingConfig:
     """Hyperparameter learning: log marginal likelihood summed over local patches.
@@ -610,6 +616,13 @@ def _build(cls: Any, data: dict[str, Any], prefix: str, source: str) -> Any:
         raise GpoccError(f"{source}: {exc}") from None
 
 
+def _one_of(value: str, choices: tuple[str, ...], key: str, source: str) -> None:
+    """One error line unless the config's ``key`` is one of ``choices``."""
+    if value not in choices:
+        listed = " or ".join((", ".join(f"'{c}'" for c in choices[:-1]), f"'{choices[-1]}'"))
+        raise GpoccError(f"{source}: key '{key}' must be {listed}, got {value!r}")
+
+
 def _check_fixed(config: Config, source: str) -> None:
     """``model.training.fixed`` names only values the model's kernel learns."""
     from gpocc.gp.kernels import make_kernel  # the kernels import this module
@@ -707,48 +720,24 @@ def _validate(config: Config, source: str) -> Config:
             f"{source}: key 'map.georef.epsg' must be a projected EPSG code (e.g. 32633 for "
             f"UTM 33N), got {georef.epsg}"
         )
-    if config.samples.label_weights not in ("none", "share"):
-        raise GpoccError(f"{source}: key 'samples.label_weights' must be 'none' or 'share', "
-                         f"got {config.samples.label_weights!r}")
+    _one_of(config.samples.label_weights, ("none", "share"), "samples.label_weights", source)
     t = config.model.training
     if t.fixed:
         _check_fixed(config, source)
-    if t.classifier_holdout not in ("scan", "sample"):
-        raise GpoccError(
-            f"{source}: key 'model.training.classifier_holdout' must be 'scan' or 'sample', "
-            f"got {t.classifier_holdout!r}"
-        )
-    if t.input_noise_scale_part not in ("all", "pose"):
-        raise GpoccError(
-            f"{source}: key 'model.training.input_noise_scale_part' must be 'all' or "
-            f"'pose', got {t.input_noise_scale_part!r}"
-        )
-    if t.patch_centres not in ("hits", "samples"):
-        raise GpoccError(
-            f"{source}: key 'model.training.patch_centres' must be 'hits' or 'samples', "
-            f"got {t.patch_centres!r}"
-        )
-    if t.classifier_variance not in ("latent", "label", "label-map"):
-        raise GpoccError(
-            f"{source}: key 'model.training.classifier_variance' must be 'label', "
-            f"'label-map' or 'latent', got {t.classifier_variance!r}"
-        )
-    if t.classifier_temperature not in ("none", "samples", "beams"):
-        raise GpoccError(
-            f"{source}: key 'model.training.classifier_temperature' must be 'none', "
-            f"'samples' or 'beams', got {t.classifier_temperature!r}"
-        )
+    for key, choices in (("classifier_holdout", ("scan", "sample")),
+                         ("input_noise_scale_part", INPUT_NOISE_SCALE_PARTS),
+                         ("patch_centres", ("hits", "samples")),
+                         ("classifier_variance", ("label", "label-map", "latent")),
+                         ("classifier_temperature", ("none", "samples", "beams"))):
+        _one_of(getattr(t, key), choices, f"model.training.{key}", source)
     if t.classifier_variance == "label-map" and t.classifier_temperature == "samples":
         raise GpoccError(
             f"{source}: 'model.training.classifier_temperature: samples' fits T on the "
             f"held-out samples' latent variance, which 'classifier_variance: label-map' does "
             f"not use; set classifier_temperature to 'beams' or 'none'"
         )
-    if t.classifier_offset not in ("holdout", "beams"):
-        raise GpoccError(
-            f"{source}: key 'model.training.classifier_offset' must be 'holdout' or 'beams', "
-            f"got {t.classifier_offset!r}"
-        )
+    _one_of(t.classifier_offset, ("holdout", "beams"), "model.training.classifier_offset",
+            source)
     if t.calibration_every < 2:
         raise GpoccError(
             f"{source}: key 'model.training.calibration_every' must be at least 2 (one "
@@ -784,9 +773,7 @@ _MAX_BHM_NEIGHBOURS = 441
 
 
 def _validate_bhm(b: BHMConfig, source: str) -> None:
-    if b.mean_update not in ("coupled", "diagonal"):
-        raise GpoccError(f"{source}: key 'bhm.mean_update' must be 'coupled' or 'diagonal', "
-                         f"got {b.mean_update!r}")
+    _one_of(b.mean_update, ("coupled", "diagonal"), "bhm.mean_update", source)
     reach = 3.0 / math.sqrt(b.gamma)
     if reach < b.inducing_spacing_m:
         raise GpoccError(

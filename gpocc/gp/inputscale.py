@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 
+from gpocc.config import INPUT_NOISE_SCALE_PARTS
 from gpocc.samples.sampleset import SampleSet
 
 #: Step in log g of the central differences in log g: d(-LML)/d log g where the kernel has
@@ -30,16 +31,12 @@ from gpocc.samples.sampleset import SampleSet
 LOG_SCALE_STEP = 1e-3
 
 
-#: What g scales: every input covariance, or its pose part only.
-SCALE_PARTS = ("all", "pose")
-
-
 def scale_input_noise(samples: SampleSet, scale: float, part: str = "all") -> SampleSet:
     """``samples`` with pose factors (N, 2, 3) m times ``sqrt(scale)`` and covariances
     (N, 2, 2) m^2 times ``scale`` (``part="all"``) or with their pose part ``A A'`` times
     ``scale`` (``part="pose"``); ``scale == 1`` returns ``samples`` itself."""
-    if part not in SCALE_PARTS:
-        raise ValueError(f"part must be one of {SCALE_PARTS}, not {part!r}")
+    if part not in INPUT_NOISE_SCALE_PARTS:
+        raise ValueError(f"part must be one of {INPUT_NOISE_SCALE_PARTS}, not {part!r}")
     if scale == 1.0:
         return samples
     factors = samples.pose_factors
