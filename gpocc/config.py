@@ -625,10 +625,9 @@ def _one_of(value: str, choices: tuple[str, ...], key: str, source: str) -> None
 
 def _check_fixed(config: Config, source: str) -> None:
     """``model.training.fixed`` names only values the model's kernel learns."""
-    from gpocc.gp.kernels import make_kernel  # the kernels import this module
+    from gpocc.gp.kernels import learned_names, make_kernel  # they import this module
 
-    learnable = (*make_kernel(config.model.kernel, config.model.hyperparameters)
-                 .parameter_names, "noise_variance")
+    learnable = learned_names(make_kernel(config.model.kernel, config.model.hyperparameters))
     for name in config.model.training.fixed:
         if name not in learnable:
             raise GpoccError(

@@ -362,6 +362,13 @@ def kernel_names_text() -> str:
     return " or ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
 
 
+def learned_names(kernel: Kernel) -> tuple[str, ...]:
+    """The names of the values learning searches, in the optimiser's order (before the
+    input-noise scale): the kernel's parameters, then ``noise_variance``;
+    ``model.training.fixed`` names some of them."""
+    return (*kernel.parameter_names, "noise_variance")
+
+
 def make_kernel(name: str, hyperparameters: HyperparametersConfig) -> Kernel:
     """The kernel named by ``model.kernel`` (a key of :data:`KERNELS`) with its initial
     values."""

@@ -31,7 +31,7 @@ from gpocc.errors import GpoccError
 from gpocc.gp import backends
 from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP, scale_input_noise
-from gpocc.gp.kernels import Kernel
+from gpocc.gp.kernels import Kernel, learned_names
 from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
@@ -438,7 +438,7 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     best = x0
     # ``config.fixed`` values stay at their start: the optimisers see the others only.
     free = np.ones(x0.shape[0], dtype=bool)
-    names = [*kernel.parameter_names, "noise_variance"]
+    names = learned_names(kernel)
     free[[names.index(n) for n in config.fixed]] = False
     free_bounds = [b for b, f in zip(bounds, free, strict=True) if f]
 
