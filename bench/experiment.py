@@ -317,15 +317,13 @@ def free_by_wall_distance(truth: Path, maps: dict[str, Path]) -> dict[str, list[
     free = points[kind == "free"]
     distance, _ = cKDTree(points[kind == "hit"]).query(free)
     bucket = np.digitize(distance, WALL_DISTANCE_EDGES[1:])
+    masks = [bucket == b for b in range(len(WALL_DISTANCE_EDGES))]
     result = {}
     for method, folder in maps.items():
         p, inside = sample_map(folder / "probability.tif", free)
         p = np.where(inside & np.isfinite(p), p, 0.5)
-        result[method] = [[int((bucket == b).sum()),
-                           float(p[bucket == b].mean()) if (bucket == b).any() else math.nan,
-                           float((p[bucket == b] ** 2).mean()) if (bucket == b).any()
-                           else math.nan]
-                          for b in range(len(WALL_DISTANCE_EDGES))]
+        result[method] = [[int(m.sum()), float(p[m].mean()), float((p[m] ** 2).mean())]
+                          if m.any() else [0, math.nan, math.nan] for m in masks]
     return result
 
 
