@@ -341,6 +341,7 @@ def learned_values(model: Path) -> dict:
                    "input-noise scale g": m.input_noise_scale,
                    "classifier slope a": m.classifier.a})
     return {"log_marginal_likelihood": float(m.training["log_marginal_likelihood"]),
+            "evaluations": int(m.training["evaluations"]),
             "values": values,
             "on_bounds": {b.name: b.side for b in values_on_bounds(m)}}
 
@@ -620,6 +621,28 @@ def wall_distance_table(cases: list[dict]) -> list[str]:
     return lines
 
 
+def cost_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
+    """What each variant costs against this run, on the cases both ran: the median over
+    cases of the GP with input noise's train + map wall time, variant over this run, and
+    the median likelihood evaluations of its learning, here and in the variant (where both
+    runs recorded them)."""
+    ours = {c["case"]: c for c in cases}
+    lines = ["| variant | train + map time, median ratio | likelihood evaluations, median "
+             "here / in the variant |", "|---|---:|---:|"]
+    for name, other in variants.items():
+        both = [(ours[c["case"]], c) for c in other if c["case"] in ours]
+        timed = [b["gp_seconds"]["gp-input-noise"] / a["gp_seconds"]["gp-input-noise"]
+                 for a, b in both if "gp_seconds" in a and "gp_seconds" in b]
+        counted = [(a["learned"]["evaluations"], b["learned"]["evaluations"]) for a, b in both
+                   if "evaluations" in a.get("learned", {})
+                   and "evaluations" in b.get("learned", {})]
+        evaluations = (f"{np.median([a for a, _ in counted]):g} / "
+                       f"{np.median([b for _, b in counted]):g}" if counted else "")
+        ratio = f"{np.median(timed):.2f}" if timed else ""
+        lines.append(f"| {name} | {ratio} | {evaluations} |")
+    return lines
+
+
 def family_table(cases: list[dict]) -> list[str]:
     """Per world family: input noise against none and the grid (wins, worst AUC
     difference), and whether the mean AUC and FPR@TPR0.97 follow the method paper's
@@ -743,7 +766,11 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
                   *(f"| {name} | " + ", ".join(f"`{k}: {v}`" for k, v in
                                                VARIANTS[name].items()) + " |"
                     for name in variants), "",
-                  *variant_table(cases, variants), ""]
+                  *variant_table(cases, variants), "",
+                  "What each costs: the GP with input noise's train + map wall time on this "
+                  "machine (each variant ran at another time, so small ratios are noise), "
+                  "and its learning's likelihood evaluations.", "",
+                  *cost_table(cases, variants), ""]
     on_bounds = bounds_table(cases)
     if on_bounds:
         lines += ["## Learned values on their bounds", "",

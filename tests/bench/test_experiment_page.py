@@ -286,3 +286,23 @@ def test_the_wall_distance_table_lists_each_method_per_real_log():
                         "0.010 / 0.0001 |")
     assert table[8].startswith("|  | bhm | 0.200 / 0.0500 |")
     assert not table[9].startswith("|  | gp-input-noise")  # no record for it
+
+
+def test_the_cost_table_gives_time_ratios_and_evaluations_per_variant():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    other = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+    rng = np.random.default_rng(9)
+    for ours, theirs in zip(run["cases"], other, strict=True):
+        ours["gp_seconds"] = {"gp-input-noise": float(rng.uniform(1, 5))}
+        theirs["gp_seconds"] = {"gp-input-noise": float(rng.uniform(1, 5))}
+        for case in (ours, theirs):
+            case["learned"] = {"evaluations": int(rng.integers(30, 50)), "on_bounds": {},
+                               "values": {}, "log_marginal_likelihood": -1000.0}
+    other = other[1:]  # the variant ran one case fewer
+    text = experiment.page(run, {"fixed-bias": other})
+    ours = {c["case"]: c for c in run["cases"]}
+    ratio = np.median([c["gp_seconds"]["gp-input-noise"]
+                       / ours[c["case"]]["gp_seconds"]["gp-input-noise"] for c in other])
+    here = np.median([ours[c["case"]]["learned"]["evaluations"] for c in other])
+    there = np.median([c["learned"]["evaluations"] for c in other])
+    assert f"| fixed-bias | {ratio:.2f} | {here:g} / {there:g} |" in text.splitlines()
