@@ -621,6 +621,23 @@ def wall_distance_table(cases: list[dict]) -> list[str]:
     return lines
 
 
+def real_log_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
+    """The GP with input noise on each real log (``union`` protocol), this run and each
+    variant: AUC / Brier."""
+    real = [c for c in cases if c["kind"] == "real" and "union" in c["scores"]]
+    if not real:
+        return []
+    lines = ["| settings | " + " | ".join(c["case"].split(" (")[0] for c in real) + " |",
+             "|---|" + "---:|" * len(real)]
+    runs = {"this run": cases, **variants}
+    for name, run in runs.items():
+        by_case = {c["case"]: c["scores"].get("union", {}).get("gp-input-noise") for c in run}
+        cells = [by_case.get(c["case"]) for c in real]
+        lines.append(f"| {name} | " + " | ".join(
+            f"{s['auc']:.4f} / {s['brier']:.4f}" if s else "" for s in cells) + " |")
+    return lines
+
+
 def cost_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
     """What each variant costs against this run, on the cases both ran: the median over
     cases of the GP with input noise's train + map wall time, variant over this run, and
@@ -767,6 +784,8 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
                                                VARIANTS[name].items()) + " |"
                     for name in variants), "",
                   *variant_table(cases, variants), "",
+                  "On the real logs (union protocol, AUC / Brier):", "",
+                  *real_log_table(cases, variants), "",
                   "What each costs: the GP with input noise's train + map wall time on this "
                   "machine (each variant ran at another time, so small ratios are noise), "
                   "and its learning's likelihood evaluations.", "",

@@ -306,3 +306,23 @@ def test_the_cost_table_gives_time_ratios_and_evaluations_per_variant():
     here = np.median([ours[c["case"]]["learned"]["evaluations"] for c in other])
     there = np.median([c["learned"]["evaluations"] for c in other])
     assert f"| fixed-bias | {ratio:.2f} | {here:g} / {there:g} |" in text.splitlines()
+
+
+def test_the_real_log_table_lists_each_variant_on_each_log():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    other = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+    rng = np.random.default_rng(4)
+    for case in other:
+        case["scores"]["union"]["gp-input-noise"] = _scores(rng)
+    other = [c for c in other if c["case"] != "case 4"]  # the variant lacks one log
+    lines = experiment.page(run, {"clearance-0": other}).splitlines()
+    real = [c for c in run["cases"] if c["kind"] == "real"]
+    assert "| settings | case 3 | case 4 |" in lines
+
+    def cell(case: dict) -> str:
+        s = case["scores"]["union"]["gp-input-noise"]
+        return f"{s['auc']:.4f} / {s['brier']:.4f}"
+
+    assert f"| this run | {cell(real[0])} | {cell(real[1])} |" in lines
+    variant = next(c for c in other if c["case"] == "case 3")
+    assert f"| clearance-0 | {cell(variant)} |  |" in lines
