@@ -132,7 +132,8 @@ def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
         part = model.config.model.training.input_noise_scale_part
         typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}"
                    + (" (pose part of the input covariances)" if part == "pose" else ""))
-    typer.echo(f"classifier: {model.classifier.summary()}; {_fitted_on(model.training)})")
+    typer.echo(f"classifier: {model.classifier.summary()}; "
+               f"{_fitted_on(model.training, model.classifier.temperature)})")
     timings = model.training["timings_s"]
     typer.echo(f"stages: read {timings['read']:.1f} s, samples {timings['samples']:.1f} s, "
                f"hyperparameters+classifier {timings['learn']:.1f} s")
@@ -140,14 +141,17 @@ def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
         typer.echo(f"time: {seconds:.1f} s")
 
 
-def _fitted_on(training: dict) -> str:
-    """What the classifier was fitted on, for the summary line."""
+def _fitted_on(training: dict, temperature: float) -> str:
+    """What the classifier was fitted on, for the summary line (``temperature``: the
+    classifier's; exactly 1 under ``classifier_temperature: beams`` when none was fitted,
+    :func:`gpocc.gp.classify.fit_temperature`)."""
     how = ("fitted leaving one scan out" if training.get("classifier_holdout") == "scan"
            else "fitted leaving one sample out")
     beams = []
     if training.get("classifier_offset") == "beams":
         beams.append("offset")
-    if training.get("classifier_temperature") == "beams" and training.get("classifier_points"):
+    if (training.get("classifier_temperature") == "beams" and training.get("classifier_points")
+            and temperature != 1.0):
         beams.append("temperature")
     if beams:
         how += (f"; {' and '.join(beams)} from {training['classifier_points']} points of "

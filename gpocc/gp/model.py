@@ -31,6 +31,7 @@ from gpocc.gp.classify import (
     fit_classifier,
     fit_offset,
     fit_temperature,
+    separates,
 )
 from gpocc.gp.growth import Growth
 from gpocc.gp.inputscale import scale_input_noise
@@ -252,6 +253,10 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         classifier, offset = fit_offset(mean, variance, labels, classifier.extra_variance,
                                         classifier.temperature), "beams"
     if training.classifier_temperature == "beams":
+        if separates(classifier, mean, labels):
+            log(f"note: the classifier puts all {labels.size} labelled points of held-out "
+                "scans on their label's side, which leaves its temperature undetermined; "
+                "kept the held-out samples' fit (temperature 1)")
         classifier = fit_temperature(classifier, mean, variance, labels)
     return classifier, offset, int(labels.size)
 

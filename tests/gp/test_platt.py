@@ -11,11 +11,14 @@ from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import (
     S_MIN,
+    T_MAX,
+    T_MIN,
     PlattClassifier,
     fit_classifier,
     fit_platt,
     fit_temperature,
     held_out_log_probability,
+    separates,
 )
 from gpocc.gp.kernels import NeuralNetworkKernel
 from gpocc.gp.model import load_model
@@ -188,3 +191,29 @@ def test_fitted_temperature_recovers_the_one_that_drew_the_labels():
 def test_temperature_of_one_label_only_is_left_alone():
     given = PlattClassifier(offset=0.3, extra_variance=0.1)
     assert fit_temperature(given, np.ones(5), np.ones(5), np.ones(5)) == given
+
+
+def test_no_temperature_is_fitted_when_the_classifier_separates_the_points():
+    # Every point on its label's side: the log probability rises as T falls (checked on a
+    # grid), so no T maximises it and the classifier is returned as it was, not one
+    # anywhere on that slope.
+    rng = np.random.default_rng(6)
+    given = PlattClassifier(offset=0.05, extra_variance=1e-6)
+    labels = np.where(rng.random(300) < 0.1, 1.0, -1.0)
+    mean = labels * rng.uniform(0.2, 2.0, 300) - given.offset
+    var = rng.uniform(0.01, 0.1, 300)
+    assert separates(given, mean, labels)
+    values = [held_out_log_probability(given.offset, given.extra_variance, mean, var, labels,
+                                       t) for t in np.geomspace(T_MAX, T_MIN, 50)]
+    assert np.all(np.diff(values) >= 0) and values[-1] > values[0]
+    assert fit_temperature(given, mean, var, labels) == given
+    # One point on the wrong side: the probability has a maximum, and the fit finds it.
+    mean[0] = -labels[0] * 0.05 - given.offset
+    assert not separates(given, mean, labels)
+    fitted = fit_temperature(given, mean, var, labels)
+    grid = np.geomspace(T_MIN, T_MAX, 4000)
+    best = max(held_out_log_probability(given.offset, given.extra_variance, mean, var,
+                                        labels, t) for t in grid)
+    assert held_out_log_probability(given.offset, given.extra_variance, mean, var, labels,
+                                    fitted.temperature) >= best - 1e-6
+    assert T_MIN < fitted.temperature < 1.0
