@@ -96,6 +96,9 @@ _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}
 _HIT_PATCHES = {**_LEARNED, "model.training.patch_centres": "hits",
                 "samples.free_clearance_m": 0.05}
+#: Learning seeds of the run-to-run spread (seed 0 is the defaults' run).
+SPREAD_SEEDS = (1, 2, 3, 4)
+
 VARIANTS: dict[str, dict[str, object]] = {
     "defaults": {},
     "published": _PUBLISHED,
@@ -143,6 +146,13 @@ VARIANTS: dict[str, dict[str, object]] = {
     "bounds-6": {"model.training.log_bounds_width": 6.0},
     "g-max-16": {"model.training.max_input_noise_scale": 16.0},
     "floor-0.03": {"model.training.min_noise_variance": 0.03},
+    # Finer samples with more of them per local problem (about the area 0.15 m and 128
+    # cover): walls kept at 0.1 m.
+    "thin-0.1-n192": {"samples.thin_cell_m": 0.1, "model.neighbours": 192},
+    # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
+    # their noise and the held-out points stay): how far a setting's result moves by
+    # chance, the yardstick for the differences between settings.
+    **{f"seed-{k}": {"seed": k} for k in SPREAD_SEEDS},
 }
 
 #: The variants that widen the box of learned values (:mod:`gpocc.gp.bounds`), and the
@@ -504,13 +514,18 @@ def summary_table(cases: list[dict]) -> list[str]:
     return lines
 
 
-def variant_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
+def variant_table(cases: list[dict], variants: dict[str, list[dict]],
+                  spread: dict[str, dict[str, float]] | None = None) -> list[str]:
     """The GP with input noise at these settings against the same GP of each of
     ``variants`` (name -> that run's cases), on the cases both ran, per protocol: wins
-    count the cases where this run's GP is better."""
+    count the cases where this run's GP is better. With ``spread`` (:func:`seed_spread`),
+    two more columns count the cases whose AUC and Brier differ by more than the case's
+    spread over learning seeds: better here / better in the variant."""
+    beyond = spread is not None
     lines = ["| protocol | comparison | AUC wins | mean AUC diff | worst AUC diff | "
-             "FPR@TPR0.97 wins | Brier wins | mean Brier diff |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+             "FPR@TPR0.97 wins | Brier wins | mean Brier diff |"
+             + (" AUC beyond the spread | Brier beyond the spread |" if beyond else ""),
+             "|---|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if beyond else "")]
     ours = "gp-input-noise"
     for name, other in variants.items():
         theirs = f"{ours} ({name})"
@@ -521,8 +536,74 @@ def variant_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[st
                   for c in cases]
         for protocol in PROTOCOLS:
             line = comparison(merged, protocol, ours, theirs)
+            if line and beyond:
+                line += "".join(f" {_beyond(merged, protocol, theirs, metric, spread)} |"
+                                for metric in ("auc", "brier"))
             if line:
                 lines.append(line)
+    return lines
+
+
+def _beyond(cases: list[dict], protocol: str, theirs: str, metric: str,
+            spread: dict[str, dict[str, float]]) -> str:
+    """``better here / better there``: the cases of ``protocol`` whose ``metric`` differs
+    between this run's GP and ``theirs`` by more than the case's seed spread."""
+    here = there = 0
+    for c in cases:
+        scores = c["scores"].get(protocol, {})
+        width = spread.get(c["case"], {}).get(f"{protocol} {metric}")
+        if "gp-input-noise" not in scores or theirs not in scores or width is None:
+            continue
+        diff = scores["gp-input-noise"][metric] - scores[theirs][metric]
+        gain = diff if metric == "auc" else -diff
+        if abs(diff) > width:
+            here, there = here + (gain > 0), there + (gain < 0)
+    return f"{here} / {there}"
+
+
+def seed_spread(cases: list[dict], seed_runs: list[list[dict]]) -> dict[str, dict[str, float]]:
+    """case -> ``"PROTOCOL METRIC"`` -> max - min of the GP with input noise's score over
+    this run and ``seed_runs`` (the same settings with other learning seeds), for the
+    cases and protocols every run scored."""
+    runs = [{c["case"]: c["scores"] for c in run} for run in seed_runs]
+    spread: dict[str, dict[str, float]] = {}
+    for c in cases:
+        for protocol, scores in c["scores"].items():
+            if "gp-input-noise" not in scores:
+                continue
+            others = [r.get(c["case"], {}).get(protocol, {}).get("gp-input-noise")
+                      for r in runs]
+            if not runs or any(o is None for o in others):
+                continue
+            for metric in ("auc", "brier"):
+                values = [scores["gp-input-noise"][metric], *(o[metric] for o in others)]
+                spread.setdefault(c["case"], {})[f"{protocol} {metric}"] = (
+                    max(values) - min(values))
+    return spread
+
+
+def spread_table(cases: list[dict], spread: dict[str, dict[str, float]],
+                 seeds: int) -> list[str]:
+    """Per protocol, over the cases: the median and largest spread (max - min over
+    ``seeds`` learning seeds) of the GP with input noise's AUC and Brier, then each real
+    log's union spread."""
+    lines = ["| protocol | cases | AUC spread, median | AUC spread, largest | "
+             "Brier spread, median | Brier spread, largest |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for protocol in PROTOCOLS:
+        auc = [s[f"{protocol} auc"] for s in spread.values() if f"{protocol} auc" in s]
+        brier = [s[f"{protocol} brier"] for s in spread.values()
+                 if f"{protocol} brier" in s]
+        if auc:
+            lines.append(f"| {protocol} | {len(auc)} | {np.median(auc):.4f} | "
+                         f"{max(auc):.4f} | {np.median(brier):.4f} | {max(brier):.4f} |")
+    real = [c["case"] for c in cases if c["kind"] == "real" and "union auc" in
+            spread.get(c["case"], {})]
+    if real:
+        lines += ["", f"Real logs, `union` over the {seeds} seeds:", "",
+                  "| log | AUC spread | Brier spread |", "|---|---:|---:|",
+                  *(f"| {name} | {spread[name]['union auc']:.4f} | "
+                    f"{spread[name]['union brier']:.4f} |" for name in real)]
     return lines
 
 
@@ -701,10 +782,13 @@ def section(title: str, text: str, table: list[str]) -> list[str]:
     return ["## " + title, "", text, "", *table, ""] if table else []
 
 
-def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
-    """docs/results.md from a run's summary (:func:`main` writes it as JSON too) and the
-    cases of the ``variants`` it is compared with (name -> cases)."""
+def page(run: dict, variants: dict[str, list[dict]] | None = None,
+         seed_runs: list[list[dict]] | None = None) -> str:
+    """docs/results.md from a run's summary (:func:`main` writes it as JSON too), the
+    cases of the ``variants`` it is compared with (name -> cases) and of the runs of the
+    same settings with other learning seeds (``seed_runs``)."""
     cases, st = run["cases"], run["stamp"]
+    spread = seed_spread(cases, seed_runs) if seed_runs else None
     quick = run["quick"]
     work = run["work"].replace(str(ROOT) + "/", "")
     lines = [
@@ -772,6 +856,17 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
         *summary_table(cases),
         "",
     ]
+    if spread:
+        lines += section(
+            "Run-to-run spread",
+            f"The same settings learned with {len(seed_runs)} other learning seeds "
+            f"({', '.join(f'`seed: {k}`' for k in SPREAD_SEEDS[:len(seed_runs)])}; each "
+            "made with `.venv/bin/python -m bench.experiment sim real --variant seed-K`): "
+            "the seed draws the likelihood's patches, the annealing and the classifier's "
+            "held-out draws, while the worlds, logs and held-out points stay. The spread of "
+            "a case is the largest minus the smallest score of the GP with input noise over "
+            f"the {len(seed_runs) + 1} runs: a difference between settings smaller than it "
+            "may be chance.", spread_table(cases, spread, len(seed_runs) + 1))
     if variants:
         lines += ["## Against other settings", "",
                   "The GP with input noise of this run against the same GP with one "
@@ -783,7 +878,10 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None) -> str:
                   *(f"| {name} | " + ", ".join(f"`{k}: {v}`" for k, v in
                                                VARIANTS[name].items()) + " |"
                     for name in variants), "",
-                  *variant_table(cases, variants), "",
+                  *((["The last two columns count the cases whose score differs by more "
+                      "than that case's run-to-run spread (section above): better here / "
+                      "better in the variant.", ""]) if spread else []),
+                  *variant_table(cases, variants, spread), "",
                   "On the real logs (union protocol, AUC / Brier):", "",
                   *real_log_table(cases, variants), "",
                   "What each costs: the GP with input noise's train + map wall time on this "
@@ -866,6 +964,10 @@ def main() -> None:
     parser.add_argument("--compare", action="append", default=[], choices=list(VARIANTS),
                         metavar="VARIANT", help="compare with this variant's run in the work "
                         "folder (its summary-VARIANT.json; repeatable)")
+    parser.add_argument("--spread", action="store_true",
+                        help="add the run-to-run spread from the runs of the variants "
+                        + ", ".join(f"seed-{k}" for k in SPREAD_SEEDS)
+                        + " in the work folder")
     args = parser.parse_args()
     args.what = args.what or (["sim", "real"] if args.quick else ["sim", "real", "loop"])
     unknown = sorted(set(args.what) - set(steps))
@@ -899,7 +1001,14 @@ def main() -> None:
             parser.error(f"--compare {name}: {other} not found; run `python -m "
                          f"bench.experiment sim real --variant {name}` first")
         variants[name] = json.loads(other.read_text())["cases"]
-    text = page(run, variants)
+    seed_runs = []
+    for k in SPREAD_SEEDS if args.spread else ():
+        other = args.work / f"summary-seed-{k}{'-quick' if args.quick else ''}.json"
+        if not other.is_file():
+            parser.error(f"--spread: {other} not found; run `python -m bench.experiment "
+                         f"sim real --variant seed-{k}` first")
+        seed_runs.append(json.loads(other.read_text())["cases"])
+    text = page(run, variants, seed_runs)
     args.doc.write_text(text)
     print(text, flush=True)
     print(f"wrote {args.doc} and {summary}", file=sys.stderr)

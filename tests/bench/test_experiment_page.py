@@ -326,3 +326,73 @@ def test_the_real_log_table_lists_each_variant_on_each_log():
     assert f"| this run | {cell(real[0])} | {cell(real[1])} |" in lines
     variant = next(c for c in other if c["case"] == "case 3")
     assert f"| clearance-0 | {cell(variant)} |  |" in lines
+
+
+def test_the_run_to_run_spread_and_the_differences_beyond_it():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    rng = np.random.default_rng(11)
+    seeds = []
+    for _ in range(2):
+        other = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+        for case in other:
+            for scores in case["scores"].values():
+                scores["gp-input-noise"] = _scores(rng)
+        seeds.append(other)
+    variant = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+    for case in variant:
+        for scores in case["scores"].values():
+            scores["gp-input-noise"] = _scores(rng)
+    text = experiment.page(run, {"fixed-bias": variant}, seeds)
+    assert "## Run-to-run spread" in text
+
+    def width(case: int, protocol: str, metric: str) -> float:
+        values = [r[case]["scores"][protocol]["gp-input-noise"][metric]
+                  for r in (run["cases"], *seeds)]
+        return max(values) - min(values)
+
+    for protocol in ("union", "cells"):
+        cases = [i for i, c in enumerate(run["cases"]) if protocol in c["scores"]]
+        auc = [width(i, protocol, "auc") for i in cases]
+        brier = [width(i, protocol, "brier") for i in cases]
+        line = next(x for x in text.splitlines() if x.startswith(f"| {protocol} | {len(cases)} |"))
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        assert cells[2:] == [f"{np.median(auc):.4f}", f"{max(auc):.4f}",
+                             f"{np.median(brier):.4f}", f"{max(brier):.4f}"]
+        line = next(x for x in text.splitlines() if x.startswith(
+            f"| {protocol} | gp-input-noise vs gp-input-noise (fixed-bias) |"))
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        for column, metric in ((8, "auc"), (9, "brier")):
+            here = there = 0
+            for i in cases:
+                diff = (run["cases"][i]["scores"][protocol]["gp-input-noise"][metric]
+                        - variant[i]["scores"][protocol]["gp-input-noise"][metric])
+                if abs(diff) > width(i, protocol, metric):
+                    better_here = diff > 0 if metric == "auc" else diff < 0
+                    here, there = here + better_here, there + (not better_here)
+            assert cells[column] == f"{here} / {there}"
+    for i, c in enumerate(run["cases"]):
+        if c["kind"] == "real":
+            assert (f"| {c['case']} | {width(i, 'union', 'auc'):.4f} | "
+                    f"{width(i, 'union', 'brier'):.4f} |") in text
+
+
+def test_without_seed_runs_the_page_has_no_spread():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    text = experiment.page(run, {"fixed-bias": run["cases"]})
+    assert "Run-to-run spread" not in text and "beyond the spread" not in text
+
+
+def test_make_experiment_runs_every_compared_variant_and_spread_seed():
+    makefile = (experiment.ROOT / "Makefile").read_text()
+
+    def words(name: str) -> list[str]:
+        text = makefile.split(f"\n{name} ", 1)[1].split("=", 1)[1]
+        lines = []
+        for line in text.splitlines():
+            lines.append(line.rstrip("\\"))
+            if not line.endswith("\\"):
+                break
+        return " ".join(lines).split()
+
+    assert set(words("EXPERIMENT_COMPARE")) <= set(experiment.VARIANTS)
+    assert words("EXPERIMENT_SPREAD") == [f"seed-{k}" for k in experiment.SPREAD_SEEDS]
