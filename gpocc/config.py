@@ -265,6 +265,10 @@ class TrainingConfig:
     both real logs, so g stays learned. ``input_noise_scale_part``: what g scales,
     ``all`` of each input's covariance (default) or only its ``pose`` part (the scan's
     pose error, ``pose_factors``; the sensor's range and bearing noise stay as stated).
+    ``isotropic``: learn one value for both axes of each per-axis kernel parameter (the NN
+    kernel's ``weight_variance``, the SE kernel's ``lengthscale``; their initial values must
+    then be equal): a map frame's axes mean nothing in the world, while a pair learned from
+    a few patches takes its ratio from the walls those patches happen to hold.
     """
 
     learn: bool = True
@@ -274,6 +278,7 @@ class TrainingConfig:
     anneal_maxfun: int = 20
     lbfgs_maxiter: int = 40
     fixed: tuple[str, ...] = ()
+    isotropic: bool = False
     log_bounds_width: float = 4.0
     min_noise_variance: float = 0.1
     classifier_holdout: str = "sample"
@@ -624,8 +629,9 @@ def _one_of(value: str, choices: tuple[str, ...], key: str, source: str) -> None
 
 
 def _check_fixed(config: Config, source: str) -> None:
-    """``model.training.fixed`` names only values the model's kernel learns."""
-    from gpocc.gp.kernels import learned_names, make_kernel  # they import this module
+    """``model.training.fixed`` names only values the model's kernel learns, and
+    ``isotropic`` ties pairs that start equal and are both held or both learned."""
+    from gpocc.gp.kernels import axis_pairs, learned_names, make_kernel  # they import this
 
     learnable = learned_names(make_kernel(config.model.kernel, config.model.hyperparameters))
     for name in config.model.training.fixed:
@@ -635,6 +641,19 @@ def _check_fixed(config: Config, source: str) -> None:
                 f"'{config.model.kernel}' kernel does not learn; use some of "
                 f"{', '.join(learnable)}")
     training = config.model.training
+    if training.isotropic:
+        kernel = make_kernel(config.model.kernel, config.model.hyperparameters)
+        theta = kernel.theta
+        for x, y in axis_pairs(kernel):
+            names = (learnable[x], learnable[y])
+            if theta[x] != theta[y]:
+                raise GpoccError(
+                    f"{source}: 'model.training.isotropic' learns one {names[0][:-2]} for "
+                    f"both axes, but its initial values differ; give both axes one value")
+            if (names[0] in training.fixed) != (names[1] in training.fixed):
+                raise GpoccError(
+                    f"{source}: 'model.training.isotropic' ties {names[0]} to {names[1]}, "
+                    f"but 'model.training.fixed' holds only one of them; hold both or neither")
     noise = config.model.hyperparameters.noise_variance
     if "noise_variance" in training.fixed and noise < training.min_noise_variance:
         raise GpoccError(
@@ -721,7 +740,7 @@ def _validate(config: Config, source: str) -> Config:
         )
     _one_of(config.samples.label_weights, ("none", "share"), "samples.label_weights", source)
     t = config.model.training
-    if t.fixed:
+    if t.fixed or t.isotropic:
         _check_fixed(config, source)
     for key, choices in (("classifier_holdout", ("scan", "sample")),
                          ("input_noise_scale_part", INPUT_NOISE_SCALE_PARTS),

@@ -369,6 +369,15 @@ def learned_names(kernel: Kernel) -> tuple[str, ...]:
     return (*kernel.parameter_names, "noise_variance")
 
 
+def axis_pairs(kernel: Kernel) -> tuple[tuple[int, int], ...]:
+    """Index pairs ``(x, y)`` into ``kernel.parameter_names`` (and ``theta``) of the
+    parameters it has once per map axis (names ending ``_x`` and ``_y``), which
+    ``model.training.isotropic`` learns as one value."""
+    names = kernel.parameter_names
+    return tuple((i, names.index(n[:-2] + "_y")) for i, n in enumerate(names)
+                 if n.endswith("_x") and n[:-2] + "_y" in names)
+
+
 def make_kernel(name: str, hyperparameters: HyperparametersConfig) -> Kernel:
     """The kernel named by ``model.kernel`` (a key of :data:`KERNELS`) with its initial
     values."""

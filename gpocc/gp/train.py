@@ -31,7 +31,7 @@ from gpocc.errors import GpoccError
 from gpocc.gp import backends
 from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP, scale_input_noise
-from gpocc.gp.kernels import Kernel, learned_names
+from gpocc.gp.kernels import Kernel, axis_pairs, learned_names
 from gpocc.gp.local import LocalProblem, NeighbourIndex
 from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
@@ -440,11 +440,17 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     free = np.ones(x0.shape[0], dtype=bool)
     names = learned_names(kernel)
     free[[names.index(n) for n in config.fixed]] = False
+    # ``config.isotropic``: each per-axis pair is one value, its y following its x.
+    tied = axis_pairs(kernel) if config.isotropic else ()
+    for _, y in tied:
+        free[y] = False
     free_bounds = [b for b, f in zip(bounds, free, strict=True) if f]
 
     def lift(p: np.ndarray) -> np.ndarray:
         full = x0.copy()
         full[free] = p
+        for x, y in tied:
+            full[y] = full[x]
         return full
 
     def value_only_free(p: np.ndarray) -> float:
@@ -452,6 +458,10 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
 
     def objective_free(p: np.ndarray, *args: object) -> tuple[float, np.ndarray]:
         value, grad = negative_log_likelihood_counted(lift(p), *args)
+        if tied:
+            grad = grad.copy()
+            for x, y in tied:
+                grad[x] += grad[y]
         return value, grad[free]
 
     from_start = False
@@ -460,7 +470,7 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         if learn_scale:
             given = np.append(given, math.log(warm_start.input_noise_scale))
         given = np.clip(given, [lo for lo, _ in bounds], [hi for _, hi in bounds])
-        given[~free] = x0[~free]
+        given = lift(given[free])
         given_value = value_only(given)
         evaluations += 1
         # A start worse than the initial values (a model of few logs that learned a kernel

@@ -11,14 +11,15 @@ from modelfiles import read_model_file, write_model_file
 from samplesets import samples_from
 from scipy.special import ndtr
 
-from gpocc.config import TrainingConfig
+from gpocc.config import TrainingConfig, load_config
+from gpocc.errors import GpoccError
 from gpocc.gp.classify import (
     PlattClassifier,
     classify,
     fit_classifier,
     held_out_log_probability,
 )
-from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
+from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel, axis_pairs
 from gpocc.gp.local import leave_one_out, training_covariance
 from gpocc.gp.train import (
     learn_hyperparameters,
@@ -363,3 +364,54 @@ def test_model_files_without_the_new_keys_load_with_the_settings_they_were_train
     write_model_file(path, arrays, meta)
     old = load_model(path).config
     assert (old.model.training.patch_centres, old.samples.free_clearance_m) == ("samples", 0.0)
+
+
+def test_isotropic_learning_ties_each_axis_pair_at_a_stationary_point_of_the_tie():
+    """With ``isotropic`` the two length scales end equal, and the likelihood's slope
+    along the tie (both moving together; central differences of the plain likelihood)
+    vanishes there, while data drawn anisotropic leave a slope along one axis alone."""
+    samples = _se_draw(11, (0.5, 1.2))
+    config = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=10, lbfgs_maxiter=200,
+                            min_noise_variance=0.01, isotropic=True)
+    start = SquaredExponentialKernel(1.0, (1.0, 1.0))
+    result = learn_hyperparameters(start, 0.2, samples, 1, config, seed=0, workers=1)
+    x, y = axis_pairs(start)[0]
+    learned = np.append(result.kernel.theta, math.log(result.noise_variance))
+    assert learned[x] == learned[y]
+    patches = make_patches(samples, config, 0)
+    step = 1e-4
+
+    def slope(direction: np.ndarray) -> float:
+        up = negative_log_likelihood(learned + step * direction, start, patches, 1,
+                                     with_gradient=False)[0]
+        down = negative_log_likelihood(learned - step * direction, start, patches, 1,
+                                       with_gradient=False)[0]
+        return (up - down) / (2 * step)
+
+    for i in range(len(learned)):
+        direction = np.zeros(len(learned))
+        direction[i] = 1.0
+        if i == y:
+            continue
+        if i == x:
+            direction[y] = 1.0
+        assert abs(slope(direction)) < 0.05, i
+    alone = np.zeros(len(learned))
+    alone[x] = 1.0
+    assert abs(slope(alone)) > 0.5
+
+
+def test_isotropic_needs_equal_initial_pairs_held_together(tmp_path):
+    text = ("model:\n  kernel: se\n  training:\n    isotropic: true\n"
+            "  hyperparameters:\n    lengthscale_m: [0.5, 0.8]\n")
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(GpoccError, match="initial values differ"):
+        load_config(path)
+    path.write_text("model:\n  kernel: se\n  training:\n    isotropic: true\n"
+                    "    fixed: [lengthscale_x]\n")
+    with pytest.raises(GpoccError, match="holds only one of them"):
+        load_config(path)
+    path.write_text("model:\n  kernel: nn\n  training:\n    isotropic: true\n"
+                    "    fixed: [weight_variance_x, weight_variance_y]\n")
+    assert load_config(path).model.training.isotropic
