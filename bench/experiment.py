@@ -149,6 +149,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     # Finer samples with more of them per local problem (about the area 0.15 m and 128
     # cover): walls kept at 0.1 m.
     "thin-0.1-n192": {"samples.thin_cell_m": 0.1, "model.neighbours": 192},
+    "isotropic": {"model.training.isotropic": True},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.
