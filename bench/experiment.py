@@ -150,6 +150,8 @@ VARIANTS: dict[str, dict[str, object]] = {
     # cover): walls kept at 0.1 m.
     "thin-0.1-n192": {"samples.thin_cell_m": 0.1, "model.neighbours": 192},
     "isotropic": {"model.training.isotropic": True},
+    # Near-wall free points among the classifier's labelled points of held-out scans.
+    "calibration-near-wall": {"model.training.calibration_near_wall": 1},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.

@@ -265,6 +265,9 @@ class TrainingConfig:
     both real logs, so g stays learned. ``input_noise_scale_part``: what g scales,
     ``all`` of each input's covariance (default) or only its ``pose`` part (the scan's
     pose error, ``pose_factors``; the sensor's range and bearing noise stay as stated).
+    ``calibration_near_wall``: near-wall free points per hit (0.05-0.3 m in front of it,
+    as ``gpocc split`` draws them) added to those labelled points, so that the temperature
+    and offset are fitted on the space in front of walls too.
     ``isotropic``: learn one value for both axes of each per-axis kernel parameter (the NN
     kernel's ``weight_variance``, the SE kernel's ``lengthscale``; their initial values must
     then be equal): a map frame's axes mean nothing in the world, while a pair learned from
@@ -287,6 +290,7 @@ class TrainingConfig:
     classifier_temperature: str = "beams"
     calibration_every: int = 10
     calibration_blocks: int = 64
+    calibration_near_wall: int = 0
     calibration_max_position_std_m: float = 0.075
     learn_input_noise_scale: bool = True
     min_input_noise_scale: float = 0.05
@@ -509,7 +513,7 @@ _Loader.add_implicit_resolver(
 _NON_NEGATIVE_SUFFIXES = ("_m2", "_deg2", "_rad2", "variance")
 _NON_NEGATIVE_KEYS = {
     "max_pose_gap_s", "no_return_free_m", "hit_gap_m", "thin_cell_m", "margin_m",
-    "free_clearance_m", "sample_cell_m", "stamp_tolerance_s",
+    "free_clearance_m", "sample_cell_m", "stamp_tolerance_s", "calibration_near_wall",
     "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
 }

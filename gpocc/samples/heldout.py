@@ -117,15 +117,16 @@ def labelled_points(
 
 def near_wall_points(
     batch: ScanBatch, sensor: SensorConfig, per_beam: int, rng: np.random.Generator,
-    band: tuple[float, float] = NEAR_WALL_BAND_M,
-) -> np.ndarray:
+    band: tuple[float, float] = NEAR_WALL_BAND_M, geometry: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Free points just in front of each hit: ``per_beam`` per hit beam, at distances
     uniform in ``[r - band[1], r - band[0]]`` (``r`` its range), the interval clipped to
     start at least :data:`FREE_MARGIN_M` from the laser; a hit too close for the clipped
     interval gives none. No-return and invalid beams give none (they have no wall).
 
     Returns:
-        (N, 2) metres, map frame, in scan, beam, draw order.
+        (N, 2) metres, map frame, in scan, beam, draw order. With ``geometry``, also (N,)
+        the scan index of each point and (N,) its distance from the laser, metres.
     """
     near, far = band
     if not 0.0 <= near < far:
@@ -140,7 +141,9 @@ def near_wall_points(
     d = start[:, :, None] + u * (end - start)[:, :, None]
     keep = np.broadcast_to(ok[:, :, None], d.shape)
     points = beam_points(batch.poses, batch.angles, np.where(keep, d, 0.0), sensor)[keep]
-    return points.reshape(-1, 2)
+    if not geometry:
+        return points.reshape(-1, 2)
+    return points.reshape(-1, 2), np.nonzero(keep)[0], d[keep]
 
 
 def protocol_points(
@@ -204,7 +207,9 @@ def calibration_points(batches: list[ScanBatch], config: Config, every: int,
     keeps all): a hit placed by a wrong pose lies in free space and would teach the
     classifier that free space is occupied. Scan ids start at ``scan_offset`` (a model's
     scan count when logs are added to it), so that adding logs one by one draws the
-    points training on all of them does."""
+    points training on all of them does. ``model.training.calibration_near_wall`` adds
+    that many near-wall free points per hit (:func:`near_wall_points`, drawn after the
+    others, so those stay as they were)."""
     points, labels, scan_ids = [np.zeros((0, 2))], [np.zeros(0)], [np.zeros(0, np.int64)]
     offset = scan_offset
     for batch in batches:
@@ -212,8 +217,17 @@ def calibration_points(batches: list[ScanBatch], config: Config, every: int,
         rng = np.random.default_rng([config.seed, offset])
         if held.size:
             sensor = beam_rules.sensor_config(batch, config)
-            p, lab, scans, dist = labelled_points(subset_batch(batch, held), sensor,
-                                                  free_per_beam, rng, geometry=True)
+            subset = subset_batch(batch, held)
+            p, lab, scans, dist = labelled_points(subset, sensor, free_per_beam, rng,
+                                                  geometry=True)
+            near_per_beam = config.model.training.calibration_near_wall
+            if near_per_beam:
+                near, near_scans, near_dist = near_wall_points(
+                    subset, sensor, near_per_beam, rng, geometry=True)
+                p = np.concatenate([p, near])
+                lab = np.concatenate([lab, np.zeros(len(near), dtype=lab.dtype)])
+                scans = np.concatenate([scans, near_scans])
+                dist = np.concatenate([dist, near_dist])
             if max_position_std_m is not None:
                 sharp = position_std(batch, sensor, held[scans], dist) <= max_position_std_m
                 p, lab = p[sharp], lab[sharp]

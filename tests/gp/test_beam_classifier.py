@@ -16,6 +16,7 @@ from gpocc.gp.model import build_model
 from gpocc.samples.beams import build_samples
 from gpocc.samples.heldout import (
     CalibrationPoints,
+    beam_points,
     calibration_points,
     labelled_points,
     position_std,
@@ -48,6 +49,37 @@ def test_calibration_points_are_the_heldout_scans_numbered_like_the_samples():
     later = calibration_points([second], CONFIG, every=5, scan_offset=23)
     np.testing.assert_array_equal(later.scan_ids, [27, 32, 37])
     np.testing.assert_array_equal(later.points, b[0])
+
+
+def test_calibration_near_wall_adds_free_points_in_front_of_the_hits():
+    """``calibration_near_wall`` keeps the other points as drawn and adds free points
+    0.05-0.3 m in front of each held-out hit, along its beam (checked against the hits'
+    own geometry: on the segment from the laser, its beam's point at range 0, to the
+    hit)."""
+    batch = room_batch(n_scans=23, seed=1)
+    plain = calibration_points([batch], CONFIG, every=5)
+    config = dataclasses.replace(CONFIG, model=ModelConfig(
+        training=TrainingConfig(calibration_near_wall=1)))
+    both = calibration_points([batch], config, every=5)
+    n = len(plain.labels)
+    np.testing.assert_array_equal(both.points[:n], plain.points)
+    np.testing.assert_array_equal(both.labels[:n], plain.labels)
+    near = both.points[n:]
+    assert len(near) > 0 and np.all(both.labels[n:] == -1.0)
+    held = subset_batch(batch, np.array([4, 9, 14, 19]))
+    hits = np.isfinite(held.ranges) & (held.ranges < held.range_max)
+    assert len(near) == int(hits.sum())
+    # Each near-wall point lies on the beam of its hit, 0.05-0.3 m short of it.
+    lasers = beam_points(held.poses, held.angles, np.zeros(held.ranges.shape + (1,)),
+                         SENSOR)[hits].reshape(-1, 2)
+    ends = labelled_points(held, SENSOR, 0, np.random.default_rng(0))[0]
+    to_hit = np.linalg.norm(ends - lasers, axis=1)
+    to_near = np.linalg.norm(near - lasers, axis=1)
+    gap = to_hit - to_near
+    assert np.all(gap >= 0.05 - 1e-9) and np.all(gap <= 0.3 + 1e-9)
+    cross = ((ends - lasers)[:, 0] * (near - lasers)[:, 1]
+             - (ends - lasers)[:, 1] * (near - lasers)[:, 0])
+    np.testing.assert_allclose(cross / to_hit, 0.0, atol=1e-9)
 
 
 def test_heldout_predictions_equal_the_gp_of_the_other_scans():
