@@ -152,6 +152,8 @@ VARIANTS: dict[str, dict[str, object]] = {
     "isotropic": {"model.training.isotropic": True},
     # Near-wall free points among the classifier's labelled points of held-out scans.
     "calibration-near-wall": {"model.training.calibration_near_wall": 1},
+    "thin-0.1-n192-calibration-near-wall": {"samples.thin_cell_m": 0.1, "model.neighbours": 192,
+                                            "model.training.calibration_near_wall": 1},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.
