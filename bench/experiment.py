@@ -999,20 +999,17 @@ def main() -> None:
                "quick": args.quick, "work": str(args.work), "cases": cases, "loop": loop,
                "commands": COMMANDS}
         summary.write_text(json.dumps(run, indent=2) + "\n")
-    variants = {}
-    for name in args.compare:
+    def stored_cases(name: str, flag: str) -> list[dict]:
+        """The cases of variant ``name``'s run in the work folder (``flag`` asked for it)."""
         other = args.work / f"summary-{name}{'-quick' if args.quick else ''}.json"
         if not other.is_file():
-            parser.error(f"--compare {name}: {other} not found; run `python -m "
-                         f"bench.experiment sim real --variant {name}` first")
-        variants[name] = json.loads(other.read_text())["cases"]
-    seed_runs = []
-    for k in SPREAD_SEEDS if args.spread else ():
-        other = args.work / f"summary-seed-{k}{'-quick' if args.quick else ''}.json"
-        if not other.is_file():
-            parser.error(f"--spread: {other} not found; run `python -m bench.experiment "
-                         f"sim real --variant seed-{k}` first")
-        seed_runs.append(json.loads(other.read_text())["cases"])
+            parser.error(f"{flag}: {other} not found; run `python -m bench.experiment "
+                         f"sim real --variant {name}` first")
+        return json.loads(other.read_text())["cases"]
+
+    variants = {name: stored_cases(name, f"--compare {name}") for name in args.compare}
+    seed_runs = [stored_cases(f"seed-{k}", "--spread")
+                 for k in (SPREAD_SEEDS if args.spread else ())]
     text = page(run, variants, seed_runs)
     args.doc.write_text(text)
     print(text, flush=True)

@@ -637,7 +637,8 @@ def _check_fixed(config: Config, source: str) -> None:
     ``isotropic`` ties pairs that start equal and are both held or both learned."""
     from gpocc.gp.kernels import axis_pairs, learned_names, make_kernel  # they import this
 
-    learnable = learned_names(make_kernel(config.model.kernel, config.model.hyperparameters))
+    kernel = make_kernel(config.model.kernel, config.model.hyperparameters)
+    learnable = learned_names(kernel)
     for name in config.model.training.fixed:
         if name not in learnable:
             raise GpoccError(
@@ -646,11 +647,9 @@ def _check_fixed(config: Config, source: str) -> None:
                 f"{', '.join(learnable)}")
     training = config.model.training
     if training.isotropic:
-        kernel = make_kernel(config.model.kernel, config.model.hyperparameters)
-        theta = kernel.theta
         for x, y in axis_pairs(kernel):
             names = (learnable[x], learnable[y])
-            if theta[x] != theta[y]:
+            if kernel.theta[x] != kernel.theta[y]:
                 raise GpoccError(
                     f"{source}: 'model.training.isotropic' learns one {names[0][:-2]} for "
                     f"both axes, but its initial values differ; give both axes one value")
@@ -750,7 +749,8 @@ def _validate(config: Config, source: str) -> Config:
                          ("input_noise_scale_part", INPUT_NOISE_SCALE_PARTS),
                          ("patch_centres", ("hits", "samples")),
                          ("classifier_variance", ("label", "label-map", "latent")),
-                         ("classifier_temperature", ("none", "samples", "beams"))):
+                         ("classifier_temperature", ("none", "samples", "beams")),
+                         ("classifier_offset", ("holdout", "beams"))):
         _one_of(getattr(t, key), choices, f"model.training.{key}", source)
     if t.classifier_variance == "label-map" and t.classifier_temperature == "samples":
         raise GpoccError(
@@ -758,8 +758,6 @@ def _validate(config: Config, source: str) -> Config:
             f"held-out samples' latent variance, which 'classifier_variance: label-map' does "
             f"not use; set classifier_temperature to 'beams' or 'none'"
         )
-    _one_of(t.classifier_offset, ("holdout", "beams"), "model.training.classifier_offset",
-            source)
     if t.calibration_every < 2:
         raise GpoccError(
             f"{source}: key 'model.training.calibration_every' must be at least 2 (one "

@@ -148,21 +148,28 @@ def near_wall_points(
 
 def protocol_points(
     batch: ScanBatch, sensor: SensorConfig, free_per_beam: int, near_wall_per_beam: int,
-    rng: np.random.Generator,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng: np.random.Generator, geometry: bool = False,
+) -> tuple[np.ndarray, ...]:
     """The three kinds of held-out points of ``batch``'s scans: hits and free points along
     the beams (:func:`labelled_points`, drawn first, so their draws do not depend on
     ``near_wall_per_beam``), then near-wall free points (:func:`near_wall_points`).
 
     Returns:
         ``(points, labels, kinds)``: (N, 2) metres, (N,) int8 (1 occupied, 0 free) and
-        (N,) str (:data:`HIT`, :data:`FREE` or :data:`NEAR_WALL`).
+        (N,) str (:data:`HIT`, :data:`FREE` or :data:`NEAR_WALL`). With ``geometry``, also
+        (N,) the scan index of each point and (N,) its distance from the laser, metres.
     """
-    points, labels = labelled_points(batch, sensor, free_per_beam, rng)
-    near = near_wall_points(batch, sensor, near_wall_per_beam, rng)
+    points, labels, scans, distances = labelled_points(batch, sensor, free_per_beam, rng,
+                                                       geometry=True)
+    near, near_scans, near_distances = near_wall_points(batch, sensor, near_wall_per_beam,
+                                                        rng, geometry=True)
     kinds = np.concatenate([np.where(labels == 1, HIT, FREE), np.full(len(near), NEAR_WALL)])
-    return (np.concatenate([points, near]),
-            np.concatenate([labels, np.zeros(len(near), dtype=np.int8)]), kinds)
+    joined = (np.concatenate([points, near]),
+              np.concatenate([labels, np.zeros(len(near), dtype=np.int8)]), kinds)
+    if not geometry:
+        return joined
+    return (*joined, np.concatenate([scans, near_scans]),
+            np.concatenate([distances, near_distances]))
 
 
 @dataclass(frozen=True)
@@ -201,14 +208,14 @@ def calibration_points(batches: list[ScanBatch], config: Config, every: int,
                        free_per_beam: int = 3,
                        max_position_std_m: float | None = None,
                        scan_offset: int = 0) -> CalibrationPoints:
-    """Every ``every``-th scan of each batch as labelled points (:func:`labelled_points`,
+    """Every ``every``-th scan of each batch as labelled points (:func:`protocol_points`,
     free points drawn with the config's seed and the batch's first scan id), keeping only
     those whose position is known to ``max_position_std_m`` (:func:`position_std`; None
     keeps all): a hit placed by a wrong pose lies in free space and would teach the
     classifier that free space is occupied. Scan ids start at ``scan_offset`` (a model's
     scan count when logs are added to it), so that adding logs one by one draws the
     points training on all of them does. ``model.training.calibration_near_wall`` adds
-    that many near-wall free points per hit (:func:`near_wall_points`, drawn after the
+    that many near-wall free points per hit (:func:`protocol_points`: drawn after the
     others, so those stay as they were)."""
     points, labels, scan_ids = [np.zeros((0, 2))], [np.zeros(0)], [np.zeros(0, np.int64)]
     offset = scan_offset
@@ -217,17 +224,9 @@ def calibration_points(batches: list[ScanBatch], config: Config, every: int,
         rng = np.random.default_rng([config.seed, offset])
         if held.size:
             sensor = beam_rules.sensor_config(batch, config)
-            subset = subset_batch(batch, held)
-            p, lab, scans, dist = labelled_points(subset, sensor, free_per_beam, rng,
-                                                  geometry=True)
-            near_per_beam = config.model.training.calibration_near_wall
-            if near_per_beam:
-                near, near_scans, near_dist = near_wall_points(
-                    subset, sensor, near_per_beam, rng, geometry=True)
-                p = np.concatenate([p, near])
-                lab = np.concatenate([lab, np.zeros(len(near), dtype=lab.dtype)])
-                scans = np.concatenate([scans, near_scans])
-                dist = np.concatenate([dist, near_dist])
+            p, lab, _, scans, dist = protocol_points(
+                subset_batch(batch, held), sensor, free_per_beam,
+                config.model.training.calibration_near_wall, rng, geometry=True)
             if max_position_std_m is not None:
                 sharp = position_std(batch, sensor, held[scans], dist) <= max_position_std_m
                 p, lab = p[sharp], lab[sharp]
