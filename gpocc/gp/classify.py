@@ -51,7 +51,7 @@ point lies on its label's side (:func:`separates`), no ``T`` is fitted: the log
 probability then rises without limit as ``T`` falls, so the data do not choose one, and a
 ``T`` taken anywhere on that slope (0.03 on one simulated hall) makes the map's
 probabilities 0 or 1 everywhere but at the walls, which stored as float32 ties most cells
-and loses the ranking (that hall's held-out AUC fell from 0.91 to 0.85).
+and loses the ranking.
 """
 
 from __future__ import annotations
