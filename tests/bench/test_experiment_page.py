@@ -396,3 +396,38 @@ def test_make_experiment_runs_every_compared_variant_and_spread_seed():
 
     assert set(words("EXPERIMENT_COMPARE")) <= set(experiment.VARIANTS)
     assert words("EXPERIMENT_SPREAD") == [f"seed-{k}" for k in experiment.SPREAD_SEEDS]
+
+
+def test_logs_trained_as_logged_have_their_own_section_and_stay_out_of_comparisons():
+    run = _run(("grid", "bhm", "gp-no-input-noise", "gp-input-noise"))
+    rng = np.random.default_rng(8)
+    logged = {"case": "log.gfs.log (every 10th scan held out, poses as logged)",
+              "kind": "real", "as_logged": True,
+              "scores": {p: {m: _scores(rng) for m in ("grid", "bhm", "gp-no-input-noise",
+                                                       "gp-input-noise")}
+                         for p in experiment.HELDOUT_PROTOCOLS}}
+    run["cases"].append(logged)
+    other = [dict(c) for c in run["cases"] if not c.get("as_logged")]
+    text = experiment.page(run, {"clearance-0": other})
+    section = text.split("## Real logs as logged")[1].split("\n## ")[0]
+    rows = [x for x in section.splitlines() if x.startswith("| log.gfs.log")]
+    assert len(rows) == 4  # one per method, the union protocol's scores
+    union = logged["scores"]["union"]
+    for row in rows:
+        method = row.split("|")[2].strip()
+        assert f"| {union[method]['auc']:.4f} |" in row
+        assert f"| {union[method]['brier']:.4f} |" in row
+    # The variant did not run it: its real-log table and comparison counts leave it out.
+    assert "| settings | case 3 | case 4 |" in text
+    line = next(x for x in text.splitlines()
+                if x.startswith("| union | gp-input-noise vs gp-input-noise (clearance-0) |"))
+    assert line.split("|")[3].strip().endswith("/5")
+    # The summary counts it with the other cases.
+    line = next(x for x in text.splitlines()
+                if x.startswith("| union | gp-input-noise vs bhm |"))
+    assert line.split("|")[3].strip().endswith("/6")
+
+
+def test_a_run_without_logs_as_logged_has_no_such_section():
+    assert "## Real logs as logged" not in experiment.page(
+        _run(("grid", "gp-no-input-noise", "gp-input-noise")))
