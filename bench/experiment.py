@@ -154,10 +154,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     # cover): walls kept at 0.1 m.
     "thin-0.1-n192": {"samples.thin_cell_m": 0.1, "model.neighbours": 192},
     "isotropic": {"model.training.isotropic": True},
-    # Near-wall free points among the classifier's labelled points of held-out scans.
-    "calibration-near-wall": {"model.training.calibration_near_wall": 1},
-    "thin-0.1-n192-calibration-near-wall": {"samples.thin_cell_m": 0.1, "model.neighbours": 192,
-                                            "model.training.calibration_near_wall": 1},
+    # The classifier's temperature fitted without near-wall free points (the default
+    # before): hits and free points along the beams of held-out scans only.
+    "calibration-along-beam": {"model.training.calibration_near_wall": 0},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.

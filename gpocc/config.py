@@ -290,7 +290,7 @@ class TrainingConfig:
     classifier_temperature: str = "beams"
     calibration_every: int = 10
     calibration_blocks: int = 64
-    calibration_near_wall: int = 0
+    calibration_near_wall: int = 1
     calibration_max_position_std_m: float = 0.075
     learn_input_noise_scale: bool = True
     min_input_noise_scale: float = 0.05

@@ -25,11 +25,14 @@ from gpocc.samples.heldout import (
 from tests.evaluation.test_split import SENSOR, room_batch
 
 CONFIG = Config(sensors=(SENSOR,), seed=3)
+#: Held-out hits and free points along their beams only (no near-wall free points).
+ALONG_BEAM = dataclasses.replace(CONFIG, model=ModelConfig(
+    training=TrainingConfig(calibration_near_wall=0)))
 
 
 def test_calibration_points_are_the_heldout_scans_numbered_like_the_samples():
     first, second = room_batch(n_scans=23, seed=1), room_batch(n_scans=17, seed=2)
-    calib = calibration_points([first, second], CONFIG, every=5)
+    calib = calibration_points([first, second], ALONG_BEAM, every=5)
     # Scans 4, 9, 14, 19 of the first batch, then 4, 9, 14 of the second after its 23.
     np.testing.assert_array_equal(calib.scan_ids, [4, 9, 14, 19, 27, 32, 37])
     samples = build_samples([first, second], CONFIG)
@@ -46,7 +49,7 @@ def test_calibration_points_are_the_heldout_scans_numbered_like_the_samples():
     assert calib.usable
     assert not CalibrationPoints(calib.points[:2], np.ones(2), calib.scan_ids).usable
     # The second batch alone, added after the first's 23 scans, gives the same points.
-    later = calibration_points([second], CONFIG, every=5, scan_offset=23)
+    later = calibration_points([second], ALONG_BEAM, every=5, scan_offset=23)
     np.testing.assert_array_equal(later.scan_ids, [27, 32, 37])
     np.testing.assert_array_equal(later.points, b[0])
 
@@ -57,7 +60,7 @@ def test_calibration_near_wall_adds_free_points_in_front_of_the_hits():
     own geometry: on the segment from the laser, its beam's point at range 0, to the
     hit)."""
     batch = room_batch(n_scans=23, seed=1)
-    plain = calibration_points([batch], CONFIG, every=5)
+    plain = calibration_points([batch], ALONG_BEAM, every=5)
     config = dataclasses.replace(CONFIG, model=ModelConfig(
         training=TrainingConfig(calibration_near_wall=1)))
     both = calibration_points([batch], config, every=5)
