@@ -116,7 +116,7 @@ class SamplesConfig:
     whichever is larger (the true surface may be that much nearer than the reading).
     The band this leaves empty before each hit is what blurs walls (the GP carries the
     hits' +1 into it); 0.15 m (default; 0.25 before) lowers the held-out union Brier score
-    on 21 of 23 cases of ``make experiment`` and raises union AUC on 17 (docs/results.md,
+    on most cases of ``make experiment`` and raises union AUC on most (docs/results.md,
     "Against other settings", variant ``hit-gap-0.25``); shorter gaps raise the learned
     label noise and smooth the whole map (docs/walls.md).
     ``thin_cell_m`` keeps at most one sample of each label
@@ -136,9 +136,9 @@ class SamplesConfig:
     (after thinning): beams that graze a wall leave free samples centimetres from its
     hits, and held-out hits on that wall then come out free. 0 keeps them (the method as
     published). Against 0 (docs/results.md, "Against other settings", variant
-    ``clearance-0``) 0.05 ranks better on the simulated worlds (per-cell AUC on all 21,
-    union AUC on 21 of 23 cases) but calibrates worse where beams graze walls: the real
-    logs' held-out union Brier is 0.0855 and 0.1009 with it, 0.0741 and 0.0832 without.
+    ``clearance-0``) 0.05 ranks better on the simulated worlds (per-cell and union AUC)
+    but calibrates worse where beams graze walls: the real logs' held-out union Brier
+    is higher with it (docs/guide.md has the figures).
 
     ``free_range_variance``: free samples of a beam that hit carry that beam's range
     variance, like its hit (false: free samples carry no range variance, as published);
@@ -151,10 +151,9 @@ class SamplesConfig:
     times, the GP's mean there leans to the count-weighted -0.8 instead of the 0 of one
     sample each (for samples at one point, the GP of every counted label exactly).
     Against the defaults on ``make experiment`` (docs/results.md, "Against other
-    settings", variant ``label-weights``) it ranks better (held-out union AUC higher on
-    22 of 23 cases, mean +0.005; per cell on 15 of 21 worlds) and is less well
-    calibrated (union Brier higher on 20 of 23, mean +0.005; per-cell Brier mean
-    +0.007), so it is a knob, not the default.
+    settings", variant ``label-weights``) it ranks better (held-out union AUC, per-cell
+    AUC) and is less well calibrated (union and per-cell Brier), so it is a knob, not the
+    default; docs/guide.md has the figures.
     """
 
     free_spacing_m: float = 0.4
@@ -243,9 +242,8 @@ class TrainingConfig:
     latent variance (``samples``) or on labelled points of held-out scans predicted as
     map cells are (``beams``, default: the points of ``classifier_offset: beams``): the
     probabilities of map cells move, their ranking (AUC) does not (gpocc.gp.classify).
-    ``beams`` against ``none`` on ``make experiment``: held-out union Brier score lower on
-    19 of 23 cases (mean -0.011), per-cell Brier on 16 of 21 worlds, both real logs
-    0.002-0.003 higher (docs/results.md, "Against other settings", variant
+    ``beams`` against ``none`` on ``make experiment``: held-out union and per-cell Brier
+    scores lower on most cases (docs/results.md, "Against other settings", variant
     ``no-temperature``).
     ``classifier_offset: beams`` then re-fits the classifier's offset on labelled points of
     every ``calibration_every``-th scan (those known to ``calibration_max_position_std_m``),
