@@ -147,12 +147,10 @@ def update_cost(ctx: Context) -> Result:
             work = ctx.work / f"update-{log.stem}-{cut}"
             work.mkdir(parents=True, exist_ok=True)
             r = case(work, log, cut, repeats)
-            for what in ("update", "train"):
+            for head, what, command in (([log.name, f"{cut:.2f}"], "update", "update"),
+                                        (["", ""], "train", "train A B")):
                 d = r["detail"][what]
-                costs.append([log.name if what == "update" else "",
-                              f"{cut:.2f}" if what == "update" else "",
-                              what if what == "update" else "train A B",
-                              f"{d['startup_s']:.2f}", d["stages"],
+                costs.append([*head, command, f"{d['startup_s']:.2f}", d["stages"],
                               str(d["evaluations"])])
             for i, (protocol, sc) in enumerate(r["scores"].items()):
                 gap = max(abs(sc["auc_update"] - sc["auc_train"]),
