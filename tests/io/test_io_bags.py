@@ -129,8 +129,10 @@ def test_interpolate_poses_analytic() -> None:
 
 def _write_raw_bag(path: Path, scans: list[float], poses: list[tuple[float, tuple, np.ndarray]],
                    pose_type: str, scan_topics: tuple[str, ...] = ("/scan",),
-                   pose_topics: tuple[str, ...] = ("/odom",)) -> None:
-    """A ROS2 MCAP bag written with rosbags directly (independent of write_bag)."""
+                   pose_topics: tuple[str, ...] = ("/odom",),
+                   angle_min: list[float] | None = None) -> None:
+    """A ROS2 MCAP bag written with rosbags directly (independent of write_bag).
+    ``angle_min``: per scan (default -1 rad), each scan spanning 2 rad in 3 beams."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -153,9 +155,10 @@ def _write_raw_bag(path: Path, scans: list[float], poses: list[tuple[float, tupl
         sc = [writer.add_connection(t, "sensor_msgs/msg/LaserScan", typestore=ts)
               for t in scan_topics]
         pc = [writer.add_connection(t, pose_type, typestore=ts) for t in pose_topics]
-        for t in scans:
+        for k, t in enumerate(scans):
+            first = -1.0 if angle_min is None else angle_min[k]
             msg = T["sensor_msgs/msg/LaserScan"](
-                header=header(t), angle_min=-1.0, angle_max=1.0, angle_increment=1.0,
+                header=header(t), angle_min=first, angle_max=first + 2.0, angle_increment=1.0,
                 time_increment=0.0, scan_time=0.0, range_min=0.05, range_max=10.0,
                 ranges=np.array([1.0, 2.0, 3.0], dtype=np.float32),
                 intensities=np.zeros(0, dtype=np.float32))
@@ -254,6 +257,23 @@ def test_no_scan_near_a_pose_is_an_error(tmp_path: Path) -> None:
     _write_raw_bag(path, [10.0, 11.0], poses, "geometry_msgs/msg/PoseStamped")
     with pytest.raises(GpoccError, match=r"late.*max_pose_gap_s"):
         read_bag(path, [SensorConfig(scan_topic="/scan", pose_topic="/odom")])
+
+
+@pytest.mark.parametrize(("shift", "changes"), [(5e-7, False), (1e-4, True)])
+def test_a_scan_topic_that_changes_its_beam_layout_is_an_error(
+        tmp_path: Path, shift: float, changes: bool) -> None:
+    # Within 1e-6 rad the layout is the same one (float rounding of a driver's angles).
+    poses = [(10.0 + 0.1 * k, (0.0, 0.0, _quat(0, 0, 0)), np.zeros(36)) for k in range(11)]
+    path = tmp_path / "layout"
+    _write_raw_bag(path, [10.1, 10.5, 10.9], poses, "geometry_msgs/msg/PoseStamped",
+                   angle_min=[-1.0, -1.0, -1.0 + shift])
+    sensor = SensorConfig(scan_topic="/scan", pose_topic="/odom")
+    if changes:
+        with pytest.raises(GpoccError, match=r"layout.*/scan changes its beam layout"):
+            read_bag(path, [sensor])
+    else:
+        [batch] = read_bag(path, [sensor])
+        assert len(batch.stamps) == 3
 
 
 # --------------------------------------------------------------------------- bad bags
