@@ -68,13 +68,14 @@ bench: $(BENCH_STAMP) bytecode
 # each changes one default (bench/experiment.py VARIANTS).
 EXPERIMENT_COMPARE ?= hit-gap-0.25 no-temperature label-map fixed-scale thin-0.1 patches-20 \
 	label-weights anneal-1 bounds-6 g-max-16 floor-0.03 overlap-0.5 clearance-0 \
-	pose-scale two-draw-pose-scale fixed-bias thin-0.1-n192 isotropic calibration-along-beam
+	pose-scale two-draw-pose-scale fixed-bias thin-0.1-n192 thin-0.1-n256 \
+	thin-0.1-n256-fixed-scale isotropic calibration-along-beam
 # The defaults learned with other seeds (bench/experiment.py's SPREAD_SEEDS): the page's
 # run-to-run spread.
 EXPERIMENT_SPREAD = seed-1 seed-2 seed-3 seed-4
 experiment: $(BENCH_STAMP) bytecode
 	for v in $(EXPERIMENT_COMPARE) $(EXPERIMENT_SPREAD); do \
-		$(BIN)/python -m bench.experiment sim real --variant $$v --doc /dev/null > /dev/null || exit 1; done
+		$(BIN)/python -m bench.experiment sim real clean --variant $$v --doc /dev/null > /dev/null || exit 1; done
 	$(BIN)/python -m bench.experiment $(addprefix --compare ,$(EXPERIMENT_COMPARE)) --spread
 
 clean:

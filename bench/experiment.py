@@ -20,11 +20,14 @@ the loop-closure figure) are library calls in this file and its neighbours.
   nearest held-out hit. Real logs have no per-cell truth.
 * ``clean``: the same splits with every method trained on the training scans as logged
   (the corrected poses, the log's config): how the methods rank on an accurate lidar and
-  accurate poses. Run for the defaults only (``make experiment``'s variant and seed runs
-  take ``sim real``), so the page's comparisons with other settings leave these cases out.
+  accurate poses. ``make experiment`` runs it for the defaults and every variant and seed.
 * ``loop``: intel_poses_odom_vs_corrected.txt, the Intel log mapped before and after
   loop closure (bench/loop_closure.py).
 * ``report``: rewrite the page from the last run's summary without running anything.
+
+``--merge`` keeps the cases of the variant's stored summary that this run does not make
+again (``clean --variant X --merge`` adds the as-logged cases to an earlier ``sim real``
+run of X).
 
 Held-out protocols (``gpocc split``'s kinds): ``hits+free`` (each held-out hit and free
 points uniform along its beam), ``hits+near-wall`` (the hits and free points 0.05-0.3 m
@@ -153,6 +156,10 @@ VARIANTS: dict[str, dict[str, object]] = {
     # Finer samples with more of them per local problem (about the area 0.15 m and 128
     # cover): walls kept at 0.1 m.
     "thin-0.1-n192": {"samples.thin_cell_m": 0.1, "model.neighbours": 192},
+    "thin-0.1-n256": {"samples.thin_cell_m": 0.1, "model.neighbours": 256},
+    # The same with g = 1: on accurately localised logs the learned g runs to its bound.
+    "thin-0.1-n256-fixed-scale": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
+                                  "model.training.learn_input_noise_scale": False},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
@@ -722,13 +729,13 @@ def wall_distance_table(cases: list[dict]) -> list[str]:
 
 def real_log_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
     """The GP with input noise on each real log (``union`` protocol), this run and each
-    variant: AUC / Brier."""
-    real = [c for c in cases if c["kind"] == "real" and "union" in c["scores"]
-            and not c.get("as_logged")]
+    variant: AUC / Brier, on the perturbed poses and (``clean`` step) as logged."""
+    real = [c for c in cases if c["kind"] == "real" and "union" in c["scores"]]
     if not real:
         return []
-    lines = ["| settings | " + " | ".join(c["case"].split(" (")[0] for c in real) + " |",
-             "|---|" + "---:|" * len(real)]
+    heads = [c["case"].split(" (")[0] + (" as logged" if c.get("as_logged") else "")
+             for c in real]
+    lines = ["| settings | " + " | ".join(heads) + " |", "|---|" + "---:|" * len(real)]
     runs = {"this run": cases, **variants}
     for name, run in runs.items():
         by_case = {c["case"]: c["scores"].get("union", {}).get("gp-input-noise") for c in run}
@@ -867,8 +874,8 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
         + ") and the bag carries that covariance; the held-out points use the recorded "
         "poses. Points a map does not cover score p = 0.5. The same splits are also "
         "trained as logged (cases marked `poses as logged`: the corrected poses, the log's "
-        "config), in this run only: the comparisons with other settings and the spread "
-        "leave those cases out.",
+        "config), counted like the other cases in the comparisons with other settings "
+        "and in the spread.",
         "",
         "## Summary",
         "",
@@ -883,7 +890,7 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
             "Run-to-run spread",
             f"The same settings learned with {len(seed_runs)} other learning seeds "
             f"({', '.join(f'`seed: {k}`' for k in SPREAD_SEEDS[:len(seed_runs)])}; each "
-            "made with `.venv/bin/python -m bench.experiment sim real --variant seed-K`): "
+            "made with `.venv/bin/python -m bench.experiment sim real clean --variant seed-K`): "
             "the seed draws the likelihood's patches, the annealing and the classifier's "
             "held-out draws, while the worlds, logs and held-out points stay. The spread of "
             "a case is the largest minus the smallest score of the GP with input noise over "
@@ -893,7 +900,7 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
         lines += ["## Against other settings", "",
                   "The GP with input noise of this run against the same GP with one "
                   "setting changed (each made with `.venv/bin/python -m bench.experiment "
-                  "sim real --variant NAME`, on the same worlds, logs and held-out points): "
+                  "sim real clean --variant NAME`, on the same worlds, logs and held-out points): "
                   "how the defaults were chosen. Wins count the cases where this run is "
                   "better; differences are this run minus the variant.", "",
                   "| variant | overrides |", "|---|---|",
@@ -904,7 +911,8 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
                       "than that case's run-to-run spread (section above): better here / "
                       "better in the variant.", ""]) if spread else []),
                   *variant_table(cases, variants, spread), "",
-                  "On the real logs (union protocol, AUC / Brier):", "",
+                  "On the real logs (union protocol, AUC / Brier; with perturbed poses and "
+                  "as logged):", "",
                   *real_log_table(cases, variants), "",
                   "What each costs: the GP with input noise's train + map wall time on this "
                   "machine (each variant ran at another time, so small ratios are noise), "
@@ -991,6 +999,9 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true",
                         help="one world and one log cut (the Intel sample); no loop closure")
     parser.add_argument("--doc", type=Path, default=DOC, help="page to write")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the stored summary's cases that this run does not make "
+                        "again (add a step to an earlier run)")
     parser.add_argument("--compare", action="append", default=[], choices=list(VARIANTS),
                         metavar="VARIANT", help="compare with this variant's run in the work "
                         "folder (its summary-VARIANT.json; repeatable)")
@@ -1019,21 +1030,25 @@ def main() -> None:
         if "clean" in args.what:
             cases += run_real(args.work, args.variant, real_logs(args.logs, args.quick),
                               args.seed, as_logged=True)
-        loop = None
+        stored = (json.loads(summary.read_text()) if args.merge and summary.is_file()
+                  else {"cases": [], "loop": None, "commands": []})
+        made = {c["case"] for c in cases}
+        cases = [c for c in stored["cases"] if c["case"] not in made] + cases
+        loop = stored["loop"]
         if "loop" in args.what:
             from .loop_closure import loop_closure_experiment
 
             loop = loop_closure_experiment(args.work / "loop", CARMEN, gpocc)
         run = {"stamp": stamp(), "variant": args.variant, "seed": args.seed,
                "quick": args.quick, "work": str(args.work), "cases": cases, "loop": loop,
-               "commands": COMMANDS}
+               "commands": stored["commands"] + COMMANDS}
         summary.write_text(json.dumps(run, indent=2) + "\n")
     def stored_cases(name: str, flag: str) -> list[dict]:
         """The cases of variant ``name``'s run in the work folder (``flag`` asked for it)."""
         other = args.work / f"summary-{name}{'-quick' if args.quick else ''}.json"
         if not other.is_file():
             parser.error(f"{flag}: {other} not found; run `python -m bench.experiment "
-                         f"sim real --variant {name}` first")
+                         f"sim real clean --variant {name}` first")
         return json.loads(other.read_text())["cases"]
 
     variants = {name: stored_cases(name, f"--compare {name}") for name in args.compare}

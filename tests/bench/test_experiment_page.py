@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -431,3 +432,34 @@ def test_logs_trained_as_logged_have_their_own_section_and_stay_out_of_compariso
 def test_a_run_without_logs_as_logged_has_no_such_section():
     assert "## Real logs as logged" not in experiment.page(
         _run(("grid", "gp-no-input-noise", "gp-input-noise")))
+
+
+def test_the_real_log_table_tells_logs_as_logged_apart():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    run["cases"][4]["as_logged"] = True
+    lines = experiment.page(run, {"clearance-0": run["cases"]}).splitlines()
+    assert "| settings | case 3 | case 4 as logged |" in lines
+
+
+def test_merge_adds_a_step_to_a_stored_run(tmp_path, monkeypatch):
+    def fake_run_real(work, variant, logs, seed, as_logged=False):
+        name = "clean case" if as_logged else "real case"
+        return [{"case": name, "kind": "real", "as_logged": as_logged,
+                 "scores": {"union": {"gp-input-noise": _scores(np.random.default_rng(1))}}}]
+
+    monkeypatch.setattr(experiment, "run_real", fake_run_real)
+    monkeypatch.setattr(experiment, "real_logs", lambda names, quick: [])
+    summary = tmp_path / "summary-fixed-bias.json"
+
+    def main(*argv: str) -> list[str]:
+        monkeypatch.setattr(experiment, "COMMANDS", [])
+        monkeypatch.setattr("sys.argv", ["experiment", *argv, "--variant", "fixed-bias",
+                                         "--work", str(tmp_path), "--doc", "/dev/null"])
+        experiment.main()
+        return [c["case"] for c in json.loads(summary.read_text())["cases"]]
+
+    assert main("real") == ["real case"]
+    assert main("clean") == ["clean case"]  # without --merge a run replaces the summary
+    main("real")
+    assert main("clean", "--merge") == ["real case", "clean case"]
+    assert main("clean", "--merge") == ["real case", "clean case"]  # made again, not twice
