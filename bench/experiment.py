@@ -160,6 +160,11 @@ VARIANTS: dict[str, dict[str, object]] = {
     # The same with g = 1: on accurately localised logs the learned g runs to its bound.
     "thin-0.1-n256-fixed-scale": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
                                   "model.training.learn_input_noise_scale": False},
+    # The same with denser free samples along beams: settings for accurately localised
+    # logs, picked on the real logs' held-out points as logged (so not checked apart).
+    "accurate-poses": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
+                       "model.training.learn_input_noise_scale": False,
+                       "samples.free_spacing_m": 0.3},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.

@@ -463,3 +463,18 @@ def test_merge_adds_a_step_to_a_stored_run(tmp_path, monkeypatch):
     main("real")
     assert main("clean", "--merge") == ["real case", "clean case"]
     assert main("clean", "--merge") == ["real case", "clean case"]  # made again, not twice
+
+
+@pytest.mark.parametrize("name", sorted(experiment.VARIANTS))
+def test_every_variant_overrides_keys_a_config_has(tmp_path, name):
+    from bench.paths import INTEL_CONFIG
+    from gpocc.config import config_to_dict, load_config
+
+    out = experiment.with_overrides(INTEL_CONFIG, experiment.VARIANTS[name],
+                                    tmp_path / "config.yaml")
+    loaded = config_to_dict(load_config(out))
+    for key, value in experiment.VARIANTS[name].items():
+        node = loaded
+        for part in key.split("."):
+            node = node[part]
+        assert (list(node) if isinstance(node, tuple) else node) == value, key
