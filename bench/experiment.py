@@ -165,6 +165,13 @@ VARIANTS: dict[str, dict[str, object]] = {
     "accurate-poses": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
                        "model.training.learn_input_noise_scale": False,
                        "samples.free_spacing_m": 0.3},
+    # The classifier's offset fitted on held-out scans' points with its temperature (as
+    # the held-out protocols draw them) instead of on left-out samples.
+    "offset-beams": {"model.training.classifier_offset": "beams"},
+    "accurate-poses-offset-beams": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
+                                    "model.training.learn_input_noise_scale": False,
+                                    "samples.free_spacing_m": 0.3,
+                                    "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
