@@ -26,18 +26,16 @@ classifier_holdout``):
   queries (thinning keeps boundary cells over-represented, and map cells lie between
   samples), so a classifier fitted on them is too timid for open space.
 
-``model.training.classifier_offset: beams`` then re-fits the offset ``c`` alone (``s``
-kept) on labelled points of held-out *scans* (every ``calibration_every``-th scan; an
+``model.training.classifier_offset: beams`` then re-fits the offset ``c`` (``s`` kept;
+with ``classifier_temperature: beams``, together with the temperature) on labelled points
+of held-out *scans* (every ``calibration_every``-th scan; an
 occupied point at each hit, three free points at uniform distances along each beam, only
 points whose position is known to ``calibration_max_position_std_m``:
 :mod:`gpocc.samples.heldout`), predicted as map cells are from the samples of all other
 scans, in up to ``calibration_blocks`` randomly chosen map blocks. Held-out hits lie on
 wall surfaces, where the latent mean crosses zero, so this offset makes the probability
-mean what it says at points where beams end (the held-out-scan evaluation of real logs:
-Brier on Intel 0.0439 -> 0.0420, Freiburg 0.0715 -> 0.0660), while the default is
-calibrated for map cells (simulated truth rasters: the beam offset doubled the Brier
-score there; docs/results.md, 'Protocol `cells`', made with ``--variant beam-offset``
-against ``--variant learned-scale-floor-0.1``).
+mean what it says at points where beams end, while the default is calibrated for map
+cells; docs/results.md (variant ``offset-beams``) measures both.
 
 ``model.training.classifier_temperature`` then divides the classifier's argument by a
 temperature ``T`` fitted on the same held-out predictions, their variances taken as a map
@@ -329,6 +327,30 @@ def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
         bounds=(-C_BOUND, C_BOUND), method="bounded", options={"xatol": 1e-6})
     return PlattClassifier(offset=float(best.x), extra_variance=extra_variance,
                            temperature=temperature)
+
+
+def fit_offset_and_temperature(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
+                               extra_variance: float) -> PlattClassifier:
+    """The offset c and temperature T maximising :func:`held_out_log_probability` of
+    held-out predictions (N,) together, the extra variance s fixed (L-BFGS-B on (c, log T)
+    within [-C_BOUND, C_BOUND] and [T_MIN, T_MAX], from c = 0, T = 1).
+
+    Fitted one after the other (c at T = 1, then T), c is chosen for probabilities far
+    sharper than the map's: on points few of which lie near the decision it runs toward
+    one label (three simulated worlds: c 0.44-0.57 against 0.12-0.30 fitted together). Points
+    that one label holds entirely give no temperature: c alone is fitted then, at T = 1."""
+    if not has_both_labels(labels):
+        return fit_offset(mean, variance, labels, extra_variance)
+    from scipy.optimize import minimize  # here: `gpocc map` never fits
+
+    def negative(params: np.ndarray) -> float:
+        return -held_out_log_probability(params[0], extra_variance, mean, variance, labels,
+                                         float(np.exp(params[1])))
+
+    best = minimize(negative, np.zeros(2), method="L-BFGS-B",
+                    bounds=[(-C_BOUND, C_BOUND), (np.log(T_MIN), np.log(T_MAX))])
+    return PlattClassifier(offset=float(best.x[0]), extra_variance=extra_variance,
+                           temperature=float(np.exp(best.x[1])))
 
 
 def separates(classifier: PlattClassifier, mean: np.ndarray, labels: np.ndarray) -> bool:

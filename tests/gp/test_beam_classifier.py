@@ -9,7 +9,12 @@ import pytest
 from scipy.special import ndtr
 
 from gpocc.config import Config, ModelConfig, SamplesConfig, TrainingConfig
-from gpocc.gp.classify import beam_holdout_predictions, fit_offset, held_out_log_probability
+from gpocc.gp.classify import (
+    beam_holdout_predictions,
+    fit_offset,
+    fit_offset_and_temperature,
+    held_out_log_probability,
+)
 from gpocc.gp.kernels import NeuralNetworkKernel
 from gpocc.gp.local import centred_problem, predict_local
 from gpocc.gp.model import build_model
@@ -198,3 +203,38 @@ def test_points_placed_by_uncertain_poses_are_left_out():
     # Per point: the heading error grows with range; the limit keeps the near points.
     std = position_std(blurred, quiet.sensors[0], np.array([0, 0]), np.array([0.0, 10.0]))
     np.testing.assert_allclose(std, np.sqrt([0.09, 0.09 + 0.5 * 100 * 1e-4]))
+
+
+def test_offset_and_temperature_maximise_the_heldout_log_probability_together():
+    rng = np.random.default_rng(9)
+    mean, var = rng.normal(0.2, 1.0, 400), rng.uniform(0.01, 0.2, 400)
+    # Labels drawn from a flatter classifier than the latent one: T about 2, c = -0.3.
+    labels = np.where(rng.random(400) < ndtr((mean - 0.3) / (2.0 * np.sqrt(0.05 + var))),
+                      1.0, -1.0)
+    fit = fit_offset_and_temperature(mean, var, labels, 0.05)
+    assert fit.extra_variance == 0.05
+    offsets, log_t = np.linspace(-1.5, 1.0, 251), np.linspace(-1.0, 2.0, 301)
+    scores = np.array([[held_out_log_probability(c, 0.05, mean, var, labels, np.exp(lt))
+                        for lt in log_t] for c in offsets])
+    i, j = np.unravel_index(np.argmax(scores), scores.shape)
+    assert fit.offset == pytest.approx(offsets[i], abs=0.02)
+    assert np.log(fit.temperature) == pytest.approx(log_t[j], abs=0.02)
+    assert held_out_log_probability(fit.offset, 0.05, mean, var, labels,
+                                    fit.temperature) >= scores.max() - 1e-6
+
+
+def test_with_a_beam_temperature_the_offset_is_fitted_with_it():
+    batch = room_batch(n_scans=30, n_beams=40, seed=6)
+    config = dataclasses.replace(_training("beams"), model=dataclasses.replace(
+        _training("beams").model, training=dataclasses.replace(
+            _training("beams").model.training, classifier_temperature="beams")))
+    samples = build_samples([batch], config)
+    calib = calibration_points([batch], config, config.model.training.calibration_every)
+    model = build_model(samples, config, calibration=calib)
+    plain = build_model(samples, _training("holdout"))
+    mean, var, labels = beam_holdout_predictions(
+        model.kernel, model.noise_variance, model.samples, calib, model.level, 64, 1.0, 20,
+        np.random.default_rng(config.seed + 2))
+    assert model.training["classifier_offset"] == "beams"
+    assert model.classifier == fit_offset_and_temperature(
+        mean, var, labels, plain.classifier.extra_variance)
