@@ -250,23 +250,19 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0
     offset = "holdout"
-    if training.classifier_offset == "beams" and training.classifier_temperature == "beams":
-        if separates(classifier, mean, labels):
-            log(f"note: the classifier puts all {labels.size} labelled points of held-out "
-                "scans on their label's side, which leaves its temperature undetermined; "
-                "kept the held-out samples' fit")
-            return classifier, "holdout", int(labels.size)
-        return (fit_offset_and_temperature(mean, variance, labels, classifier.extra_variance),
-                "beams", int(labels.size))
-    if training.classifier_offset == "beams":
-        classifier, offset = fit_offset(mean, variance, labels, classifier.extra_variance,
-                                        classifier.temperature), "beams"
     if training.classifier_temperature == "beams":
         if separates(classifier, mean, labels):
             log(f"note: the classifier puts all {labels.size} labelled points of held-out "
                 "scans on their label's side, which leaves its temperature undetermined; "
                 "kept the held-out samples' fit (temperature 1)")
-        classifier = fit_temperature(classifier, mean, variance, labels)
+        elif training.classifier_offset == "beams":
+            classifier, offset = fit_offset_and_temperature(
+                mean, variance, labels, classifier.extra_variance), "beams"
+        else:
+            classifier = fit_temperature(classifier, mean, variance, labels)
+    elif training.classifier_offset == "beams":
+        classifier, offset = fit_offset(mean, variance, labels, classifier.extra_variance,
+                                        classifier.temperature), "beams"
     return classifier, offset, int(labels.size)
 
 
