@@ -103,6 +103,10 @@ _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}
 _HIT_PATCHES = {**_LEARNED, "model.training.patch_centres": "hits",
                 "samples.free_clearance_m": 0.05}
+#: Finer samples, more neighbours, then g = 1 and denser free samples: each adds to the last.
+_THIN_N256 = {"samples.thin_cell_m": 0.1, "model.neighbours": 256}
+_THIN_N256_FIXED_SCALE = {**_THIN_N256, "model.training.learn_input_noise_scale": False}
+_ACCURATE_POSES = {**_THIN_N256_FIXED_SCALE, "samples.free_spacing_m": 0.3}
 #: Learning seeds of the run-to-run spread (seed 0 is the defaults' run).
 SPREAD_SEEDS = (1, 2, 3, 4)
 
@@ -156,21 +160,16 @@ VARIANTS: dict[str, dict[str, object]] = {
     # Finer samples with more of them per local problem (about the area 0.15 m and 128
     # cover): walls kept at 0.1 m.
     "thin-0.1-n192": {"samples.thin_cell_m": 0.1, "model.neighbours": 192},
-    "thin-0.1-n256": {"samples.thin_cell_m": 0.1, "model.neighbours": 256},
+    "thin-0.1-n256": _THIN_N256,
     # The same with g = 1: on accurately localised logs the learned g runs to its bound.
-    "thin-0.1-n256-fixed-scale": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
-                                  "model.training.learn_input_noise_scale": False},
+    "thin-0.1-n256-fixed-scale": _THIN_N256_FIXED_SCALE,
     # The same with denser free samples along beams: settings for accurately localised
     # logs, picked on the real logs' held-out points as logged (so not checked apart).
-    "accurate-poses": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
-                       "model.training.learn_input_noise_scale": False,
-                       "samples.free_spacing_m": 0.3},
+    "accurate-poses": _ACCURATE_POSES,
     # The classifier's offset fitted on held-out scans' points with its temperature (as
     # the held-out protocols draw them) instead of on left-out samples.
     "offset-beams": {"model.training.classifier_offset": "beams"},
-    "accurate-poses-offset-beams": {"samples.thin_cell_m": 0.1, "model.neighbours": 256,
-                                    "model.training.learn_input_noise_scale": False,
-                                    "samples.free_spacing_m": 0.3,
+    "accurate-poses-offset-beams": {**_ACCURATE_POSES,
                                     "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
