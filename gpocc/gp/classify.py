@@ -337,8 +337,8 @@ def fit_offset_and_temperature(mean: np.ndarray, variance: np.ndarray, labels: n
 
     Fitted one after the other (c at T = 1, then T), c is chosen for probabilities far
     sharper than the map's: on points few of which lie near the decision it runs toward
-    one label (three simulated worlds: c 0.44-0.57 against 0.12-0.30 fitted together). Points
-    that one label holds entirely give no temperature: c alone is fitted then, at T = 1."""
+    one label (on some simulated worlds, toward occupied). Points that one label holds
+    entirely give no temperature: c alone is fitted then, at T = 1."""
     if not has_both_labels(labels):
         return fit_offset(mean, variance, labels, extra_variance)
     from scipy.optimize import minimize  # here: `gpocc map` never fits
