@@ -209,7 +209,11 @@ class TrainingConfig:
     """Hyperparameter learning: log marginal likelihood summed over local patches.
 
     ``patches`` neighbourhoods of ``patch_size`` samples each, centred on randomly chosen
-    samples (spatially stratified), each centred at the origin as at inference.
+    samples (spatially stratified), each centred at the origin as at inference; at least
+    ``patches_per_sensor`` times the number of sensors, so that a site of many separate
+    buildings (each input its own sensor without a config) learns from patches spread
+    over all of them rather than from ten at its edges, where the hyperparameters of
+    the buildings at the edges are learned for all (docs/benchmarks.md, "City").
     ``patch_centres``: ``hits`` (default) draws the centres from the occupied samples, so
     every patch holds a boundary; ``samples`` (as before) from all samples, where a draw
     of mostly open space can learn a kernel far too smooth for the walls (Freiburg held-out
@@ -274,6 +278,7 @@ class TrainingConfig:
 
     learn: bool = True
     patches: int = 10
+    patches_per_sensor: int = 2
     patch_size: int = 128
     patch_centres: str = "hits"
     anneal_maxfun: int = 20
@@ -514,6 +519,7 @@ _NON_NEGATIVE_KEYS = {
     "free_clearance_m", "sample_cell_m", "stamp_tolerance_s", "calibration_near_wall",
     "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
+    "patches_per_sensor",
 }
 _POSITIVE_KEYS = {
     "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",

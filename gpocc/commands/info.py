@@ -14,7 +14,7 @@ from gpocc.config import Config, load_config
 from gpocc.errors import GpoccError
 from gpocc.gp.bounds import GUIDE_SECTION, values_on_bounds
 from gpocc.gp.growth import input_listing
-from gpocc.gp.model import GPModel, kernel_parameters, load_model
+from gpocc.gp.model import GPModel, kernel_parameters, load_model, patch_summary
 from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
 from gpocc.io.scans import ScanBatch
 from gpocc.samples.sampleset import SampleSet
@@ -153,7 +153,8 @@ def format_model(path: Path, model: GPModel) -> list[str]:
     lines += [f"    {b.message()}" for b in on_bounds]
     if "log_marginal_likelihood" in training:
         lines.append(f"  log marginal likelihood: {training['log_marginal_likelihood']:.3f} "
-                     f"({training.get('evaluations', '?')} evaluations)")
+                     f"({training.get('evaluations', '?')} evaluations"
+                     + patch_summary(training) + ")")
     lines.append("  training time: " + (
         ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
         + f" (total {sum(timings.values()):.1f} s)" if timings else "(not recorded)"))

@@ -23,7 +23,13 @@ from gpocc.commands.options import (
 from gpocc.config import Config, load_config
 from gpocc.gp.bounds import GUIDE_SECTION, values_on_bounds
 from gpocc.gp.growth import Growth
-from gpocc.gp.model import GPModel, build_model, kernel_parameters, save_model
+from gpocc.gp.model import (
+    GPModel,
+    build_model,
+    kernel_parameters,
+    patch_summary,
+    save_model,
+)
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
@@ -127,7 +133,8 @@ def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
     typer.echo("kernel: " + ", ".join(f"{k}={v}" for k, v in params.items()))
     typer.echo(f"noise_variance: {model.noise_variance:.6g}")
     typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
-               f"(initial {model.training['initial_log_marginal_likelihood']:.3f})")
+               f"(initial {model.training['initial_log_marginal_likelihood']:.3f}"
+               + patch_summary(model.training) + ")")
     if model.input_noise_scale != 1.0:
         part = model.config.model.training.input_noise_scale_part
         typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}"

@@ -121,6 +121,13 @@ def kernel_parameters(kernel: Kernel) -> dict[str, Any]:
     return {"class": type(kernel).__name__, **values}
 
 
+def patch_summary(training: dict[str, Any]) -> str:
+    """``"; N patches of M samples"`` of a model's training record (``""`` where it
+    records none: a model whose values were not learned)."""
+    count, size = training.get("patches") or (0, 0)
+    return f"; {count} patches of {size} samples" if count else ""
+
+
 def build_model(
     samples: SampleSet, config: Config, inputs: tuple[str, ...] = (),
     on_evaluation: Callable[[int], None] | None = None,

@@ -90,8 +90,18 @@ def spread_patch_centres(means: np.ndarray, count: int, rng: np.random.Generator
     return candidates[farthest_point_indices(candidates, count, rng)]
 
 
+def patch_count(samples: SampleSet, config: TrainingConfig) -> int:
+    """How many patches learning draws: ``config.patches``, or ``patches_per_sensor``
+    per sensor with samples where that is more (a site of many separate buildings, each
+    its own sensor, gets patches on all of them instead of ten at the site's edges,
+    where farthest-point spreading puts them)."""
+    sensors = np.unique(samples.sensor_ids).size
+    return max(config.patches, config.patches_per_sensor * sensors)
+
+
 def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[LocalProblem]:
-    """Training patches: ``config.patches`` neighbourhoods of ``config.patch_size`` samples.
+    """Training patches: :func:`patch_count` neighbourhoods of ``config.patch_size``
+    samples.
 
     ``config.patch_centres``: ``hits`` spreads the centres over the occupied samples, so
     that every patch holds a boundary (over all samples when there are fewer hits than
@@ -107,9 +117,10 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
     index = NeighbourIndex(samples)
     hits = samples.labels > 0
     centre_pool = samples.means
-    if config.patch_centres == "hits" and hits.sum() >= config.patches:
+    count = patch_count(samples, config)
+    if config.patch_centres == "hits" and hits.sum() >= count:
         centre_pool = samples.means[hits]
-    centres = spread_patch_centres(centre_pool, config.patches, rng)
+    centres = spread_patch_centres(centre_pool, count, rng)
     return [index.problem(c, config.patch_size) for c in centres]
 
 

@@ -37,6 +37,11 @@ def test_train_writes_a_self_contained_model(trained):
     path, output = trained
     assert "log marginal likelihood" in output and "classifier: a=" in output
     model = load_model(path)
+    count, size = model.training["patches"]
+    assert f"; {count} patches of {size} samples)" in output
+    assert count == max(model.config.model.training.patches,
+                        model.config.model.training.patches_per_sensor
+                        * len(np.unique(model.samples.sensor_ids)))
     assert model.input_noise
     assert len(model.samples) > 1000
     assert model.samples.covariances.any() and model.samples.pose_factors.any()

@@ -127,6 +127,32 @@ def test_patch_centres_are_hits_or_any_samples(centres):
                                                 patch_centres=centres), seed=0)) == 12
 
 
+@pytest.mark.parametrize("per_sensor", [0, 1, 2])
+def test_a_site_of_many_sensors_gets_a_patch_on_every_building(per_sensor):
+    """20 buildings 60 m apart, each its own sensor: with ``patches_per_sensor: k`` there
+    are 20 k patches and every building holds one (farthest-point spreading over
+    well-separated clusters); with 0 only ``patches`` (10), so half the buildings get
+    none."""
+    rng = np.random.default_rng(5)
+    per, side = 200, 5
+    centres = np.array([(60.0 * (k % side), 60.0 * (k // side)) for k in range(20)])
+    building = np.repeat(np.arange(20), per)
+    means = centres[building] + rng.uniform(-10, 10, (building.size, 2))
+    labels = np.where(rng.random(building.size) < 0.2, 1.0, -1.0)
+    samples = dataclasses.replace(samples_from(means, labels),
+                                  sensor_ids=building.astype(np.int16))
+    config = TrainingConfig(patches=10, patch_size=30, patches_per_sensor=per_sensor)
+    patches = make_patches(samples, config, seed=0)
+    held = {int(np.argmin(np.linalg.norm(centres - p.centre, axis=1))) for p in patches}
+    if per_sensor:
+        assert len(patches) == 20 * per_sensor and held == set(range(20))
+    else:
+        assert len(patches) == 10 and len(held) == 10
+    # One sensor: the count stays ``patches`` whatever ``patches_per_sensor`` is.
+    one = make_patches(samples_from(means, labels), config, seed=0)
+    assert len(one) == 10
+
+
 def test_learned_hyperparameters_do_not_depend_on_the_worker_count():
     samples = _correlated_problem()
     config = TrainingConfig(patches=3, patch_size=40, anneal_maxfun=8, lbfgs_maxiter=5)
