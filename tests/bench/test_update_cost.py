@@ -25,7 +25,7 @@ def test_where_time_goes_reads_the_commands_own_account(tmp_path: Path) -> None:
     # Against `gpocc info`, which prints the evaluations from the file on its own.
     info = subprocess.run([sys.executable, "-m", "gpocc", "info", str(model)],
                           check=True, capture_output=True, text=True).stdout
-    assert told["evaluations"] == int(re.search(r"\((\d+) evaluations\)", info).group(1))
+    assert told["evaluations"] == int(re.search(r"\((\d+) evaluations[;)]", info).group(1))
     assert told["evaluations"] > 1
     total = float(re.search(r"^time: ([0-9.]+) s$", trained.stdout, re.MULTILINE).group(1))
     assert told["startup_s"] == pytest.approx(10.0 - total)
