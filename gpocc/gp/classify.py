@@ -288,8 +288,7 @@ def beam_holdout_predictions(
         return np.zeros(0), np.zeros(0), np.zeros(0)
     index = NeighbourIndex(samples.subset(keep))
     keys = np.floor(calibration.points / block_size_m).astype(np.int64)
-    blocks, member = np.unique(keys, axis=0, return_inverse=True)
-    member = member.ravel()
+    blocks, member = unique_cells(keys)
     chosen = np.sort(rng.permutation(len(blocks))[:max_blocks])
     order = np.argsort(member, kind="stable")
     bounds = np.searchsorted(member[order], np.arange(len(blocks) + 1))
@@ -305,6 +304,24 @@ def beam_holdout_predictions(
                             backend=backend)
     means, variances = zip(*map_fn(one, zip(problems, points, strict=True)), strict=True)
     return np.concatenate(means), np.concatenate(variances), np.concatenate(labels)
+
+
+def unique_cells(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(cells, axis=0, return_inverse=True)`` of integer cells (N, 2), the
+    inverse flat (N,): the distinct cells in lexicographic order and each row's index
+    among them. Each row is one integer key (x major) for numpy's 1-D sort: axis=0 sorts
+    rows as structured records, 13x slower (2.7 s for a city's 1.6 million held-out
+    points)."""
+    if len(cells) == 0:
+        return np.zeros((0, 2), dtype=cells.dtype), np.zeros(0, dtype=np.intp)
+    low, high = cells.min(axis=0), cells.max(axis=0)
+    span = int(high[1] - low[1]) + 1
+    if (int(high[0] - low[0]) + 1) * span >= 2**62:  # keys past int64: rows as records
+        unique, inverse = np.unique(cells, axis=0, return_inverse=True)
+        return unique, inverse.ravel()
+    flat = (cells[:, 0] - low[0]) * span + (cells[:, 1] - low[1])
+    keys, inverse = np.unique(flat, return_inverse=True)
+    return np.column_stack([keys // span + low[0], keys % span + low[1]]), inverse.ravel()
 
 
 def _predict_block(kernel: Kernel, noise_variance: float,

@@ -14,6 +14,7 @@ from gpocc.gp.classify import (
     fit_offset,
     fit_offset_and_temperature,
     held_out_log_probability,
+    unique_cells,
 )
 from gpocc.gp.kernels import NeuralNetworkKernel
 from gpocc.gp.local import centred_problem, predict_local
@@ -238,3 +239,19 @@ def test_with_a_beam_temperature_the_offset_is_fitted_with_it():
     assert model.training["classifier_offset"] == "beams"
     assert model.classifier == fit_offset_and_temperature(
         mean, var, labels, plain.classifier.extra_variance)
+
+
+@pytest.mark.parametrize("spread", [3, 1000, 2**40])
+def test_unique_cells_equal_numpy_unique_of_rows(spread):
+    """Against ``np.unique(axis=0, return_inverse=True)``: negative cells, repeats, and
+    a range too wide for one int64 key (the records fallback)."""
+    rng = np.random.default_rng(spread)
+    cells = rng.integers(-spread, spread, (5000, 2))
+    cells[::7] = cells[3]  # many repeats of one cell
+    got, inverse = unique_cells(cells)
+    want, want_inverse = np.unique(cells, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(inverse, want_inverse.ravel())
+    np.testing.assert_array_equal(got[inverse], cells)
+    empty, none = unique_cells(np.zeros((0, 2), dtype=np.int64))
+    assert empty.shape == (0, 2) and none.size == 0
