@@ -59,23 +59,30 @@ class Support:
                                                  and 0 <= c_lo <= c_hi <= spec.width):
             raise ValueError(f"rows {rows} and cols {cols} must start on a multiple of "
                              f"{cells} and lie in the {spec.height} x {spec.width} grid")
-        inside = np.zeros((r_hi - r_lo, c_hi - c_lo), dtype=bool)
+        shape = (r_hi - r_lo, c_hi - c_lo)
         half = cells * spec.resolution * math.sqrt(0.5)
-        groups = [(r, c) for r in range(r_lo, r_hi, cells) for c in range(c_lo, c_hi, cells)]
-        if not groups:
-            return inside
-        centres = np.array([
-            [spec.x0 + (c + min(cells, spec.width - c) / 2) * spec.resolution,
-             spec.y1 - (r + min(cells, spec.height - r) / 2) * spec.resolution]
-            for r, c in groups])
-        maybe = self.within(centres, half)
-        surely = self.within(centres, -half) if self.max_distance_m > half else \
-            np.zeros(len(groups), dtype=bool)
-        boundary = np.zeros(inside.shape, dtype=bool)
-        for (r, c), m, s in zip(groups, maybe, surely, strict=True):
-            if m:
-                window = (slice(r - r_lo, r - r_lo + cells), slice(c - c_lo, c - c_lo + cells))
-                (inside if s else boundary)[window] = True
+        group_rows = np.arange(r_lo, r_hi, cells)
+        group_cols = np.arange(c_lo, c_hi, cells)
+        if not (group_rows.size and group_cols.size):
+            return np.zeros(shape, dtype=bool)
+        # Group centres, (rows, cols) of groups flattened row-major.
+        xs = spec.x0 + (group_cols + np.minimum(cells, spec.width - group_cols) / 2) \
+            * spec.resolution
+        ys = spec.y1 - (group_rows + np.minimum(cells, spec.height - group_rows) / 2) \
+            * spec.resolution
+        centres = np.column_stack([np.tile(xs, ys.size), np.repeat(ys, xs.size)])
+        grid = (group_rows.size, group_cols.size)
+        maybe = self.within(centres, half).reshape(grid)
+        surely = (self.within(centres, -half).reshape(grid) if self.max_distance_m > half
+                  else np.zeros(grid, dtype=bool))
+
+        def cells_of(groups: np.ndarray) -> np.ndarray:
+            """Each group's flag on its cells (the last row and column of groups cut)."""
+            return np.repeat(np.repeat(groups, cells, axis=0), cells, axis=1)[:shape[0],
+                                                                              :shape[1]]
+
+        inside = cells_of(maybe & surely)
+        boundary = cells_of(maybe & ~surely)
         # The cells of the boundary groups in batches of look-ups (one per group took
         # two thirds of the Intel map's mask), row-major like ``boundary``'s True cells.
         local_rows, local_cols = np.nonzero(boundary)

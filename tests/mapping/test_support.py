@@ -301,3 +301,32 @@ def test_no_seams_between_blocks(room_model, room_tile, layer, row):
                           for c, p in enumerate(pts)])
     old_at, old_inside = jumps_at_and_inside_block_boundaries(per_block, cells)
     assert old_at > old_inside
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_supported_anchors_are_those_whose_footprint_holds_a_supported_cell(seed):
+    """Against slicing each anchor's footprint out of the mask: the same anchors kept
+    (with their footprint's mask) and skipped, for a sparse mask, offsets and partly
+    covered lattice rows."""
+    from gpocc.mapping.blend import supported_anchors
+
+    rng = np.random.default_rng(seed)
+    spec = GridSpec(-3.0, -2.0, 0.1, 97, 83)  # width, height: blocks cut at the edges
+    lattice = AnchorLattice(spec, 8, 0.5 + 0.5 * seed)
+    rows, cols = lattice.shape
+    row0, col0 = 8, 16  # the mask starts on block boundaries, as a tile's does
+    mask = np.zeros((spec.height - row0, spec.width - col0), dtype=bool)
+    mask[rng.random(mask.shape) < 0.004] = True
+    anchors = [Anchor(r, c) for r in range(2, rows) for c in range(3, cols)]
+    kept, skipped = supported_anchors(lattice, anchors, mask, row0, col0)
+    want_kept, want_skipped = [], []
+    for a in anchors:
+        fp = lattice.footprint_block(a)
+        inside = mask[fp.row0 - row0:fp.row0 + fp.rows - row0,
+                      fp.col0 - col0:fp.col0 + fp.cols - col0]
+        (want_kept if inside.any() else want_skipped).append((a, inside))
+    assert [(a.row, a.col) for a in skipped] == [(a.row, a.col) for a, _ in want_skipped]
+    assert [(a.row, a.col) for a in kept] == [(a.row, a.col) for a, _ in want_kept]
+    for got, (_, inside) in zip(kept, want_kept, strict=True):
+        np.testing.assert_array_equal(got.inside, inside)
+    assert want_kept and want_skipped  # both kinds occur
