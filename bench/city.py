@@ -13,6 +13,7 @@ the same way (AUC of the nearest cell, hits with every free point, as `gpocc eva
 from __future__ import annotations
 
 import re
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +33,8 @@ SPACING_M = 62.5
 #: The largest AUC difference, building in the city against the same scans mapped alone,
 #: that the city target allows.
 AUC_TOLERANCE = 0.002
+#: Builds of the city whose median wall time the target is read on.
+CITY_REPEATS = 3
 
 
 @dataclass(frozen=True)
@@ -50,6 +53,7 @@ class Site:
     """A built city: its layout, the build's measurement and its map folder."""
 
     layout: list[Building]
+    logs: tuple[Path, ...]
     scans: int
     resolution: float
     built: Measurement
@@ -115,7 +119,7 @@ def build_site(ctx: Context, side: int, resolution: float) -> Site:
     logs, scans = write_site(folder, layout, {s.name: training_scans(s) for s in sources})
     out = ctx.work / f"city-{side}x{side}-{resolution}"
     built = gpocc("build", *logs, "--resolution", resolution, "--out", out, "--force")
-    _SITES[key] = Site(layout, scans, resolution, built, out)
+    _SITES[key] = Site(layout, tuple(logs), scans, resolution, built, out)
     return _SITES[key]
 
 
@@ -200,7 +204,9 @@ def city(ctx: Context) -> Result:
     built at 0.1 m with `gpocc build` and no config on the machine's cores. Each building's
     part of the city map is scored on its source's held-out points moved into place and
     compared with the source's training scans built alone (also no config): the target is
-    120 s wall, 4 GiB peak (all processes) and every building within 0.002 AUC."""
+    120 s wall, 4 GiB peak (all processes) and every building within 0.002 AUC. The build
+    runs `CITY_REPEATS` times (once in a quick run): this machine's speed drifts by a
+    quarter from one build to the next, so the target is read on the median wall time."""
     require(INTEL, FREIBURG)
     side = 2 if ctx.quick else 8
     for source in (INTEL, FREIBURG):
@@ -224,16 +230,30 @@ def city(ctx: Context) -> Result:
     result.add(Table(("source", "buildings", "AUC alone", "AUC in the city (range)",
                       "largest difference (city - alone)"), rows),
                "Held-out AUC per building (hits with all free points).")
-    m = site.built
+    builds = [(site.built, load)]
+    for _ in range(1, 1 if ctx.quick else CITY_REPEATS):
+        again = site.out.with_name(f"{site.out.name}-repeat")
+        built = gpocc("build", *site.logs, "--resolution", site.resolution, "--out", again,
+                      "--force")
+        builds.append((built, _load()))
+        shutil.rmtree(again)
+    result.add(Table(("build", "wall s", "CPU s", "peak MiB", "load (1 min)", "stages"),
+                     [[str(i + 1), f"{b.wall_s:.1f}", f"{b.cpu_s:.1f}", f"{b.peak_mib:.0f}",
+                       ld, "; ".join(f"{k} {v:.1f}" for k, v in stages(b.stdout).items())]
+                      for i, (b, ld) in enumerate(builds)]),
+               "The same build repeated (the first is the table above's).")
+    wall = float(np.median([b.wall_s for b, _ in builds]))
+    peak = max(b.peak_mib for b, _ in builds)
     loss = float(max(0.0, -diffs.min()))  # a building mapped worse in the city than alone
-    met = (m.wall_s <= 120.0, m.peak_mib <= 4096.0, loss <= AUC_TOLERANCE)
+    met = (wall <= 120.0, peak <= 4096.0, loss <= AUC_TOLERANCE)
     result.notes.append(
-        f"Target: wall {m.wall_s:.0f} s of 120 s ({'met' if met[0] else 'missed'}), peak "
-        f"{m.peak_mib / 1024:.2f} GiB of 4 GiB ({'met' if met[1] else 'missed'}), no "
+        f"Target: wall {wall:.0f} s of 120 s (median of {len(builds)} builds, "
+        f"{min(b.wall_s for b, _ in builds):.0f}-{max(b.wall_s for b, _ in builds):.0f} s; "
+        f"{'met' if met[0] else 'missed'}), peak "
+        f"{peak / 1024:.2f} GiB of 4 GiB ({'met' if met[1] else 'missed'}), no "
         f"building more than {AUC_TOLERANCE} AUC below its map alone "
         f"({'met' if met[2] else 'missed'}: largest loss {loss:.4f}; largest difference "
-        f"either way {diffs[worst]:+.4f}, at {scored[worst][0].name}). 1-minute load "
-        f"{load} at the end of the build.")
+        f"either way {diffs[worst]:+.4f}, at {scored[worst][0].name}).")
     return result
 
 
