@@ -48,12 +48,11 @@ def supported_anchors(lattice: AnchorLattice, anchors: list[Anchor], mask: np.nd
     and the rest. ``mask`` (H, W) bool covers the lattice's cells from (row0, col0) on
     and holds every footprint."""
     kept, skipped = [], []
-    # A footprint's rows depend on its anchor's row alone: per lattice row, which mask
-    # columns hold a supported cell, as prefix counts, answer "any in this footprint?" for
-    # each of its anchors without touching its cells (slicing and testing every
-    # footprint was a tenth of a city map's main process, which shares the cores with
-    # the workers).
-    # Likewise its columns depend on its column alone: each is looked up once.
+    # A footprint's rows depend on its anchor's row alone and its columns on its column:
+    # per lattice row, prefix counts of the mask columns that hold a supported cell answer
+    # "any in this footprint?" for each anchor without touching its cells (slicing and
+    # testing every footprint was a tenth of a city map's main process, which shares the
+    # cores with the workers).
     bands: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     columns: dict[int, tuple[int, int]] = {}
     for anchor in anchors:
