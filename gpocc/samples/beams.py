@@ -249,7 +249,7 @@ def clear_free_near_hits(samples: SampleSet, radius_m: float) -> SampleSet:
     return samples.subset(keep)
 
 
-def _packed_cells(cells: np.ndarray) -> np.ndarray:
+def packed_cells(cells: np.ndarray) -> np.ndarray:
     """(N,) int64, one key per (N, 2) integer cell, the first index in the high half:
     distinct for indices within 32 bits."""
     return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
@@ -266,7 +266,7 @@ def _cell_label_keys(cells: np.ndarray, labels: np.ndarray) -> np.ndarray | None
     overflow."""
     if cells.size and np.abs(cells).max() >= 2**30:
         return None
-    return (_packed_cells(cells) << 1) | (labels > 0)
+    return (packed_cells(cells) << 1) | (labels > 0)
 
 
 class LabelVotes:
