@@ -51,8 +51,8 @@ def supported_anchors(lattice: AnchorLattice, anchors: list[Anchor], mask: np.nd
     # A footprint's rows depend on its anchor's row alone and its columns on its column:
     # per lattice row, prefix counts of the mask columns that hold a supported cell answer
     # "any in this footprint?" for each anchor without touching its cells (slicing and
-    # testing every footprint was a tenth of a city map's main process, which shares the
-    # cores with the workers).
+    # testing every footprint was a large share of a city map's main process, which
+    # shares the cores with the workers).
     bands: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     columns: dict[int, tuple[int, int]] = {}
     for anchor in anchors:
