@@ -8,12 +8,12 @@ from pathlib import Path
 
 import typer
 
-from gpocc.commands.options import Force, Inputs
+from gpocc.commands.options import Force, Inputs, check_at_least
 from gpocc.commands.train import echo_model
 from gpocc.config import load_config
 from gpocc.errors import GpoccError
 from gpocc.gp.model import load_model, save_model
-from gpocc.gp.update import model_growth, update_config, update_model
+from gpocc.gp.update import REFINE_ITERATIONS, model_growth, update_config, update_model
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
 from gpocc.io.records import check_new_inputs, content_hash, input_records
@@ -36,12 +36,17 @@ def update(
     keep: bool = typer.Option(
         False, "--keep", help="Keep the model's hyperparameters and only refit the "
         "classifier (fastest; they were learned on the old logs' patches alone)."),
+    refine_iterations: int = typer.Option(
+        REFINE_ITERATIONS, "--refine-iterations",
+        help="L-BFGS-B iterations of the refinement, at most (more: closer to the "
+        "union's optimum, slower)."),
     force: Force = False,
 ) -> None:
     """Add new logs to a model: their samples join the model's, its hyperparameters are
     refined and the classifier refitted on all of them; the old logs are not read again."""
     if relearn and keep:
         raise GpoccError("--relearn and --keep exclude each other; give one of them")
+    check_at_least("--refine-iterations", refine_iterations, 1)
     prepare_output(out, force, folder=False, inputs=[model_path, *inputs, config])
     started = time.perf_counter()
     model = load_model(model_path)
@@ -62,10 +67,11 @@ def update(
     else:
         training = cfg.model.training
         budget = (2 + (training.anneal_maxfun if relearn else 1)
-                  + 2 * training.lbfgs_maxiter)
+                  + 2 * (training.lbfgs_maxiter if relearn else refine_iterations))
         with progress_bar(budget, "likelihood evaluations (at most)") as advance:
             grown = update_model(model, growth, batches, records, cfg,
-                                 "relearned" if relearn else "refined", advance)
+                                 "relearned" if relearn else "refined", advance,
+                                 refine_iterations)
     grown = dataclasses.replace(grown, training={
         **grown.training,
         "timings_s": {"read": round(read_s, 3), **grown.training["timings_s"]},

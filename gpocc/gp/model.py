@@ -134,7 +134,7 @@ def build_model(
     coverage: Coverage | None = None,
     calibration: CalibrationPoints | None = None,
     client: Any = None,
-    warm_start: GPModel | None = None,
+    warm_start: GPModel | None = None, refine_iterations: int | None = None,
 ) -> GPModel:
     """Learn hyperparameters and the classifier from ``samples`` under ``config``.
 
@@ -148,7 +148,9 @@ def build_model(
     ``warm_start``: a model whose hyperparameters learning refines instead of searching
     from the config's initial values (:func:`gpocc.gp.train.learn_hyperparameters`);
     ``training["warm_started"]`` then says whether it did (false: they fitted worse than
-    the initial values and learning searched as without them).
+    the initial values and learning searched as without them). ``refine_iterations``:
+    at most this many L-BFGS-B iterations from it (default
+    ``model.training.lbfgs_maxiter``).
     """
     model_cfg = config.model
     if not model_cfg.input_noise:
@@ -163,6 +165,7 @@ def build_model(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
             backend=backend, client=client, warm_start=start,
+            refine_iterations=refine_iterations,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale,

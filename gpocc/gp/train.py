@@ -340,7 +340,7 @@ def learn_hyperparameters(
     config: TrainingConfig,
     seed: int, on_evaluation: Callable[[int], None] | None = None,
     workers: int | None = None, backend: str = "auto", client: Any = None,
-    warm_start: TrainingResult | None = None,
+    warm_start: TrainingResult | None = None, refine_iterations: int | None = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
@@ -349,7 +349,9 @@ def learn_hyperparameters(
     with L-BFGS-B alone instead of annealing from the initial values; a start outside the
     box is moved onto it, and one that fits the patches worse than the initial values
     (or whose covariance is not positive definite) falls back to the full search, which
-    then gives the result of learning without a start.
+    then gives the result of learning without a start. ``refine_iterations``: at most
+    this many L-BFGS-B iterations from a ``warm_start`` it refines (default
+    ``config.lbfgs_maxiter``).
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
@@ -385,7 +387,8 @@ def learn_hyperparameters(
             return result
 
         return _optimise(kernel, noise_variance, patches, level, config, seed,
-                         negative_log_likelihood_counted, learn_scale, warm_start)
+                         negative_log_likelihood_counted, learn_scale, warm_start,
+                         refine_iterations)
 
 
 def load_optimiser() -> None:
@@ -418,7 +421,7 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
               config: TrainingConfig, seed: int,
               negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
               learn_scale: bool = False, warm_start: TrainingResult | None = None,
-              ) -> TrainingResult:
+              refine_iterations: int | None = None) -> TrainingResult:
     """Global annealing on values (none from a valid ``warm_start``), then L-BFGS-B on values and
     gradients."""
     # Imported here: a map loads models through this module but never learns.
@@ -497,9 +500,11 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         evaluations += int(annealed.nfev)
         if annealed.fun < initial:
             best, best_value = lift(annealed.x), float(annealed.fun)
+    iterations = (refine_iterations if from_start and refine_iterations is not None
+                  else config.lbfgs_maxiter)
     refined = minimize(
         objective_free, best[free], args=(kernel, patches, level), jac=True,
-        method="L-BFGS-B", bounds=free_bounds, options={"maxiter": config.lbfgs_maxiter},
+        method="L-BFGS-B", bounds=free_bounds, options={"maxiter": iterations},
     )
     evaluations += int(refined.nfev)
     if refined.fun <= best_value:

@@ -6,7 +6,10 @@ The result is the model training on all logs at once would give. The hyperparame
 from the model's values instead of annealing from the config's initial ones. Learning's
 optimum is set by its patches, not by its start, so this lands where training on all
 logs does (the patches, drawn from the same samples with the same seed, are the same)
-for the cost of the quasi-Newton stage alone. ``kept`` keeps the model's values (cheapest;
+for the cost of the quasi-Newton stage alone. The refinement stops after at most
+``refine_iterations`` L-BFGS-B iterations (:data:`REFINE_ITERATIONS`): its last steps
+raise the likelihood by a few nats at most and barely move the maps (docs/benchmarks.md,
+``update-cost``, compares them with training's). ``kept`` keeps the model's values (cheapest;
 they were learned on other patches, and ten patches' optimum moves with the draw:
 Freiburg held-out AUC up to 0.008 apart); ``relearned`` learns them on the union as
 training does, which gives that model exactly. The classifier is always fitted anew on
@@ -39,6 +42,9 @@ from gpocc.samples.beams import build_pool, finish_samples, merge_pools
 from gpocc.samples.coverage import beam_coverage, sample_coverage, union_coverage
 from gpocc.samples.heldout import calibration_points
 from gpocc.samples.sampleset import SampleSet
+
+#: L-BFGS-B iterations of a refinement, at most (``gpocc update --refine-iterations``).
+REFINE_ITERATIONS = 15
 
 #: Config sections an update takes from the model: its samples were built and its
 #: hyperparameters learned with them.
@@ -105,7 +111,8 @@ def model_growth(model: GPModel) -> tuple[Growth, list[str]]:
 def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
                  records: tuple[InputRecord, ...], config: Config,
                  hyperparameters: str = "refined",
-                 on_evaluation: Callable[[int], None] | None = None) -> GPModel:
+                 on_evaluation: Callable[[int], None] | None = None,
+                 refine_iterations: int = REFINE_ITERATIONS) -> GPModel:
     """``model`` with the samples of ``batches`` (from the inputs ``records``) added.
 
     Args:
@@ -119,6 +126,7 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
             module docstring.
         on_evaluation: progress of the likelihood evaluations (``refined``,
             ``relearned``).
+        refine_iterations: L-BFGS-B iterations of a refinement, at most.
 
     Model hyperparameters that fit the union worse than the config's initial values
     (:func:`kept_fit`) are learned again; ``training["hyperparameters"]`` says how they
@@ -165,7 +173,8 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
         # the patches it draws anyway) and searches as training does if they fit worse.
         grown = build_model(samples, config, inputs=inputs, on_evaluation=on_evaluation,
                             coverage=coverage, calibration=calibration,
-                            warm_start=model if how == "refined" else None)
+                            warm_start=model if how == "refined" else None,
+                            refine_iterations=refine_iterations)
         if how == "refined" and not grown.training["warm_started"]:
             log("note: the model's hyperparameters explain all the logs worse than the "
                 "config's initial values do (on the same patches); learned them again")
@@ -176,6 +185,8 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
     return dataclasses.replace(grown, growth=Growth(pool, growth.records + records,
                                                     calibration),
                                training={**grown.training, "hyperparameters": how,
+                                         **({"refine_iterations": refine_iterations}
+                                            if how == "refined" else {}),
                                          "timings_s": {
                                              "samples": round(samples_s, 3),
                                              "learn": round(time.perf_counter() - started

@@ -169,13 +169,23 @@ def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_p
     gpocc("train", str(logs["a"]), "--config", job, "--out", str(tmp_path / "a.npz"))
     gpocc("train", str(logs["a"]), str(logs["b"]), "--config", job,
           "--out", str(tmp_path / "ab.npz"))
-    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--out", str(tmp_path / "up.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--refine-iterations", "200",
+          "--out", str(tmp_path / "up.npz"))
     gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--keep",
           "--out", str(tmp_path / "kept.npz"))
-    a, both, up, kept = (load_model(tmp_path / n)
-                         for n in ("a.npz", "ab.npz", "up.npz", "kept.npz"))
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--refine-iterations", "1",
+          "--out", str(tmp_path / "short.npz"))
+    a, both, up, kept, short = (load_model(tmp_path / n)
+                                for n in ("a.npz", "ab.npz", "up.npz", "kept.npz", "short.npz"))
     assert up.training["hyperparameters"] == "refined"
+    assert up.training["refine_iterations"] == 200
     assert kept.training["hyperparameters"] == "kept" and kept.kernel == a.kernel
+    assert "refine_iterations" not in kept.training
+    # One iteration: a step from the model's values, short of the optimum (its
+    # evaluations: the initial values, the model's, and the line search's).
+    assert short.training["refine_iterations"] == 1
+    assert short.training["evaluations"] < up.training["evaluations"]
+    assert short.training["log_marginal_likelihood"] < up.training["log_marginal_likelihood"]
 
     def values(m):
         return np.append(m.kernel.theta, [math.log(m.noise_variance),
@@ -187,6 +197,18 @@ def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_p
     assert up.training["log_marginal_likelihood"] == pytest.approx(
         both.training["log_marginal_likelihood"], abs=1e-4)
     assert up.training["evaluations"] < both.training["evaluations"]
+    assert 0 < np.abs(values(short) - values(a)).max()
+    assert np.abs(values(short) - values(both)).max() > 1e-3
+
+
+def test_no_refine_iterations_is_one_error_line(logs, tmp_path):
+    train_a(logs, tmp_path)
+    result = runner.invoke(app, ["update", str(tmp_path / "a.npz"), str(logs["b"]),
+                                 "--refine-iterations", "0", "--out", str(tmp_path / "up.npz")])
+    assert result.exit_code != 0
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "--refine-iterations must be at least 1" in lines[0]
+    assert not (tmp_path / "up.npz").exists()
 
 
 def test_relearn_and_keep_together_are_one_error_line(logs, tmp_path):
