@@ -98,7 +98,8 @@ _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "samples.free_clearance_m": 0.0,
               "model.blend_overlap": 1.0,
               "samples.hit_gap_m": 0.25,
-              "model.training.classifier_temperature": "none"}
+              "model.training.classifier_temperature": "none",
+              "model.training.classifier_offset": "holdout"}
 _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}
 _HIT_PATCHES = {**_LEARNED, "model.training.patch_centres": "hits",
@@ -166,6 +167,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     # The same with denser free samples along beams: settings for accurately localised
     # logs, picked on the real logs' held-out points as logged (so not checked apart).
     "accurate-poses": _ACCURATE_POSES,
+    # The classifier's offset fitted on left-out samples (leave-one-out, as published)
+    # instead of on held-out scans' points with its temperature.
+    "offset-holdout": {"model.training.classifier_offset": "holdout"},
     # The classifier's offset fitted on held-out scans' points with its temperature (as
     # the held-out protocols draw them) instead of on left-out samples.
     "offset-beams": {"model.training.classifier_offset": "beams"},
@@ -180,6 +184,26 @@ VARIANTS: dict[str, dict[str, object]] = {
     # chance, the yardstick for the differences between settings.
     **{f"seed-{k}": {"seed": k} for k in SPREAD_SEEDS},
 }
+#: Variants that change one setting of ``offset-holdout`` (the classifier's offset fitted
+#: on left-out samples): each pins that offset and is compared with ``offset-holdout``'s
+#: run (:func:`base_of`), so its stored run stays the run of its overrides.
+HOLDOUT_BASED = ("hit-gap-0.25", "no-temperature", "label-map", "fixed-scale", "thin-0.1",
+                 "patches-20", "label-weights", "anneal-1", "bounds-6", "g-max-16",
+                 "floor-0.03", "overlap-0.5", "clearance-0", "pose-scale",
+                 "two-draw-pose-scale", "fixed-bias", "thin-0.1-n192", "thin-0.1-n256",
+                 "thin-0.1-n256-fixed-scale", "accurate-poses", "isotropic",
+                 "calibration-along-beam")
+for _name in HOLDOUT_BASED:
+    VARIANTS[_name] = {**VARIANTS[_name], **VARIANTS["offset-holdout"]}
+
+
+def base_of(name: str) -> str:
+    """The variant whose run variant ``name``'s is compared with on the page:
+    ``offset-holdout`` for the variants that pin its classifier offset, else
+    ``defaults``."""
+    pinned = VARIANTS[name].get("model.training.classifier_offset") == "holdout"
+    return "offset-holdout" if pinned and name != "offset-holdout" else "defaults"
+
 
 #: The variants that widen the box of learned values (:mod:`gpocc.gp.bounds`), and the
 #: values (name prefixes, as :func:`gpocc.gp.bounds.values_on_bounds` names them) whose
@@ -228,9 +252,23 @@ def library_step(what: str, out: Path) -> bool:
     return not reused
 
 
-def with_overrides(config: Path, overrides: dict[str, object], out: Path) -> Path:
-    """Write ``config`` with dotted-key ``overrides`` applied to ``out``."""
+#: The sections of a config that say how to map, not what was recorded.
+SETTINGS_SECTIONS = ("samples", "model", "classify", "map", "grid", "bhm")
+
+
+def with_overrides(config: Path, overrides: dict[str, object], out: Path,
+                   settings: Path | None = None) -> Path:
+    """Write ``config`` with dotted-key ``overrides`` applied to ``out``. With
+    ``settings`` (the config a split was made with), the :data:`SETTINGS_SECTIONS` are
+    that file's instead of ``config``'s: a split's train.yaml spells out every default
+    of the gpocc that made it, and a stored split must not pin those."""
     data = yaml.safe_load(config.read_text()) or {}
+    if settings is not None:
+        given = yaml.safe_load(settings.read_text()) or {}
+        for section in SETTINGS_SECTIONS:
+            data.pop(section, None)
+            if section in given:
+                data[section] = given[section]
     for key, value in overrides.items():
         node = data
         *parents, last = key.split(".")
@@ -316,16 +354,18 @@ def noisy_only_truth(sim: Path, world: str, seed: int) -> Path:
 
 
 def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
-                shared: Path, bounds: list[str] | None) -> tuple[dict[str, Path], dict]:
+                shared: Path, bounds: list[str] | None,
+                settings: Path) -> tuple[dict[str, Path], dict]:
     """Every method's map folder on ``inputs``: the grid, BHM and OctoMap (shared between
-    variants, in ``shared``) and both GPs (in ``vdir``); and the GPs' wall seconds."""
+    variants, in ``shared``) and both GPs (in ``vdir``, with ``settings``' sections, see
+    :func:`with_overrides`); and the GPs' wall seconds."""
     vdir.mkdir(parents=True, exist_ok=True)
     grid_map(inputs, base_config, shared / "grid", bounds)
     grid_map(inputs, base_config, shared / "bhm", bounds, "bhm")
     maps = {"grid": shared / "grid", "bhm": shared / "bhm"}
     if octomap_row(inputs, base_config, shared / "octomap", shared / "grid"):
         maps["octomap"] = shared / "octomap"
-    config = with_overrides(base_config, VARIANTS[variant], vdir / "config.yaml")
+    config = with_overrides(base_config, VARIANTS[variant], vdir / "config.yaml", settings)
     seconds = {}
     for noise, name in (("off", "gp-no-input-noise"), ("on", "gp-input-noise")):
         seconds[name] = gp_map(inputs, config, noise, vdir / name, bounds)
@@ -399,7 +439,7 @@ def run_sim(work: Path, variant: str, worlds: list[str], seed: int) -> list[dict
         bounds = truth_bounds(truth)
         vdir = work / variant / "sim" / sim.name
         maps, seconds = run_methods([held / "train.mcap"], held / "train.yaml", variant, vdir,
-                                    sim, bounds)
+                                    sim, bounds, sim / "sim.yaml")
         result = evaluate(maps, held / "heldout.csv", vdir / "evaluation-heldout")
         result["cells"] = evaluate(maps, truth, vdir / "evaluation-cells")["all"]
         region = noisy_only_truth(sim, world, seed)
@@ -480,7 +520,7 @@ def run_real(work: Path, variant: str, logs: list[tuple[str, Path, Path, int]],
             shared, how = held.parent, "pose noise by stretch"
             vdir = work / variant / "real" / name
         shared.mkdir(parents=True, exist_ok=True)
-        maps, seconds = run_methods([bag], base, variant, vdir, shared, None)
+        maps, seconds = run_methods([bag], base, variant, vdir, shared, None, log_config)
         result = evaluate(maps, held / "heldout.csv", vdir / "evaluation-heldout")
         cases.append({"case": f"{path.name} (every {every}th scan held out, {how})",
                       "kind": "real", "as_logged": as_logged, "scores": result,
@@ -551,46 +591,49 @@ def summary_table(cases: list[dict]) -> list[str]:
 
 
 def variant_table(cases: list[dict], variants: dict[str, list[dict]],
-                  spread: dict[str, dict[str, float]] | None = None) -> list[str]:
-    """The GP with input noise at these settings against the same GP of each of
-    ``variants`` (name -> that run's cases), on the cases both ran, per protocol: wins
-    count the cases where this run's GP is better. With ``spread`` (:func:`seed_spread`),
-    two more columns count the cases whose AUC and Brier differ by more than the case's
-    spread over learning seeds: better here / better in the variant."""
+                  spread: dict[str, dict[str, float]] | None = None,
+                  base: str | None = None) -> list[str]:
+    """The GP with input noise of ``cases`` (this run's, or variant ``base``'s run)
+    against the same GP of each of ``variants`` (name -> that run's cases), on the cases
+    both ran, per protocol: wins count the cases where the GP of ``cases`` is better.
+    With ``spread`` (:func:`seed_spread`), two more columns count the cases whose AUC and
+    Brier differ by more than the case's spread over learning seeds: better in ``cases``
+    / better in the variant."""
     beyond = spread is not None
     lines = ["| protocol | comparison | AUC wins | mean AUC diff | worst AUC diff | "
              "FPR@TPR0.97 wins | Brier wins | mean Brier diff |"
              + (" AUC beyond the spread | Brier beyond the spread |" if beyond else ""),
              "|---|---|---:|---:|---:|---:|---:|---:|" + ("---:|---:|" if beyond else "")]
-    ours = "gp-input-noise"
+    gp = "gp-input-noise"
+    ours = f"{gp} ({base})" if base else gp
     for name, other in variants.items():
-        theirs = f"{ours} ({name})"
+        theirs = f"{gp} ({name})"
         by_case = {c["case"]: c["scores"] for c in other}
-        merged = [{**c, "scores": {p: {**s, theirs: by_case[c["case"]][p][ours]}
+        merged = [{**c, "scores": {p: {ours: s[gp], theirs: by_case[c["case"]][p][gp]}
                                    for p, s in c["scores"].items()
-                                   if ours in by_case.get(c["case"], {}).get(p, {})}}
+                                   if gp in s and gp in by_case.get(c["case"], {}).get(p, {})}}
                   for c in cases]
         for protocol in PROTOCOLS:
             line = comparison(merged, protocol, ours, theirs)
             if line and beyond:
-                line += "".join(f" {_beyond(merged, protocol, theirs, metric, spread)} |"
+                line += "".join(f" {_beyond(merged, protocol, ours, theirs, metric, spread)} |"
                                 for metric in ("auc", "brier"))
             if line:
                 lines.append(line)
     return lines
 
 
-def _beyond(cases: list[dict], protocol: str, theirs: str, metric: str,
+def _beyond(cases: list[dict], protocol: str, ours: str, theirs: str, metric: str,
             spread: dict[str, dict[str, float]]) -> str:
     """``better here / better there``: the cases of ``protocol`` whose ``metric`` differs
-    between this run's GP and ``theirs`` by more than the case's seed spread."""
+    between the GPs ``ours`` and ``theirs`` by more than the case's seed spread."""
     here = there = 0
     for c in cases:
         scores = c["scores"].get(protocol, {})
         width = spread.get(c["case"], {}).get(f"{protocol} {metric}")
-        if "gp-input-noise" not in scores or theirs not in scores or width is None:
+        if ours not in scores or theirs not in scores or width is None:
             continue
-        diff = scores["gp-input-noise"][metric] - scores[theirs][metric]
+        diff = scores[ours][metric] - scores[theirs][metric]
         gain = diff if metric == "auc" else -diff
         if abs(diff) > width:
             here, there = here + (gain > 0), there + (gain < 0)
@@ -666,15 +709,24 @@ def bounds_table(cases: list[dict]) -> list[str]:
     return lines
 
 
+def _base_run(name: str, cases: list[dict], variants: dict[str, list[dict]]) -> list[dict]:
+    """The cases variant ``name`` is compared with: this run's (``cases``) or those of its
+    base variant's run (:func:`base_of`) among ``variants`` (none when it is not there)."""
+    base = base_of(name)
+    return cases if base == "defaults" else variants.get(base, [])
+
+
 def widening_tables(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
-    """For each compared variant of :data:`WIDENING`, on the cases both runs recorded:
-    where the values whose box it widens end (cases on a bound and median, here and in
-    the variant), then what it gains: the patch log marginal likelihood (variant minus
-    this run, nats) and the GP's held-out scores (variant minus this run, mean over the
-    cases; wins count the cases where the variant is better)."""
-    ours = _learned(cases)
+    """For each compared variant of :data:`WIDENING`, on the cases it and the run it is
+    compared with (:func:`_base_run`, "here") both recorded: where the values whose box
+    it widens end (cases on a bound and median, here and in the variant), then what it
+    gains: the patch log marginal likelihood (variant minus here, nats) and the GP's
+    held-out scores (variant minus here, mean over the cases; wins count the cases where
+    the variant is better)."""
     values, gains = [], []
     for name, prefixes in WIDENING.items():
+        base = _base_run(name, cases, variants)
+        ours = _learned(base)
         theirs = _learned(variants.get(name, []))
         both = [c for c in ours if c in theirs]
         if not both:
@@ -695,7 +747,7 @@ def widening_tables(cases: list[dict], variants: dict[str, list[dict]]) -> list[
         for protocol in ("union", "cells"):
             pairs = [(c["scores"][protocol]["gp-input-noise"],
                       by_case[c["case"]][protocol]["gp-input-noise"])
-                     for c in cases if c["case"] in by_case and protocol in c["scores"]
+                     for c in base if c["case"] in by_case and protocol in c["scores"]
                      and protocol in by_case[c["case"]]]
             auc = np.array([b["auc"] - a["auc"] for a, b in pairs])
             brier = np.array([b["brier"] - a["brier"] for a, b in pairs])
@@ -757,14 +809,14 @@ def real_log_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[s
 
 
 def cost_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
-    """What each variant costs against this run, on the cases both ran: the median over
-    cases of the GP with input noise's train + map wall time, variant over this run, and
-    the median likelihood evaluations of its learning, here and in the variant (where both
-    runs recorded them)."""
-    ours = {c["case"]: c for c in cases}
-    lines = ["| variant | train + map time, median ratio | likelihood evaluations, median "
-             "here / in the variant |", "|---|---:|---:|"]
+    """What each variant costs against the run it is compared with (:func:`_base_run`),
+    on the cases both ran: the median over cases of the GP with input noise's train + map
+    wall time, variant over that run, and the median likelihood evaluations of its
+    learning, there and in the variant (where both runs recorded them)."""
+    lines = ["| variant | against | train + map time, median ratio | likelihood "
+             "evaluations, median there / in the variant |", "|---|---|---:|---:|"]
     for name, other in variants.items():
+        ours = {c["case"]: c for c in _base_run(name, cases, variants)}
         both = [(ours[c["case"]], c) for c in other if c["case"] in ours]
         timed = [b["gp_seconds"]["gp-input-noise"] / a["gp_seconds"]["gp-input-noise"]
                  for a, b in both if "gp_seconds" in a and "gp_seconds" in b]
@@ -774,7 +826,9 @@ def cost_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
         evaluations = (f"{np.median([a for a, _ in counted]):g} / "
                        f"{np.median([b for _, b in counted]):g}" if counted else "")
         ratio = f"{np.median(timed):.2f}" if timed else ""
-        lines.append(f"| {name} | {ratio} | {evaluations} |")
+        base = base_of(name)
+        lines.append(f"| {name} | {'this run' if base == 'defaults' else base} | {ratio} | "
+                     f"{evaluations} |")
     return lines
 
 
@@ -908,20 +962,37 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
             f"the {len(seed_runs) + 1} runs: a difference between settings smaller than it "
             "may be chance.", spread_table(cases, spread, len(seed_runs) + 1))
     if variants:
+        groups: dict[str, dict[str, list[dict]]] = {}
+        for name, other in variants.items():
+            groups.setdefault(base_of(name), {})[name] = other
+        against = []
+        for base, group in groups.items():
+            if base == "defaults":
+                continue
+            against += ["", f"Against `{base}`'s run (the variants that change one of its "
+                        "settings and pin the others): wins count the cases where "
+                        f"`{base}` is better; differences are `{base}` minus the variant.",
+                        "", *(variant_table(variants[base], group, spread, base=base)
+                              if base in variants else
+                              [f"(`{base}`'s run was not given: `--compare {base}`.)"])]
         lines += ["## Against other settings", "",
                   "The GP with input noise of this run against the same GP with one "
                   "setting changed (each made with `.venv/bin/python -m bench.experiment "
                   "sim real clean --variant NAME`, on the same worlds, logs and held-out points): "
                   "how the defaults were chosen. Wins count the cases where this run is "
-                  "better; differences are this run minus the variant.", "",
-                  "| variant | overrides |", "|---|---|",
+                  "better; differences are this run minus the variant. A variant whose "
+                  "`compared with` is another variant changes one setting of that one "
+                  "(its overrides include that variant's) and is compared with that "
+                  "variant's run, in its own table below.", "",
+                  "| variant | overrides | compared with |", "|---|---|---|",
                   *(f"| {name} | " + ", ".join(f"`{k}: {v}`" for k, v in
-                                               VARIANTS[name].items()) + " |"
+                                               VARIANTS[name].items())
+                    + f" | {'this run' if base_of(name) == 'defaults' else base_of(name)} |"
                     for name in variants), "",
                   *((["The last two columns count the cases whose score differs by more "
                       "than that case's run-to-run spread (section above): better here / "
                       "better in the variant.", ""]) if spread else []),
-                  *variant_table(cases, variants, spread), "",
+                  *variant_table(cases, groups.get("defaults", {}), spread), *against, "",
                   "On the real logs (union protocol, AUC / Brier; with perturbed poses and "
                   "as logged):", "",
                   *real_log_table(cases, variants), "",
@@ -1062,7 +1133,10 @@ def main() -> None:
                          f"sim real clean --variant {name}` first")
         return json.loads(other.read_text())["cases"]
 
-    variants = {name: stored_cases(name, f"--compare {name}") for name in args.compare}
+    # A variant compared with another variant's run needs that run too.
+    compare = list(dict.fromkeys(
+        [*(base_of(n) for n in args.compare if base_of(n) != "defaults"), *args.compare]))
+    variants = {name: stored_cases(name, f"--compare {name}") for name in compare}
     seed_runs = [stored_cases(f"seed-{k}", "--spread")
                  for k in (SPREAD_SEEDS if args.spread else ())]
     text = page(run, variants, seed_runs)

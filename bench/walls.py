@@ -42,7 +42,8 @@ DOC = ROOT / "docs" / "walls.md"
 #: every row keeps its meaning; the others change one setting from it.
 BASELINE: dict[str, object] = {"samples.hit_gap_m": 0.25,
                                "model.training.classifier_variance": "label",
-                               "model.training.classifier_temperature": "none"}
+                               "model.training.classifier_temperature": "none",
+                               "model.training.classifier_offset": "holdout"}
 KNOBS: dict[str, dict[str, object]] = {
     "baseline": BASELINE,
     "g=1": {"model.training.learn_input_noise_scale": False},
@@ -321,8 +322,9 @@ def page(rows: list[dict]) -> str:
         "",
         "Each row trains the GP with input noise (`gpocc train --input-noise on`, `gpocc map`"
         " at 0.1 m) with ONE setting changed from `baseline` (the log's config with"
-        " `samples.hit_gap_m: 0.25`, `model.training.classifier_variance: label` and"
-        " `model.training.classifier_temperature: none`,"
+        " `samples.hit_gap_m: 0.25`, `model.training.classifier_variance: label`,"
+        " `model.training.classifier_temperature: none` and"
+        " `model.training.classifier_offset: holdout`,"
         " gpocc's defaults when these were measured; `hit_gap=0.15` is today's default)."
         " Real logs: `gpocc split --every 10 --seed S`, the"
         " training scans' poses perturbed by stretch as in `bench/experiment.py` (seed S);"

@@ -249,12 +249,13 @@ class TrainingConfig:
     ``beams`` against ``none`` on ``make experiment``: held-out union and per-cell Brier
     scores lower on most cases (docs/results.md, "Against other settings", variant
     ``no-temperature``).
-    ``classifier_offset: beams`` then re-fits the classifier's offset on labelled points of
-    every ``calibration_every``-th scan (those known to ``calibration_max_position_std_m``),
-    predicted from the other scans' samples in up to ``calibration_blocks`` map blocks:
-    probabilities calibrated for points where beams end (held-out-scan evaluation) rather
-    than for map cells (``holdout``, default; docs/results.md's protocol tables made with
-    ``--variant beam-offset`` and ``--variant learned-scale-floor-0.1`` compare the two).
+    ``classifier_offset: beams`` (default) then re-fits the classifier's offset on
+    labelled points of every ``calibration_every``-th scan (those known to
+    ``calibration_max_position_std_m``), predicted from the other scans' samples in up to
+    ``calibration_blocks`` map blocks, together with the temperature when that is fitted
+    there too: probabilities calibrated where beams end, hits and the free space along and
+    in front of them, as map cells are predicted. ``holdout`` keeps the leave-one-out
+    fit's offset (docs/results.md, "Against other settings", variant ``offset-holdout``).
     ``learn_input_noise_scale``: also learn a scale g on every input covariance (S -> g S,
     pose factors -> sqrt(g) A; gpocc.gp.inputscale) within ``[min_input_noise_scale,
     max_input_noise_scale]``, starting at 1; false keeps g = 1. Defaults (g learned, label
@@ -288,7 +289,7 @@ class TrainingConfig:
     log_bounds_width: float = 4.0
     min_noise_variance: float = 0.1
     classifier_holdout: str = "sample"
-    classifier_offset: str = "holdout"
+    classifier_offset: str = "beams"
     classifier_variance: str = "label"
     classifier_temperature: str = "beams"
     calibration_every: int = 10

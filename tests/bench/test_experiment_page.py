@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from bench import experiment
 
@@ -63,8 +64,9 @@ def test_the_page_compares_the_gp_with_each_variant_case_by_case():
         for scores in case["scores"].values():
             scores["gp-input-noise"] = _scores(rng)
     other = other[1:]
-    text = experiment.page(run, {"hit-gap-0.25": other})
-    assert "| hit-gap-0.25 | `samples.hit_gap_m: 0.25` |" in text
+    text = experiment.page(run, {"offset-holdout": other})
+    assert ("| offset-holdout | `model.training.classifier_offset: holdout` | this run |"
+            in text)
     ours = {c["case"]: c["scores"] for c in run["cases"]}
     for protocol in ("union", "cells"):
         pairs = [(ours[c["case"]][protocol]["gp-input-noise"],
@@ -73,12 +75,46 @@ def test_the_page_compares_the_gp_with_each_variant_case_by_case():
         auc = np.array([a["auc"] - b["auc"] for a, b in pairs])
         brier = np.array([a["brier"] - b["brier"] for a, b in pairs])
         line = next(x for x in text.splitlines() if x.startswith(
-            f"| {protocol} | gp-input-noise vs gp-input-noise (hit-gap-0.25) |"))
+            f"| {protocol} | gp-input-noise vs gp-input-noise (offset-holdout) |"))
         cells = [c.strip() for c in line.split("|")[1:-1]]
         assert cells[2] == f"{(auc > 0).sum()}/{len(pairs)}"
         assert cells[3] == f"{auc.mean():+.4f}" and cells[4] == f"{auc.min():+.4f}"
         assert cells[6] == f"{(brier < 0).sum()}/{len(pairs)}"
         assert cells[7] == f"{brier.mean():+.4f}"
+
+
+def test_a_variant_of_another_variant_is_compared_with_that_variants_run():
+    """``hit-gap-0.25`` pins ``offset-holdout``'s classifier offset: its table compares it
+    with that run's GP, not with this run's."""
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    rng = np.random.default_rng(6)
+    runs = {}
+    for name in ("offset-holdout", "hit-gap-0.25"):
+        runs[name] = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+        for case in runs[name]:
+            for scores in case["scores"].values():
+                scores["gp-input-noise"] = _scores(rng)
+    text = experiment.page(run, runs)
+    lines = text.splitlines()
+    assert ("| hit-gap-0.25 | `samples.hit_gap_m: 0.25`, "
+            "`model.training.classifier_offset: holdout` | offset-holdout |") in lines
+    assert not any("vs gp-input-noise (hit-gap-0.25)" in x and "(offset-holdout) vs" not in x
+                   for x in lines)
+    for protocol in ("union", "cells"):
+        pairs = [(a["scores"][protocol]["gp-input-noise"], b["scores"][protocol]["gp-input-noise"])
+                 for a, b in zip(runs["offset-holdout"], runs["hit-gap-0.25"], strict=True)
+                 if protocol in a["scores"]]
+        auc = np.array([a["auc"] - b["auc"] for a, b in pairs])
+        line = next(x for x in lines if x.startswith(
+            f"| {protocol} | gp-input-noise (offset-holdout) vs gp-input-noise (hit-gap-0.25) |"))
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        assert cells[2:5] == [f"{(auc > 0).sum()}/{len(pairs)}", f"{auc.mean():+.4f}",
+                              f"{auc.min():+.4f}"]
+    # Without the run it is compared with, the page says so instead of comparing.
+    alone = experiment.page(run, {"hit-gap-0.25": runs["hit-gap-0.25"]})
+    assert "`offset-holdout`'s run was not given" in alone
+    assert not any(x.startswith("| union | gp-input-noise") and "(hit-gap-0.25)" in x
+                   for x in alone.splitlines())
 
 
 def test_octomap_rows_appear_when_the_run_has_them():
@@ -191,12 +227,15 @@ def test_the_bounds_section_counts_values_on_bounds_and_what_widening_gains():
     run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
     wide = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
     rng = np.random.default_rng(3)
-    for ours, theirs in zip(run["cases"], wide, strict=True):
-        ours["learned"] = _learned(rng, 4.0)
+    # g-max-16 changes a setting of offset-holdout: its gains are against that run, whose
+    # learned values are this run's (the classifier's offset does not move them).
+    base = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
+    for ours, theirs, held in zip(run["cases"], wide, base, strict=True):
+        ours["learned"] = held["learned"] = _learned(rng, 4.0)
         theirs["learned"] = _learned(rng, 16.0)
-        for scores in theirs["scores"].values():
+        for scores in (*theirs["scores"].values(), *held["scores"].values()):
             scores["gp-input-noise"] = _scores(rng)
-    text = experiment.page(run, {"g-max-16": wide})
+    text = experiment.page(run, {"offset-holdout": base, "g-max-16": wide})
     assert "## Learned values on their bounds" in text
     lines = text.splitlines()
 
@@ -219,7 +258,7 @@ def test_the_bounds_section_counts_values_on_bounds_and_what_widening_gains():
                     - a["learned"]["log_marginal_likelihood"]
                     for a, b in zip(run["cases"], wide, strict=True)])
     pairs = [(a["scores"]["cells"]["gp-input-noise"], b["scores"]["cells"]["gp-input-noise"])
-             for a, b in zip(run["cases"], wide, strict=True) if "cells" in a["scores"]]
+             for a, b in zip(base, wide, strict=True) if "cells" in a["scores"]]
     auc = np.array([b["auc"] - a["auc"] for a, b in pairs])
     brier = np.array([b["brier"] - a["brier"] for a, b in pairs])
     gains = row("| g-max-16 | ", width=11)
@@ -300,13 +339,14 @@ def test_the_cost_table_gives_time_ratios_and_evaluations_per_variant():
             case["learned"] = {"evaluations": int(rng.integers(30, 50)), "on_bounds": {},
                                "values": {}, "log_marginal_likelihood": -1000.0}
     other = other[1:]  # the variant ran one case fewer
-    text = experiment.page(run, {"fixed-bias": other})
+    text = experiment.page(run, {"offset-holdout": other})
     ours = {c["case"]: c for c in run["cases"]}
     ratio = np.median([c["gp_seconds"]["gp-input-noise"]
                        / ours[c["case"]]["gp_seconds"]["gp-input-noise"] for c in other])
     here = np.median([ours[c["case"]]["learned"]["evaluations"] for c in other])
     there = np.median([c["learned"]["evaluations"] for c in other])
-    assert f"| fixed-bias | {ratio:.2f} | {here:g} / {there:g} |" in text.splitlines()
+    assert (f"| offset-holdout | this run | {ratio:.2f} | {here:g} / {there:g} |"
+            in text.splitlines())
 
 
 def test_the_real_log_table_lists_each_variant_on_each_log():
@@ -343,7 +383,7 @@ def test_the_run_to_run_spread_and_the_differences_beyond_it():
     for case in variant:
         for scores in case["scores"].values():
             scores["gp-input-noise"] = _scores(rng)
-    text = experiment.page(run, {"fixed-bias": variant}, seeds)
+    text = experiment.page(run, {"offset-holdout": variant}, seeds)
     assert "## Run-to-run spread" in text
 
     def width(case: int, protocol: str, metric: str) -> float:
@@ -360,7 +400,7 @@ def test_the_run_to_run_spread_and_the_differences_beyond_it():
         assert cells[2:] == [f"{np.median(auc):.4f}", f"{max(auc):.4f}",
                              f"{np.median(brier):.4f}", f"{max(brier):.4f}"]
         line = next(x for x in text.splitlines() if x.startswith(
-            f"| {protocol} | gp-input-noise vs gp-input-noise (fixed-bias) |"))
+            f"| {protocol} | gp-input-noise vs gp-input-noise (offset-holdout) |"))
         cells = [c.strip() for c in line.split("|")[1:-1]]
         for column, metric in ((8, "auc"), (9, "brier")):
             here = there = 0
@@ -409,7 +449,7 @@ def test_logs_trained_as_logged_have_their_own_section_and_stay_out_of_compariso
                          for p in experiment.HELDOUT_PROTOCOLS}}
     run["cases"].append(logged)
     other = [dict(c) for c in run["cases"] if not c.get("as_logged")]
-    text = experiment.page(run, {"clearance-0": other})
+    text = experiment.page(run, {"offset-holdout": other})
     section = text.split("## Real logs as logged")[1].split("\n## ")[0]
     rows = [x for x in section.splitlines() if x.startswith("| log.gfs.log")]
     assert len(rows) == 4  # one per method, the union protocol's scores
@@ -421,7 +461,7 @@ def test_logs_trained_as_logged_have_their_own_section_and_stay_out_of_compariso
     # The variant did not run it: its real-log table and comparison counts leave it out.
     assert "| settings | case 3 | case 4 |" in text
     line = next(x for x in text.splitlines()
-                if x.startswith("| union | gp-input-noise vs gp-input-noise (clearance-0) |"))
+                if x.startswith("| union | gp-input-noise vs gp-input-noise (offset-holdout) |"))
     assert line.split("|")[3].strip().endswith("/5")
     # The summary counts it with the other cases.
     line = next(x for x in text.splitlines()
@@ -478,3 +518,22 @@ def test_every_variant_overrides_keys_a_config_has(tmp_path, name):
         for part in key.split("."):
             node = node[part]
         assert (list(node) if isinstance(node, tuple) else node) == value, key
+
+
+def test_a_stored_splits_defaults_do_not_pin_the_gps_settings(tmp_path):
+    """A split's train.yaml spells out every default of the gpocc that made it; the GP's
+    config takes its mapping settings from the config the split was made with."""
+    split = tmp_path / "train.yaml"
+    split.write_text("seed: 3\nsensors: [{name: r1, scan_topic: /r1/scan}]\n"
+                     "samples: {hit_gap_m: 0.25, thin_cell_m: 0.15}\n"
+                     "model: {training: {classifier_offset: holdout}}\n")
+    source = tmp_path / "log.yaml"
+    source.write_text("sensors: [{name: r1}]\nsamples: {min_label_share: 0.1}\n")
+    out = experiment.with_overrides(split, {"model.neighbours": 64}, tmp_path / "gp.yaml",
+                                    source)
+    assert yaml.safe_load(out.read_text()) == {
+        "seed": 3, "sensors": [{"name": "r1", "scan_topic": "/r1/scan"}],
+        "samples": {"min_label_share": 0.1}, "model": {"neighbours": 64}}
+    plain = experiment.with_overrides(split, {}, tmp_path / "plain.yaml")
+    assert yaml.safe_load(plain.read_text())["model"] == {
+        "training": {"classifier_offset": "holdout"}}

@@ -49,26 +49,28 @@ def test_train_writes_a_self_contained_model(trained):
     assert model.training["log_marginal_likelihood"] > model.training[
         "initial_log_marginal_likelihood"]
     assert model.inputs == (str(SAMPLE),)
-    # The summary says how the classifier was fitted (the published leave-one-out).
+    # The summary says how the classifier was fitted: the published leave-one-out, then
+    # its offset and temperature on points of held-out scans.
     assert model.training["classifier_holdout"] == "sample"
-    assert model.training["classifier_offset"] == "holdout"
-    assert "fitted leaving one sample out; temperature from " in output
+    assert model.training["classifier_offset"] == "beams"
     assert model.training["classifier_temperature"] == "beams"
-    assert model.training["classifier_points"] > 0
+    points = model.training["classifier_points"]
+    assert points > 100
+    assert (f"fitted leaving one sample out; offset and temperature from {points} points "
+            "of held-out scans") in output
 
 
-def test_train_can_take_the_classifier_offset_from_heldout_scans(tmp_path):
-    config = tmp_path / "beams.yaml"
-    text = SAMPLE_CONFIG.read_text()
-    data = yaml.safe_load(text)
-    data.setdefault("model", {}).setdefault("training", {})["classifier_offset"] = "beams"
+def test_train_can_keep_the_offset_of_the_left_out_samples(tmp_path):
+    config = tmp_path / "holdout.yaml"
+    data = yaml.safe_load(SAMPLE_CONFIG.read_text())
+    data.setdefault("model", {}).setdefault("training", {})["classifier_offset"] = "holdout"
     config.write_text(yaml.safe_dump(data))
-    out = tmp_path / "beams.npz"
+    out = tmp_path / "holdout.npz"
     output = invoke("train", SAMPLE, "--config", config, "--out", out).output
     model = load_model(out)
     points = model.training["classifier_points"]
-    assert model.training["classifier_offset"] == "beams" and points > 100
-    assert f"offset and temperature from {points} points of held-out scans" in output
+    assert model.training["classifier_offset"] == "holdout" and points > 100
+    assert f"fitted leaving one sample out; temperature from {points} points" in output
 
 
 def test_training_is_reproducible_with_a_seed(trained, tmp_path):

@@ -24,6 +24,8 @@ def _train_and_map(tmp_path: Path, name: str, temperature: str) -> tuple[Path, n
     config = yaml.safe_load(SAMPLE_CONFIG.read_text()) or {}
     training = config.setdefault("model", {}).setdefault("training", {})
     training["classifier_temperature"] = temperature
+    # The offset of the leave-one-out fit, so that the temperature is all that differs.
+    training["classifier_offset"] = "holdout"
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump(config))
     runner = CliRunner()

