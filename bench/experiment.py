@@ -1017,7 +1017,8 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
         if widened:
             lines += ["Each variant below widens the box of some of them (its overrides are "
                       "in the table above): where those values end, and what the wider box "
-                      "gains, variant minus this run (log marginal likelihood of the "
+                      "gains, variant minus the run it is compared with (its `compared "
+                      "with` above; log marginal likelihood of the "
                       "training patches; held-out scores of the maps, mean over the cases, "
                       "wins where the variant is better). A likelihood that keeps rising "
                       "while the maps do not improve says the bound is not what limits the "
