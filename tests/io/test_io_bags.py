@@ -45,6 +45,49 @@ def make_batch(sensor: str, n_scans: int, n_beams: int, t0: float, seed: int) ->
     )
 
 
+def test_bags_with_message_definitions_do_not_build_the_default_typestore(tmp_path):
+    """ROS 1 bags, MCAP files and rosbag2 bags written since Iron carry their message
+    definitions: reading them leaves the ROS 2 Humble typestore (0.15 s) unbuilt."""
+    from gpocc.io import bags
+
+    written = [make_batch("robot1", 5, 10, 1_700_000_000.0, 1)]
+    config = Config(sensors=(SensorConfig(name="robot1", scan_topic="/scan",
+                                          pose_topic="/pose"),))
+    for fmt in FORMATS:
+        path = tmp_path / fmt / FORMATS[fmt]
+        path.parent.mkdir()
+        write_bag(path, written, [("/scan", "/pose")], fmt)
+        bags._typestore.cache_clear()
+        [batch] = read_inputs([path], config)
+        describe_bag(path)
+        assert bags._typestore.cache_info().misses == 0, fmt
+        np.testing.assert_array_equal(batch.poses, written[0].poses)
+
+
+def test_a_rosbag2_without_message_definitions_reads_with_the_humble_types(tmp_path):
+    """A rosbag2 sqlite3 bag recorded before Iron stores no message definitions: its
+    messages are read with the ROS 2 Humble types."""
+    import sqlite3
+
+    from gpocc.io import bags
+
+    written = [make_batch("robot1", 5, 10, 1_700_000_000.0, 1)]
+    config = Config(sensors=(SensorConfig(name="robot1", scan_topic="/scan",
+                                          pose_topic="/pose"),))
+    path = tmp_path / "run"
+    write_bag(path, written, [("/scan", "/pose")], "ros2-sqlite3")
+    [with_definitions] = read_inputs([path], config)
+    [db] = path.glob("*.db3")
+    with sqlite3.connect(db) as connection:
+        assert connection.execute("delete from message_definitions").rowcount > 0
+    bags._typestore.cache_clear()
+    [without] = read_inputs([path], config)
+    assert bags._typestore.cache_info().misses == 1  # built, for this bag only
+    for field in ("stamps", "ranges", "poses", "pose_covariances", "angles"):
+        np.testing.assert_array_equal(getattr(without, field),
+                                      getattr(with_definitions, field), err_msg=field)
+
+
 @pytest.mark.parametrize("fmt", list(FORMATS))
 def test_round_trip_two_sensors(tmp_path: Path, fmt: str) -> None:
     written = [make_batch("robot1", 12, 25, 1_700_000_000.0, 1),
