@@ -205,6 +205,13 @@ def base_of(name: str) -> str:
     return "offset-holdout" if pinned and name != "offset-holdout" else "defaults"
 
 
+def compared_with(name: str) -> str:
+    """What the page says variant ``name`` is compared with: ``this run`` or its base
+    variant (:func:`base_of`)."""
+    base = base_of(name)
+    return "this run" if base == "defaults" else base
+
+
 #: The variants that widen the box of learned values (:mod:`gpocc.gp.bounds`), and the
 #: values (name prefixes, as :func:`gpocc.gp.bounds.values_on_bounds` names them) whose
 #: bound each moves: the page's "Learned values on their bounds" compares where those
@@ -826,9 +833,7 @@ def cost_table(cases: list[dict], variants: dict[str, list[dict]]) -> list[str]:
         evaluations = (f"{np.median([a for a, _ in counted]):g} / "
                        f"{np.median([b for _, b in counted]):g}" if counted else "")
         ratio = f"{np.median(timed):.2f}" if timed else ""
-        base = base_of(name)
-        lines.append(f"| {name} | {'this run' if base == 'defaults' else base} | {ratio} | "
-                     f"{evaluations} |")
+        lines.append(f"| {name} | {compared_with(name)} | {ratio} | {evaluations} |")
     return lines
 
 
@@ -987,7 +992,7 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
                   "| variant | overrides | compared with |", "|---|---|---|",
                   *(f"| {name} | " + ", ".join(f"`{k}: {v}`" for k, v in
                                                VARIANTS[name].items())
-                    + f" | {'this run' if base_of(name) == 'defaults' else base_of(name)} |"
+                    + f" | {compared_with(name)} |"
                     for name in variants), "",
                   *((["The last two columns count the cases whose score differs by more "
                       "than that case's run-to-run spread (section above): better here / "

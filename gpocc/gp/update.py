@@ -1,11 +1,11 @@
 """Adding logs to a trained model (``gpocc update``): new samples join the model's kept
 state (:mod:`gpocc.gp.growth`) without reading its old logs again.
 
-The result is the model training on all logs at once would give. The hyperparameters
+The samples are those training on all logs at once would build. The hyperparameters
 (``hyperparameters``) are by default ``refined``: L-BFGS-B on the union's patches starts
 from the model's values instead of annealing from the config's initial ones. Learning's
-optimum is set by its patches, not by its start, so this lands where training on all
-logs does (the patches, drawn from the same samples with the same seed, are the same)
+optimum is set by its patches, not by its start, so this heads where training on all
+logs lands (the patches, drawn from the same samples with the same seed, are the same)
 for the cost of the quasi-Newton stage alone. The refinement stops after at most
 ``refine_iterations`` L-BFGS-B iterations (:data:`REFINE_ITERATIONS`): its last steps
 raise the likelihood by a few nats at most and barely move the maps (docs/benchmarks.md,
