@@ -175,6 +175,10 @@ VARIANTS: dict[str, dict[str, object]] = {
     "offset-beams": {"model.training.classifier_offset": "beams"},
     "accurate-poses-offset-beams": {**_ACCURATE_POSES,
                                     "model.training.classifier_offset": "beams"},
+    # Finer samples and more neighbours (g learned) with the default classifier offset.
+    "thin-0.1-n192-offset-beams": {"samples.thin_cell_m": 0.1, "model.neighbours": 192,
+                                   "model.training.classifier_offset": "beams"},
+    "thin-0.1-n256-offset-beams": {**_THIN_N256, "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
