@@ -431,7 +431,9 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     noise_at = x0.shape[0] - 1  # then log g when it is learned, starting at g = 1
     if learn_scale:
         x0 = np.append(x0, 0.0)
-    initial, _ = negative_log_likelihood_counted(x0, kernel, patches, level)
+    # Its value only: every search below computes the gradients it uses itself.
+    initial, _ = negative_log_likelihood_counted(x0, kernel, patches, level,
+                                                 with_gradient=False)
     evaluations = 1
     if not config.learn:
         return TrainingResult(kernel, noise_variance, -initial, -initial, evaluations,
