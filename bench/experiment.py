@@ -271,7 +271,8 @@ def with_overrides(config: Path, overrides: dict[str, object], out: Path,
                    settings: Path | None = None) -> Path:
     """Write ``config`` with dotted-key ``overrides`` applied to ``out``. With
     ``settings`` (the config a split was made with), the :data:`SETTINGS_SECTIONS` are
-    that file's instead of ``config``'s: a split's train.yaml spells out every default
+    that file's instead of ``config``'s: the train.yaml of a split made before gpocc
+    split wrote only the settings that differ from the defaults spells out every default
     of the gpocc that made it, and a stored split must not pin those."""
     data = yaml.safe_load(config.read_text()) or {}
     if settings is not None:

@@ -859,6 +859,27 @@ def config_to_dict(config: Config) -> dict[str, Any]:
     return plain(dataclasses.asdict(config))
 
 
+def changed_settings(config: Config) -> dict[str, Any]:
+    """:func:`config_to_dict` of ``config`` without the values equal to the defaults'
+    (sections without a change left out; lists, such as ``sensors``, kept whole):
+    what a config file must say to give ``config`` (``config_from_dict`` of it equals
+    ``config``), and no more, so that a written file does not pin today's defaults."""
+    return _changed(config_to_dict(config), config_to_dict(Config()))
+
+
+def _changed(given: dict[str, Any], default: dict[str, Any]) -> dict[str, Any]:
+    changed = {}
+    for key, value in given.items():
+        base = default.get(key)
+        if isinstance(value, dict) and isinstance(base, dict):
+            inner = _changed(value, base)
+            if inner:
+                changed[key] = inner
+        elif key not in default or value != base:
+            changed[key] = value
+    return changed
+
+
 def replace(config: Any, **changes: Any) -> Any:
     """``dataclasses.replace`` re-exported for nested frozen configs."""
     return dataclasses.replace(config, **changes)

@@ -9,7 +9,7 @@ import typer
 import yaml
 
 from gpocc.commands.options import ConfigFile, Force, check_at_least
-from gpocc.config import config_to_dict, load_config
+from gpocc.config import changed_settings, load_config
 from gpocc.errors import GpoccError
 from gpocc.evaluation.split import (
     merge_by_sensor,
@@ -114,8 +114,10 @@ def split(
     with atomic_directory(out, force=force) as tmp:
         write_bag(tmp / "train.mcap", trains, topics, "mcap")
         (tmp / "train.yaml").write_text(
-            "# Written by gpocc split: reads train.mcap beside it.\n"
-            + yaml.safe_dump(config_to_dict(new_config), sort_keys=False, default_flow_style=None)
+            "# Written by gpocc split: reads train.mcap beside it. Settings not given here\n"
+            "# take gpocc's defaults.\n"
+            + yaml.safe_dump(changed_settings(new_config), sort_keys=False,
+                             default_flow_style=None)
         )
         with (tmp / "heldout.csv").open("w") as fh:
             fh.write("x,y,label,kind\n")

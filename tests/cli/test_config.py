@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
 from gpocc.cli import app
-from gpocc.config import Config, config_from_dict, config_to_dict, load_config
+from gpocc.config import (
+    Config,
+    changed_settings,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+)
 from gpocc.errors import GpoccError
 
 runner = CliRunner()
@@ -23,6 +30,40 @@ def test_defaults_and_round_trip():
     assert nested.sensors[0].bearing_variance_rad2 == pytest.approx(0.5 * (math.pi / 180) ** 2)
     assert nested.model.hyperparameters.weight_variance == (2.0, 3.0)
     assert config_from_dict(config_to_dict(nested)) == nested
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parents[2] / "configs").glob("*.yaml")),
+                         ids=lambda p: p.name)
+def test_changed_settings_give_back_the_config_and_leave_defaults_out(path):
+    config = load_config(path)
+    changed = changed_settings(config)
+    assert config_from_dict(changed) == config
+
+    def leaves(data: dict, prefix: str = "") -> dict:
+        out = {}
+        for key, value in data.items():
+            if isinstance(value, dict):
+                out.update(leaves(value, f"{prefix}{key}."))
+            else:
+                out[prefix + key] = value
+        return out
+
+    defaults = leaves(config_to_dict(Config()))
+    kept = leaves(changed)
+    assert kept and all(defaults.get(key) != value for key, value in kept.items())
+
+
+def test_changed_settings_keep_what_differs_and_drop_what_does_not():
+    assert changed_settings(Config()) == {}
+    config = config_from_dict({
+        "seed": 0, "sensors": [{"name": "a"}],
+        "samples": {"hit_gap_m": 0.25, "thin_cell_m": Config().samples.thin_cell_m},
+        "model": {"training": {"patches": 20}, "neighbours": Config().model.neighbours}})
+    changed = changed_settings(config)
+    assert changed == {"sensors": config_to_dict(config)["sensors"],
+                       "samples": {"hit_gap_m": 0.25},
+                       "model": {"training": {"patches": 20}}}
+    assert config_from_dict(changed) == config
 
 
 @pytest.mark.parametrize(

@@ -210,6 +210,9 @@ def test_cli_split_writes_a_self_contained_training_bag(tmp_path):
         assert trained.mount == sensor.mount
         assert trained.scan_topic == f"/{b.sensor}/scan"
     assert train_config.seed == original.seed
+    # Only what differs from the defaults is written: a newer gpocc's defaults apply.
+    written = yaml.safe_load((out / "train.yaml").read_text())
+    assert set(written) == {"seed", "sensors"}
 
     points, labels = load_truth(out / "heldout.csv")
     np.testing.assert_allclose(np.abs(points[labels == 1]).max(axis=1), HALF, atol=1e-3)
