@@ -521,8 +521,9 @@ def test_every_variant_overrides_keys_a_config_has(tmp_path, name):
 
 
 def test_a_stored_splits_defaults_do_not_pin_the_gps_settings(tmp_path):
-    """A split's train.yaml spells out every default of the gpocc that made it; the GP's
-    config takes its mapping settings from the config the split was made with."""
+    """The train.yaml of a split made by an older gpocc spells out every default of that
+    gpocc; the GP's config takes its mapping settings from the config the split was made
+    with."""
     split = tmp_path / "train.yaml"
     split.write_text("seed: 3\nsensors: [{name: r1, scan_topic: /r1/scan}]\n"
                      "samples: {hit_gap_m: 0.25, thin_cell_m: 0.15}\n"
