@@ -105,7 +105,8 @@ _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
 _HIT_PATCHES = {**_LEARNED, "model.training.patch_centres": "hits",
                 "samples.free_clearance_m": 0.05}
 #: Finer samples, more neighbours, then g = 1 and denser free samples: each adds to the last.
-_THIN_N256 = {"samples.thin_cell_m": 0.1, "model.neighbours": 256}
+_THIN_N192 = {"samples.thin_cell_m": 0.1, "model.neighbours": 192}
+_THIN_N256 = {**_THIN_N192, "model.neighbours": 256}
 _THIN_N256_FIXED_SCALE = {**_THIN_N256, "model.training.learn_input_noise_scale": False}
 _ACCURATE_POSES = {**_THIN_N256_FIXED_SCALE, "samples.free_spacing_m": 0.3}
 #: Learning seeds of the run-to-run spread (seed 0 is the defaults' run).
@@ -160,7 +161,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "floor-0.03": {"model.training.min_noise_variance": 0.03},
     # Finer samples with more of them per local problem (about the area 0.15 m and 128
     # cover): walls kept at 0.1 m.
-    "thin-0.1-n192": {"samples.thin_cell_m": 0.1, "model.neighbours": 192},
+    "thin-0.1-n192": _THIN_N192,
     "thin-0.1-n256": _THIN_N256,
     # The same with g = 1: on accurately localised logs the learned g runs to its bound.
     "thin-0.1-n256-fixed-scale": _THIN_N256_FIXED_SCALE,
@@ -176,8 +177,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "accurate-poses-offset-beams": {**_ACCURATE_POSES,
                                     "model.training.classifier_offset": "beams"},
     # Finer samples and more neighbours (g learned) with the default classifier offset.
-    "thin-0.1-n192-offset-beams": {"samples.thin_cell_m": 0.1, "model.neighbours": 192,
-                                   "model.training.classifier_offset": "beams"},
+    "thin-0.1-n192-offset-beams": {**_THIN_N192, "model.training.classifier_offset": "beams"},
     "thin-0.1-n256-offset-beams": {**_THIN_N256, "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
