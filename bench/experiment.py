@@ -179,6 +179,13 @@ VARIANTS: dict[str, dict[str, object]] = {
     # Finer samples and more neighbours (g learned) with the default classifier offset.
     "thin-0.1-n192-offset-beams": {**_THIN_N192, "model.training.classifier_offset": "beams"},
     "thin-0.1-n256-offset-beams": {**_THIN_N256, "model.training.classifier_offset": "beams"},
+    # g = 1 (learned kernel, label noise and classifier as by default), with the default
+    # classifier offset: sharper walls where the learned g runs to its bound.
+    "fixed-scale-offset-beams": {"model.training.learn_input_noise_scale": False,
+                                 "model.training.classifier_offset": "beams"},
+    "thin-0.1-n192-fixed-scale-offset-beams": {
+        **_THIN_N192, "model.training.learn_input_noise_scale": False,
+        "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
