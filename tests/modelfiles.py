@@ -10,9 +10,18 @@ import numpy as np
 
 
 def read_model_file(path: Path) -> tuple[dict[str, np.ndarray], dict]:
-    """The file's arrays and its decoded metadata."""
+    """The file's arrays and its decoded metadata, the samples as their own arrays (as
+    files of every format hold them when they are not rows of the growth pool, and all
+    files before format 6 do) even where the file stores their rows of the pool."""
     with np.load(path) as data:
         arrays = dict(data)
+    if "sample_index" in arrays:
+        from gpocc.gp.model import load_model
+
+        samples = load_model(path).samples
+        del arrays["sample_index"]
+        arrays.update({name: getattr(samples, name) for name in (
+            "means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")})
     return arrays, json.loads(bytes(arrays["metadata"]).decode())
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from gpocc.config import Config, config_from_dict
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import PlattClassifier
+from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import KERNELS, Kernel
 from gpocc.limits import max_cells
 from gpocc.samples.coverage import Coverage
@@ -132,6 +133,65 @@ def _samples(arrays: dict[str, np.ndarray]) -> SampleSet:
     return SampleSet(**checked)
 
 
+def samples_of_pool(pool: SampleSet, index: np.ndarray, input_noise: bool, scale: float,
+                    part: str) -> SampleSet:
+    """A model's samples made from its growth pool as training makes them: the pool's rows
+    ``index`` (ascending), every covariance zero without ``input_noise``, then scaled by
+    the learned g ``scale`` (:func:`gpocc.gp.inputscale.scale_input_noise`, ``part``).
+    Label-noise factors are not part of it (the model file stores them apart)."""
+    samples = dataclasses.replace(pool, noise_factors=None).subset(index)
+    if not input_noise:
+        samples = samples.without_input_noise()
+    return scale_input_noise(samples, scale, part)
+
+
+def _row_keys(samples: SampleSet) -> np.ndarray:
+    """(N,) uint64 hash of each sample's mean (bit pattern), label, scan and sensor: equal
+    rows give equal keys; :func:`pool_rows` checks the rows themselves after matching."""
+    bits = np.ascontiguousarray(samples.means).view(np.uint64).reshape(-1, 2)
+    with np.errstate(over="ignore"):
+        key = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+        key ^= (bits[:, 1] + np.uint64(0x632BE59BD9B4E019)) * np.uint64(0xC2B2AE3D27D4EB4F)
+        key ^= samples.scan_ids.astype(np.uint64) * np.uint64(0x165667B19E3779F9)
+        key ^= (samples.sensor_ids.astype(np.uint64) << np.uint64(1)) | (
+            samples.labels > 0).astype(np.uint64)
+    return key
+
+
+def pool_rows(pool: SampleSet, samples: SampleSet) -> np.ndarray | None:
+    """The ascending (M,) indices of ``pool`` whose rows are ``samples`` (M of them, in
+    order: means, labels, scan and sensor ids equal), or None if they are not such a
+    subsequence of the pool."""
+    if len(samples) == 0 or len(samples) > len(pool):
+        return None
+    pool_keys = _row_keys(pool)
+    order = np.argsort(pool_keys)
+    sorted_keys = pool_keys[order]
+    keys = _row_keys(samples)
+    # Looked up in key order: twice as fast as in sample order (memory access in order).
+    by_key = np.argsort(keys)
+    at = np.empty(len(keys), dtype=np.int64)
+    at[by_key] = np.searchsorted(sorted_keys, keys[by_key])
+    np.minimum(at, len(pool) - 1, out=at)
+    index = order[at]
+    if not (np.array_equal(sorted_keys[at], keys) and (np.diff(index) > 0).all()):
+        return None
+    rows = pool.subset(index)
+    if not all(np.array_equal(getattr(rows, name), getattr(samples, name))
+               for name in ("means", "labels", "scan_ids", "sensor_ids")):
+        return None
+    return index
+
+
+def _sample_index(index: np.ndarray, pool_size: int) -> np.ndarray:
+    if (index.dtype.kind not in "iu" or index.ndim != 1 or index.size == 0
+            or (index < 0).any() or (index >= pool_size).any()
+            or (np.diff(index.astype(np.int64)) <= 0).any()):
+        raise _Damaged(f"array 'sample_index' is not ascending rows of the {pool_size} in "
+                       "the growth pool")
+    return index.astype(np.int64)
+
+
 def _classifier(record: Any, version: Any) -> PlattClassifier:
     """Format 1 stored the published (a, b); formats 2 and 3 (offset, extra_variance);
     format 4 adds the temperature."""
@@ -172,7 +232,8 @@ def _with_settings_of_older_files(config: dict) -> dict:
     return config
 
 
-def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelContents:
+def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str,
+              pool: SampleSet | None = None) -> ModelContents:
     if not isinstance(meta, dict):
         raise _Damaged("its metadata is not a JSON object")
     if not isinstance(meta.get("config"), dict):
@@ -200,6 +261,13 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str) -> ModelCon
     versions = meta.get("versions", {})
     if not isinstance(versions, dict) or not all(isinstance(v, str) for v in versions.values()):
         raise _Damaged("versions is not a mapping of package names to versions")
+    if "sample_index" in arrays:
+        if pool is None:
+            raise _Damaged("its samples are stored as rows of a growth pool it lacks")
+        index = _sample_index(arrays["sample_index"], len(pool))
+        made = samples_of_pool(pool, index, input_noise, scale,
+                               config.model.training.input_noise_scale_part)
+        arrays = {name: getattr(made, name) for name in ARRAY_LAYOUT}
     samples = _samples(arrays)
     if names and (samples.sensor_ids >= len(names)).any():
         raise _Damaged(f"array 'sensor_ids' names sensors beyond the {len(names)} in "
@@ -235,19 +303,23 @@ def validate_noise_factors(factors: np.ndarray | None, config: Config, n: int,
     return converted
 
 
-def validate_contents(meta: Any, arrays: dict[str, np.ndarray], path: str | Path) -> ModelContents:
+def validate_contents(meta: Any, arrays: dict[str, np.ndarray], path: str | Path,
+                      pool: SampleSet | None = None) -> ModelContents:
     """Check a model file's metadata and arrays; return them as typed pieces.
 
     Args:
         meta: the decoded JSON metadata (format and version already checked).
-        arrays: name -> array for every name in :data:`ARRAY_LAYOUT`.
+        arrays: name -> array for every name in :data:`ARRAY_LAYOUT`, or (format 6)
+            ``sample_index`` alone: the samples are then rows of ``pool``
+            (:func:`samples_of_pool`).
         path: the model file, for messages.
+        pool: the samples of the file's growth pool (validated), if it has one.
 
     Raises:
         GpoccError: naming ``path`` and what is wrong, and saying to re-train.
     """
     try:
-        return _contents(meta, arrays, str(path))
+        return _contents(meta, arrays, str(path), pool)
     except _Damaged as exc:
         raise GpoccError(
             f"{path}: damaged model file: {exc}; re-create it with `gpocc train`"

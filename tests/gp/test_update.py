@@ -7,6 +7,7 @@ model; kept hyperparameters the same samples) and brute-force label counts.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -24,6 +25,7 @@ from gpocc.io.frames import transform_poses
 from gpocc.io.inputs import read_inputs
 from gpocc.samples.beams import build_samples
 from gpocc.samples.coverage import coverage_of_segments, union_coverage
+from gpocc.samples.sampleset import SampleSet
 
 runner = CliRunner()
 
@@ -519,3 +521,111 @@ def test_a_pose_only_scale_survives_an_update(logs, tmp_path):
     _same_samples(both.samples, up.samples)
     assert both.input_noise_scale == up.input_noise_scale != 1.0
     assert both.kernel == up.kernel and both.classifier == up.classifier
+
+
+def _raw_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    with np.load(path) as data:
+        arrays = dict(data)
+    return arrays, json.loads(bytes(arrays.pop("metadata")).decode())
+
+
+@pytest.mark.parametrize("config_text", [
+    CONFIG,
+    CONFIG.replace("neighbours: 48", "neighbours: 48\n  input_noise: false"),
+    CONFIG.replace("lbfgs_maxiter: 4}", "lbfgs_maxiter: 4, input_noise_scale_part: pose}"),
+])
+def test_a_model_file_stores_its_samples_as_rows_of_its_pool(logs, tmp_path, config_text):
+    from gpocc.commands.train import learn_model
+    from gpocc.gp.model import save_model
+
+    (tmp_path / "job.yaml").write_text(config_text)
+    config = load_config(tmp_path / "job.yaml")
+    model = learn_model([logs["a"], logs["b"]], config)
+    assert model.growth is not None and len(model.samples) < len(model.growth.pool.samples)
+    save_model(model, tmp_path / "m.npz")
+    arrays, _ = _raw_arrays(tmp_path / "m.npz")
+    assert "sample_index" in arrays and "means" not in arrays and "covariances" not in arrays
+    loaded = load_model(tmp_path / "m.npz")
+    # Bit for bit the samples the model was learned and calibrated on.
+    for name in ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids"):
+        mine, theirs = getattr(model.samples, name), getattr(loaded.samples, name)
+        assert mine.dtype == theirs.dtype, name
+        np.testing.assert_array_equal(mine, theirs, err_msg=name)
+    assert loaded.samples.sensor_names == model.samples.sensor_names
+    assert (loaded.samples.noise_factors is None) == (model.samples.noise_factors is None)
+    if not config.model.input_noise:
+        assert not loaded.samples.covariances.any()
+
+
+def test_samples_that_are_not_rows_of_the_pool_are_stored_whole(logs, tmp_path):
+    train_a(logs, tmp_path)
+    model = load_model(tmp_path / "a.npz")
+    from gpocc.gp.model import save_model
+
+    # A model whose samples training did not make from its pool (here: moved 1 mm).
+    moved = dataclasses.replace(model, samples=dataclasses.replace(
+        model.samples, means=model.samples.means + 1e-3))
+    save_model(moved, tmp_path / "moved.npz")
+    arrays, _ = _raw_arrays(tmp_path / "moved.npz")
+    assert "sample_index" not in arrays and "means" in arrays
+    np.testing.assert_array_equal(load_model(tmp_path / "moved.npz").samples.means,
+                                  moved.samples.means)
+
+
+def test_pool_rows_agree_with_a_brute_force_search():
+    from gpocc.gp.modelfile import pool_rows
+
+    rng = np.random.default_rng(5)
+    n = 300
+    pool = SampleSet(
+        means=np.round(rng.uniform(-5, 5, (n, 2)), 1), covariances=np.zeros((n, 2, 2)),
+        labels=rng.choice([-1.0, 1.0], n), scan_ids=rng.integers(0, 20, n),
+        pose_factors=np.zeros((n, 2, 3)), sensor_ids=rng.integers(0, 2, n).astype(np.int16),
+        sensor_names=("a", "b"))
+    kept = np.sort(rng.choice(n, 120, replace=False))
+    samples = pool.subset(kept)
+
+    def brute_force(sub):
+        rows, start = [], 0
+        for i in range(len(sub)):
+            for j in range(start, n):
+                if (np.array_equal(pool.means[j], sub.means[i])
+                        and pool.labels[j] == sub.labels[i]
+                        and pool.scan_ids[j] == sub.scan_ids[i]
+                        and pool.sensor_ids[j] == sub.sensor_ids[i]):
+                    rows.append(j)
+                    start = j + 1
+                    break
+            else:
+                return None
+        return np.array(rows)
+
+    np.testing.assert_array_equal(pool_rows(pool, samples), brute_force(samples))
+    assert pool_rows(pool, samples.subset(np.arange(len(samples))[::-1])) is None
+    relabelled = dataclasses.replace(samples, labels=-samples.labels)
+    assert brute_force(relabelled) is None and pool_rows(pool, relabelled) is None
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda arrays: arrays.update(sample_index=arrays["sample_index"][::-1].copy()),
+     "not ascending rows"),
+    (lambda arrays: arrays.update(sample_index=arrays["sample_index"] + 10**6),
+     "not ascending rows"),
+    (lambda arrays: arrays.update(sample_index=arrays["sample_index"].astype(float)),
+     "not ascending rows"),
+    (lambda arrays: [arrays.pop(k) for k in list(arrays) if k.startswith(
+        ("pool_", "vote_", "calibration_"))], "growth pool it lacks"),
+])
+def test_a_damaged_sample_index_is_one_error_line(logs, tmp_path, edit, words):
+    train_a(logs, tmp_path)
+    arrays, meta = _raw_arrays(tmp_path / "a.npz")
+    edit(arrays)
+    if "pool_means" not in arrays:
+        meta.pop("growth")
+    write_model_file(tmp_path / "bad.npz", arrays, meta)
+    result = runner.invoke(app, ["map", str(tmp_path / "bad.npz"), "--resolution", "0.2",
+                                 "--out", str(tmp_path / "map")])
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and "re-create it" in lines[0], lines
+    assert not (tmp_path / "map").exists()
