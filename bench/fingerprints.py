@@ -29,7 +29,7 @@ def fingerprints(ctx: Context) -> Result:
     change that should not alter results (a refactor, a speed-up) keeps them."""
     from gpocc.baselines.grid import default_grid_spec, occupancy_grid
     from gpocc.config import load_config
-    from gpocc.gp.model import load_model
+    from gpocc.gp.model import load_model, model_arrays
     from gpocc.io.inputs import read_inputs
     from gpocc.io.rasters import read_raster
     from gpocc.samples.beams import build_samples
@@ -47,8 +47,10 @@ def fingerprints(ctx: Context) -> Result:
                  digest(grid.log_odds, np.array(spec.bounds))])
     model_path = ctx.intel_model()
     model = load_model(model_path)
-    with np.load(model_path, allow_pickle=False) as stored:
-        arrays = [stored[k] for k in sorted(stored.files) if k != "metadata"]
+    # The model's arrays as loaded, in format 5's layout and name order (whatever layout
+    # the file stores them in): equal digests, equal models.
+    stored = model_arrays(model)
+    arrays = [stored[k] for k in sorted(stored)]
     rows.append(["Intel model arrays", f"{len(model.samples)} samples", digest(*arrays)])
     learned = np.array([*np.asarray(model.kernel.theta, float), model.noise_variance,
                         model.input_noise_scale, model.classifier.offset,

@@ -313,19 +313,17 @@ def write_model(model: GPModel, path: str | Path) -> None:
         "inputs": list(model.inputs),
         "config": config_to_dict(model.config),
     }
-    index = _rows_in_pool(model)
-    arrays = ({name: getattr(model.samples, name) for name in _ARRAYS} if index is None
-              else {"sample_index": index})
-    if model.samples.noise_factors is not None:
-        arrays["noise_factors"] = model.samples.noise_factors
     if model.coverage is not None:
         cov = model.coverage
         meta["coverage"] = {"x0": cov.x0, "y0": cov.y0, "cell_m": cov.cell_m,
                             "step_m": cov.step_m, "shape": list(cov.covered.shape)}
-        arrays["coverage"] = np.packbits(cov.covered, axis=None)
     if model.growth is not None:
-        meta["growth"], growth_arrays = _growth_parts(model.growth)
-        arrays.update(growth_arrays)
+        meta["growth"] = _growth_record(model.growth)
+    arrays = model_arrays(model)
+    index = _rows_in_pool(model)
+    if index is not None:
+        arrays = {"sample_index": index,
+                  **{k: v for k, v in arrays.items() if k not in _ARRAYS}}
     arrays = {"metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
     # What np.savez_compressed writes (an .npz numpy.load reads), at zlib level 1 (level
     # 6, numpy's, packs 2% smaller in four times the time), except the arrays of
@@ -358,18 +356,31 @@ def _rows_in_pool(model: GPModel) -> np.ndarray | None:
     return index if same else None
 
 
-def _growth_parts(growth: Growth) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The growth state as a JSON record and arrays (:data:`GROWTH_ARRAYS`)."""
-    pool = growth.pool
-    arrays = {f"pool_{name}": getattr(pool.samples, name) for name in _ARRAYS}
-    arrays.update(vote_keys=pool.vote_keys, vote_counts=pool.vote_counts)
-    if growth.calibration is not None:
-        arrays.update(calibration_points=growth.calibration.points,
-                      calibration_labels=growth.calibration.labels,
-                      calibration_scan_ids=growth.calibration.scan_ids)
-    record = {"n_scans": pool.n_scans, "sensor_names": list(pool.samples.sensor_names),
-              "inputs": [r.as_dict() for r in growth.records]}
-    return record, arrays
+def model_arrays(model: GPModel) -> dict[str, np.ndarray]:
+    """Every array of ``model`` by its name in a model file, the samples as their own
+    arrays (format 5's layout; :func:`write_model` may store them as rows of the pool)."""
+    arrays = {name: getattr(model.samples, name) for name in _ARRAYS}
+    if model.samples.noise_factors is not None:
+        arrays["noise_factors"] = model.samples.noise_factors
+    if model.coverage is not None:
+        arrays["coverage"] = np.packbits(model.coverage.covered, axis=None)
+    if model.growth is not None:
+        pool = model.growth.pool
+        arrays.update({f"pool_{name}": getattr(pool.samples, name) for name in _ARRAYS})
+        arrays.update(vote_keys=pool.vote_keys, vote_counts=pool.vote_counts)
+        calibration = model.growth.calibration
+        if calibration is not None:
+            arrays.update(calibration_points=calibration.points,
+                          calibration_labels=calibration.labels,
+                          calibration_scan_ids=calibration.scan_ids)
+    return arrays
+
+
+def _growth_record(growth: Growth) -> dict[str, Any]:
+    """The growth state's JSON record (its arrays: :func:`model_arrays`)."""
+    return {"n_scans": growth.pool.n_scans,
+            "sensor_names": list(growth.pool.samples.sensor_names),
+            "inputs": [r.as_dict() for r in growth.records]}
 
 
 def load_model(path: str | Path) -> GPModel:
