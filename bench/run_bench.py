@@ -10,8 +10,9 @@ the machine, and says which benchmarks ran and whether the run was quick. The re
 are read from ``../shared/data/carmen`` (or ``GPOCC_CARMEN_DIR``); benchmarks whose data is
 missing are listed as skipped. The benchmarks live in ``bench/pipeline.py`` (whole
 commands), ``bench/stages.py``, ``bench/kernels.py``, ``bench/knobs.py``,
-``bench/cloud_projection.py``, ``bench/update_cost.py`` and ``bench/fingerprints.py``; a
-new one is a function registered with ``bench.registry.benchmark``.
+``bench/cloud_projection.py``, ``bench/update_cost.py``, ``bench/model_file.py`` and
+``bench/fingerprints.py``; a new one is a function registered with
+``bench.registry.benchmark``.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from . import (  # noqa: F401 (they register)
     fingerprints,
     kernels,
     knobs,
+    model_file,
     pipeline,
     stages,
     update_cost,
@@ -44,7 +46,7 @@ PAGE = ROOT / "docs" / "benchmarks.md"
 ORDER = ("intel", "intel-repeats", "campus", "city", "city-1km", "growth", "scaling-data",
          "scaling-size", "samples", "sample-memory", "anchor-cost", "expected-kernels",
          "quadrature", "blas-threads", "anneal-budget", "knobs", "cloud-projection",
-         "update-cost", "fingerprints")
+         "update-cost", "model-file", "fingerprints")
 
 
 def ordered() -> list[str]:

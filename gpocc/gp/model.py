@@ -296,6 +296,29 @@ def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:
 def write_model(model: GPModel, path: str | Path) -> None:
     """Write ``model`` to ``path`` (.npz) as it is: for a path private to this run (inside
     a temporary output folder); top-level model files go through :func:`save_model`."""
+    meta = model_metadata(model)
+    arrays = model_arrays(model)
+    index = _rows_in_pool(model)
+    if index is not None:
+        arrays = {"sample_index": index,
+                  **{k: v for k, v in arrays.items() if k not in _ARRAYS}}
+    arrays = {"metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
+    # What np.savez_compressed writes (an .npz numpy.load reads), at zlib level 1 (level
+    # 6, numpy's, packs 2% smaller in four times the time), except the arrays of
+    # positions and covariances, which are float64 noise: deflate gained 8-26% on them
+    # at 30-40 MB/s, a third of writing a large site's model.
+    with open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED,
+                                                 compresslevel=1) as archive:
+        for name, array in arrays.items():
+            # Entries opened by name take the archive's method (and its level 1).
+            archive.compression = (zipfile.ZIP_STORED if name in _STORED_ARRAYS
+                                   else zipfile.ZIP_DEFLATED)
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as entry:
+                np.lib.format.write_array(entry, np.asanyarray(array), allow_pickle=False)
+
+
+def model_metadata(model: GPModel) -> dict[str, Any]:
+    """The JSON metadata of ``model``'s file (its arrays: :func:`model_arrays`)."""
     meta = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -319,24 +342,7 @@ def write_model(model: GPModel, path: str | Path) -> None:
                             "step_m": cov.step_m, "shape": list(cov.covered.shape)}
     if model.growth is not None:
         meta["growth"] = _growth_record(model.growth)
-    arrays = model_arrays(model)
-    index = _rows_in_pool(model)
-    if index is not None:
-        arrays = {"sample_index": index,
-                  **{k: v for k, v in arrays.items() if k not in _ARRAYS}}
-    arrays = {"metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
-    # What np.savez_compressed writes (an .npz numpy.load reads), at zlib level 1 (level
-    # 6, numpy's, packs 2% smaller in four times the time), except the arrays of
-    # positions and covariances, which are float64 noise: deflate gained 8-26% on them
-    # at 30-40 MB/s, a third of writing a large site's model.
-    with open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED,
-                                                 compresslevel=1) as archive:
-        for name, array in arrays.items():
-            # Entries opened by name take the archive's method (and its level 1).
-            archive.compression = (zipfile.ZIP_STORED if name in _STORED_ARRAYS
-                                   else zipfile.ZIP_DEFLATED)
-            with archive.open(f"{name}.npy", "w", force_zip64=True) as entry:
-                np.lib.format.write_array(entry, np.asanyarray(array), allow_pickle=False)
+    return meta
 
 
 def _rows_in_pool(model: GPModel) -> np.ndarray | None:
