@@ -68,6 +68,8 @@ FORMAT_NAME = "gpocc-model"
 #: instead of their own arrays: about half the file, and half the time to write it.
 FORMAT_VERSION = 6
 _ARRAYS = ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")
+#: Rows of samples that :func:`_rows_in_pool` checks at a time.
+_CHECK_ROWS = 1 << 16
 #: Arrays written without compression (float64 noise, see :func:`write_model`).
 _STORED_ARRAYS = frozenset({"means", "covariances", "pool_means", "pool_covariances",
                             "calibration_points"})
@@ -355,11 +357,17 @@ def _rows_in_pool(model: GPModel) -> np.ndarray | None:
     index = pool_rows(pool, model.samples)
     if index is None:
         return None
-    made = samples_of_pool(pool, index, model.input_noise, model.input_noise_scale,
-                           model.config.model.training.input_noise_scale_part)
-    same = all(np.array_equal(getattr(made, name), getattr(model.samples, name))
-               for name in _ARRAYS)
-    return index if same else None
+    part = model.config.model.training.input_noise_scale_part
+    # In blocks of rows: the whole set made again would add a copy of the samples (a
+    # site's: hundreds of MB) to the peak memory of writing the model.
+    for start in range(0, len(index), _CHECK_ROWS):
+        rows = slice(start, start + _CHECK_ROWS)
+        made = samples_of_pool(pool, index[rows], model.input_noise,
+                               model.input_noise_scale, part)
+        if not all(np.array_equal(getattr(made, name), getattr(model.samples, name)[rows])
+                   for name in _ARRAYS):
+            return None
+    return index
 
 
 def model_arrays(model: GPModel) -> dict[str, np.ndarray]:

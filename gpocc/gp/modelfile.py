@@ -176,8 +176,8 @@ def pool_rows(pool: SampleSet, samples: SampleSet) -> np.ndarray | None:
     index = order[at]
     if not (np.array_equal(sorted_keys[at], keys) and (np.diff(index) > 0).all()):
         return None
-    rows = pool.subset(index)
-    if not all(np.array_equal(getattr(rows, name), getattr(samples, name))
+    # One array at a time: a site's samples are hundreds of MB.
+    if not all(np.array_equal(getattr(pool, name)[index], getattr(samples, name))
                for name in ("means", "labels", "scan_ids", "sensor_ids")):
         return None
     return index

@@ -629,3 +629,25 @@ def test_a_damaged_sample_index_is_one_error_line(logs, tmp_path, edit, words):
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and words in lines[0] and "re-create it" in lines[0], lines
     assert not (tmp_path / "map").exists()
+
+
+def test_rows_of_the_pool_are_checked_in_blocks(logs, tmp_path, monkeypatch):
+    from gpocc.gp import model as model_module
+
+    train_a(logs, tmp_path)
+    model = load_model(tmp_path / "a.npz")
+    monkeypatch.setattr(model_module, "_CHECK_ROWS", 7)  # many blocks, a short last one
+    assert len(model.samples) % 7
+    model_module.save_model(model, tmp_path / "blocks.npz")
+    assert "sample_index" in _raw_arrays(tmp_path / "blocks.npz")[0]
+    np.testing.assert_array_equal(load_model(tmp_path / "blocks.npz").samples.covariances,
+                                  model.samples.covariances)
+    # A covariance in the last block that the pool does not give: stored whole.
+    covariances = model.samples.covariances.copy()
+    covariances[-1] *= 1.5
+    changed = dataclasses.replace(model, samples=dataclasses.replace(
+        model.samples, covariances=covariances))
+    model_module.save_model(changed, tmp_path / "changed.npz")
+    arrays, _ = _raw_arrays(tmp_path / "changed.npz")
+    assert "sample_index" not in arrays
+    np.testing.assert_array_equal(arrays["covariances"], covariances)
