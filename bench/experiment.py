@@ -183,6 +183,12 @@ VARIANTS: dict[str, dict[str, object]] = {
     # classifier offset: sharper walls where the learned g runs to its bound.
     "fixed-scale-offset-beams": {"model.training.learn_input_noise_scale": False,
                                  "model.training.classifier_offset": "beams"},
+    # Cheaper steps toward finer samples: each local problem covers less area than 0.15
+    # and 128 did (fewer neighbours per sample density).
+    "thin-0.1-n160-offset-beams": {**_THIN_N192, "model.neighbours": 160,
+                                   "model.training.classifier_offset": "beams"},
+    "thin-0.12-n160-offset-beams": {"samples.thin_cell_m": 0.12, "model.neighbours": 160,
+                                    "model.training.classifier_offset": "beams"},
     "thin-0.1-n192-fixed-scale-offset-beams": {
         **_THIN_N192, "model.training.learn_input_noise_scale": False,
         "model.training.classifier_offset": "beams"},
