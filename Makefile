@@ -68,7 +68,8 @@ bench: $(BENCH_STAMP) bytecode
 # each changes one default, or one setting of offset-holdout (bench/experiment.py
 # VARIANTS, HOLDOUT_BASED).
 EXPERIMENT_COMPARE ?= offset-holdout accurate-poses-offset-beams thin-0.1-n192-offset-beams \
-	thin-0.1-n256-offset-beams fixed-scale-offset-beams thin-0.1-n192-fixed-scale-offset-beams \
+	thin-0.1-n256-offset-beams thin-0.1-n160-offset-beams thin-0.12-n160-offset-beams \
+	fixed-scale-offset-beams thin-0.1-n192-fixed-scale-offset-beams \
 	hit-gap-0.25 no-temperature \
 	label-map fixed-scale thin-0.1 patches-20 label-weights anneal-1 bounds-6 g-max-16 \
 	floor-0.03 overlap-0.5 clearance-0 pose-scale two-draw-pose-scale fixed-bias \
