@@ -6,10 +6,8 @@ Registered as the benchmark ``model-file`` (``python -m bench.run_bench --only m
 
 from __future__ import annotations
 
-import json
 import statistics
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -24,16 +22,9 @@ REPEATS = 5
 def write_whole(model, path: Path) -> None:
     """``model`` as format 5 wrote it: every array (the samples' own included) deflated
     at level 1, with :func:`gpocc.gp.model.write_model`'s metadata at format version 5."""
-    from gpocc.gp.model import model_arrays, model_metadata
+    from gpocc.gp.model import model_arrays, model_metadata, write_archive
 
-    meta = {**model_metadata(model), "format_version": 5}
-    arrays = {"metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8),
-              **model_arrays(model)}
-    with open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED,
-                                                 compresslevel=1) as archive:
-        for name, array in arrays.items():
-            with archive.open(f"{name}.npy", "w", force_zip64=True) as entry:
-                np.lib.format.write_array(entry, np.asanyarray(array), allow_pickle=False)
+    write_archive(path, {**model_metadata(model), "format_version": 5}, model_arrays(model))
 
 
 def _median_seconds(fn, *args, repeats: int = REPEATS) -> float:

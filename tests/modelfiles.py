@@ -17,11 +17,11 @@ def read_model_file(path: Path) -> tuple[dict[str, np.ndarray], dict]:
         arrays = dict(data)
     if "sample_index" in arrays:
         from gpocc.gp.model import load_model
+        from gpocc.gp.modelfile import ARRAY_LAYOUT
 
         samples = load_model(path).samples
         del arrays["sample_index"]
-        arrays.update({name: getattr(samples, name) for name in (
-            "means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")})
+        arrays.update({name: getattr(samples, name) for name in ARRAY_LAYOUT})
     return arrays, json.loads(bytes(arrays["metadata"]).decode())
 
 

@@ -38,6 +38,7 @@ from gpocc.gp.growth import Growth
 from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import Kernel, make_kernel
 from gpocc.gp.modelfile import (
+    ARRAY_LAYOUT,
     GROWTH_ARRAYS,
     pool_rows,
     samples_of_pool,
@@ -67,7 +68,7 @@ FORMAT_NAME = "gpocc-model"
 #: stored as ``sample_index``, their rows in the growth pool (:func:`_rows_in_pool`),
 #: instead of their own arrays: about half the file, and half the time to write it.
 FORMAT_VERSION = 6
-_ARRAYS = ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids")
+_ARRAYS = tuple(ARRAY_LAYOUT)
 #: Rows of samples that :func:`_rows_in_pool` checks at a time.
 _CHECK_ROWS = 1 << 16
 #: Arrays written without compression (float64 noise, see :func:`write_model`).
@@ -304,16 +305,22 @@ def write_model(model: GPModel, path: str | Path) -> None:
     if index is not None:
         arrays = {"sample_index": index,
                   **{k: v for k, v in arrays.items() if k not in _ARRAYS}}
-    arrays = {"metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
-    # What np.savez_compressed writes (an .npz numpy.load reads), at zlib level 1 (level
-    # 6, numpy's, packs 2% smaller in four times the time), except the arrays of
-    # positions and covariances, which are float64 noise: deflate gained 8-26% on them
-    # at 30-40 MB/s, a third of writing a large site's model.
+    # Positions and covariances are float64 noise: deflate gained 8-26% on them at
+    # 30-40 MB/s, a third of writing a large site's model.
+    write_archive(path, meta, arrays, stored=_STORED_ARRAYS)
+
+
+def write_archive(path: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray],
+                  stored: frozenset[str] = frozenset()) -> None:
+    """Write ``meta`` (as the ``metadata`` entry) and ``arrays`` to ``path`` as the .npz
+    archive numpy.load reads: each entry deflated at zlib level 1 (level 6, numpy's,
+    packs 2% smaller in four times the time), those named in ``stored`` uncompressed."""
+    entries = {"metadata": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
     with open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED,
                                                  compresslevel=1) as archive:
-        for name, array in arrays.items():
+        for name, array in entries.items():
             # Entries opened by name take the archive's method (and its level 1).
-            archive.compression = (zipfile.ZIP_STORED if name in _STORED_ARRAYS
+            archive.compression = (zipfile.ZIP_STORED if name in stored
                                    else zipfile.ZIP_DEFLATED)
             with archive.open(f"{name}.npy", "w", force_zip64=True) as entry:
                 np.lib.format.write_array(entry, np.asanyarray(array), allow_pickle=False)
@@ -358,14 +365,16 @@ def _rows_in_pool(model: GPModel) -> np.ndarray | None:
     if index is None:
         return None
     part = model.config.model.training.input_noise_scale_part
-    # In blocks of rows: the whole set made again would add a copy of the samples (a
-    # site's: hundreds of MB) to the peak memory of writing the model.
+    # pool_rows has matched the rows' means, labels, scan and sensor ids; what making
+    # them changes are the covariances and pose factors. In blocks of rows: the whole set
+    # made again would add a copy of the samples (a site's: hundreds of MB) to the peak
+    # memory of writing the model.
     for start in range(0, len(index), _CHECK_ROWS):
         rows = slice(start, start + _CHECK_ROWS)
         made = samples_of_pool(pool, index[rows], model.input_noise,
                                model.input_noise_scale, part)
         if not all(np.array_equal(getattr(made, name), getattr(model.samples, name)[rows])
-                   for name in _ARRAYS):
+                   for name in ("covariances", "pose_factors")):
             return None
     return index
 

@@ -264,11 +264,12 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str,
     if "sample_index" in arrays:
         if pool is None:
             raise _Damaged("its samples are stored as rows of a growth pool it lacks")
-        index = _sample_index(arrays["sample_index"], len(pool))
-        made = samples_of_pool(pool, index, input_noise, scale,
-                               config.model.training.input_noise_scale_part)
-        arrays = {name: getattr(made, name) for name in ARRAY_LAYOUT}
-    samples = _samples(arrays)
+        # Rows of the pool, which validate_growth has checked as _samples checks arrays.
+        samples = samples_of_pool(pool, _sample_index(arrays["sample_index"], len(pool)),
+                                  input_noise, scale,
+                                  config.model.training.input_noise_scale_part)
+    else:
+        samples = _samples(arrays)
     if names and (samples.sensor_ids >= len(names)).any():
         raise _Damaged(f"array 'sensor_ids' names sensors beyond the {len(names)} in "
                        "sensor_names")
