@@ -32,14 +32,15 @@ def update(
     relearn: bool = typer.Option(
         False, "--relearn", help="Learn the hyperparameters again on all samples from the "
         "config's initial values, as `gpocc train` does (default: refine the model's "
-        "values on all samples, the quasi-Newton stage of learning alone)."),
+        "values on all samples by Fisher scoring, without learning's global search)."),
     keep: bool = typer.Option(
         False, "--keep", help="Keep the model's hyperparameters and only refit the "
         "classifier (fastest; they were learned on the old logs' patches alone)."),
     refine_iterations: int = typer.Option(
         REFINE_ITERATIONS, "--refine-iterations",
-        help="L-BFGS-B iterations of the refinement, at most (more: closer to the "
-        "union's optimum, slower)."),
+        help="Steps of the refinement, at most, one likelihood evaluation each (L-BFGS-B "
+        "iterations for a kernel whose loops give no input-noise-scale derivative); "
+        "it stops earlier where a step gains under 0.01 nats."),
     force: Force = False,
 ) -> None:
     """Add new logs to a model: their samples join the model's, its hyperparameters are

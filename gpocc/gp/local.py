@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.blas import dtrsm
@@ -249,14 +250,33 @@ def predict_full(kernel: Kernel, noise_variance: float, samples: SampleSet, quer
     return predict_local(kernel, noise_variance, problem, queries, level, backend)
 
 
+class PatchLikelihood(NamedTuple):
+    """A training patch's -LML (nats), its gradient (P,) in log-parameters (None: not
+    asked for) and its Fisher information (P, P) in the same parameters (None: not asked
+    for)."""
+
+    value: float
+    gradient: np.ndarray | None
+    fisher: np.ndarray | None = None
+
+
 def negative_log_likelihood(
     kernel: Kernel, noise: float, samples: SampleSet, level: int, *, with_gradient: bool,
     input_scale: float = 1.0, scale_gradient: bool = False, backend: str = "auto",
-) -> tuple[float, np.ndarray | None] | None:
+    with_fisher: bool = False,
+) -> PatchLikelihood | None:
     """One local problem's (a training patch's) -LML and its gradient in log-parameters
     ``[kernel.theta..., log noise]`` (with ``scale_gradient``, then in log g); None if K
-    is not a covariance. The generic form of ``KernelLoops.patch_likelihoods``."""
+    is not a covariance. The generic form of ``KernelLoops.patch_likelihoods``.
+
+    ``with_fisher`` (with ``with_gradient``): also the Fisher information of the labels'
+    Gaussian in the same parameters, ``F_pq = 1/2 tr(K^-1 dK_p K^-1 dK_q)`` (Rasmussen
+    and Williams, eq. 5.9's expected Hessian): the curvature a refinement's scoring steps
+    use (:mod:`gpocc.gp.refine`).
+    """
     s = samples
+    if with_fisher and not with_gradient:
+        raise ValueError("the Fisher information needs the gradients' dK")
     if with_gradient:
         cov, dcov = expected_kernel_matrix(
             kernel, s.means, s.covariances, level, scan_ids=s.scan_ids,
@@ -276,8 +296,9 @@ def negative_log_likelihood(
     alpha = cholesky_solve(chol, s.labels)
     value = 0.5 * s.labels @ alpha + np.log(np.diag(chol)).sum() + 0.5 * len(s) * _LOG_2PI
     if not with_gradient:
-        return float(value), None
-    inner = cholesky_solve(chol, np.eye(len(s))) - np.outer(alpha, alpha)
+        return PatchLikelihood(float(value), None)
+    inverse = cholesky_solve(chol, np.eye(len(s)))
+    inner = inverse - np.outer(alpha, alpha)
     nkernel = len(kernel.theta)
     grad = np.empty(nkernel + (2 if scale_gradient else 1))
     # d(-LML)/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta)
@@ -286,7 +307,18 @@ def negative_log_likelihood(
                      else 0.5 * float(np.diagonal(inner) @ label_noise))
     if scale_gradient:
         grad[nkernel + 1] = 0.5 * np.einsum("ij,ij->", inner, dcov[nkernel])
-    return float(value), grad
+    if not with_fisher:
+        return PatchLikelihood(float(value), grad)
+    # dK/dlog noise is diag(label noise): K^-1 dK scales K^-1's columns.
+    products = [inverse @ dcov[p] for p in range(nkernel)]
+    products.append(inverse * np.broadcast_to(label_noise, (len(s),))[None, :])
+    if scale_gradient:
+        products.append(inverse @ dcov[nkernel])
+    flat = np.stack(products).reshape(len(products), -1)
+    transposed = np.stack([w.T for w in products]).reshape(len(products), -1)
+    # tr(A B) = sum_ij A_ij B_ji
+    fisher = 0.5 * flat @ transposed.T
+    return PatchLikelihood(float(value), grad, 0.5 * (fisher + fisher.T))
 
 
 def leave_one_out(chol: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -159,7 +159,7 @@ def build_model(
     from the config's initial values (:func:`gpocc.gp.train.learn_hyperparameters`);
     ``training["warm_started"]`` then says whether it did (false: they fitted worse than
     the initial values and learning searched as without them). ``refine_iterations``:
-    at most this many L-BFGS-B iterations from it (default
+    at most this many refinement steps from it (default
     ``model.training.lbfgs_maxiter``).
     """
     model_cfg = config.model

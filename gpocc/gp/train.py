@@ -8,9 +8,10 @@ hyperparameters. Optimisation: ``scipy.optimize.dual_annealing`` (global, bounde
 seeded) and then L-BFGS-B from its best point. With ``learn_input_noise_scale`` a
 scale g on every input covariance (:mod:`gpocc.gp.inputscale`) is learned with them.
 Given a ``warm_start`` (the values of a model of part of the samples, ``gpocc update``), the
-annealing is skipped and L-BFGS-B starts there: the optimum of a set of patches does not
-depend on where the search starts (Freiburg: four annealing seeds and budgets 20 and 60
-reach one optimum), so the refinement lands where learning from the initial values does.
+annealing is skipped and Fisher scoring (:mod:`gpocc.gp.refine`; L-BFGS-B where the loops
+give no dK/dlog g) starts there: the optimum of a set of patches does not depend on
+where the search starts (Freiburg: four annealing seeds and budgets 20 and 60 reach one
+optimum), so the refinement lands where learning from the initial values does.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from gpocc.gp import backends
 from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP, scale_input_noise
 from gpocc.gp.kernels import Kernel, axis_pairs, learned_names
-from gpocc.gp.local import LocalProblem, NeighbourIndex
+from gpocc.gp.local import LocalProblem, NeighbourIndex, PatchLikelihood
 from gpocc.parallel import default_workers, wait_for, worker_pool
 from gpocc.samples.sampleset import SampleSet
 
@@ -126,7 +127,7 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
 
 def _patch_negative_log_likelihood(
     kernel: Kernel, noise: float, patch: LocalProblem, **options
-) -> tuple[float, np.ndarray | None] | None:
+) -> PatchLikelihood | None:
     """One patch's -LML and its gradient (:func:`_patch_negative_log_likelihoods`)."""
     return next(_patch_negative_log_likelihoods(kernel, noise, [patch], **options))
 
@@ -134,13 +135,14 @@ def _patch_negative_log_likelihood(
 def _patch_negative_log_likelihoods(
     kernel: Kernel, noise: float, patches: list[LocalProblem], *, level: int,
     with_gradient: bool, input_scale: float = 1.0, scale_gradient: bool = False,
-    backend: str = "auto", scale_part: str = "all",
-) -> Iterator[tuple[float, np.ndarray | None] | None]:
+    backend: str = "auto", scale_part: str = "all", with_fisher: bool = False,
+) -> Iterator[PatchLikelihood | None]:
     """Each patch's -LML and its gradient in log-parameters (with ``scale_gradient``, then
-    in log g), or None where K is not a covariance, in patch order: one batch for the
-    backend (``KernelLoops.patch_likelihoods``). ``scale_part``: what ``input_scale``
-    scales (:func:`gpocc.gp.inputscale.scale_input_noise`); the loops scale whole
-    covariances themselves, so a pose-only scale is applied to the samples first."""
+    in log g; with ``with_fisher``, its Fisher information too), or None where K is not a
+    covariance, in patch order: one batch for the backend
+    (``KernelLoops.patch_likelihoods``). ``scale_part``: what ``input_scale`` scales
+    (:func:`gpocc.gp.inputscale.scale_input_noise`); the loops scale whole covariances
+    themselves, so a pose-only scale is applied to the samples first."""
     chosen = backends.get(backend)
     samples = [p.samples for p in patches]
     if scale_part != "all":
@@ -150,7 +152,8 @@ def _patch_negative_log_likelihoods(
         input_scale = 1.0
     return chosen.loops(kernel).patch_likelihoods(
         kernel, noise, samples, level, with_gradient=with_gradient,
-        input_scale=input_scale, scale_gradient=scale_gradient, backend=chosen)
+        input_scale=input_scale, scale_gradient=scale_gradient, backend=chosen,
+        with_fisher=with_fisher)
 
 
 # The patches of a training worker process, installed once when its pool starts
@@ -163,7 +166,7 @@ def _install_patches(patches: list[LocalProblem]) -> None:
 
 
 def _resident_patch_negative_log_likelihood(kernel: Kernel, noise: float, index: int,
-                                            **options) -> tuple[float, np.ndarray | None] | None:
+                                            **options) -> PatchLikelihood | None:
     return _patch_negative_log_likelihood(kernel, noise, _worker_patches[index], **options)
 
 
@@ -233,6 +236,37 @@ def _held_by(pool: ResidentPatches | ClusterPatches, patches: list[LocalProblem]
         raise ValueError("the pool holds other patches than those to evaluate")
 
 
+def _patch_terms(
+    arguments: tuple[Kernel, float], patches: list[LocalProblem],
+    executor: Executor | Pool | ResidentPatches | ClusterPatches | None, options: dict,
+) -> list[PatchLikelihood | None]:
+    """Each patch's :class:`PatchLikelihood` (None: not a covariance) in patch order,
+    evaluated by ``executor`` (:func:`negative_log_likelihood`)."""
+    # Partials of module-level functions, so that worker processes can receive them.
+    # One patch per task: patches differ in cost (3-12 ms), and Pool.map's default chunks of
+    # two left one worker idle (gradient evaluations about 9% slower on 2 workers).
+    if isinstance(executor, ResidentPatches | ClusterPatches):
+        _held_by(executor, patches)
+        if isinstance(executor, ResidentPatches):
+            one = functools.partial(_resident_patch_negative_log_likelihood, *arguments,
+                                    **options)
+            by_cost = wait_for(executor.pool,
+                               executor.pool.map_async(one, executor.order, chunksize=1))
+        else:
+            client = executor.client
+            by_cost = client.gather([
+                client.submit(_patch_negative_log_likelihood, *arguments,
+                              executor.futures[index], pure=False, **options)
+                for index in executor.order])
+        terms: list[PatchLikelihood | None] = [None] * len(patches)
+        for index, term in zip(executor.order, by_cost, strict=True):
+            terms[index] = term
+        return terms
+    one = functools.partial(_patch_negative_log_likelihood, *arguments, **options)
+    return (list(executor.map(one, patches, chunksize=1)) if executor is not None
+            else list(_patch_negative_log_likelihoods(*arguments, patches, **options)))
+
+
 def negative_log_likelihood(
     params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
     with_gradient: bool = True,
@@ -254,33 +288,11 @@ def negative_log_likelihood(
     ``backend``: ``model.backend`` (:mod:`gpocc.gp.backends`). ``scale_part``: what g
     scales (:func:`gpocc.gp.inputscale.scale_input_noise`).
     """
-    # Partials of module-level functions, so that worker processes can receive them.
     arguments = (kernel.with_theta(params[:-1]), math.exp(params[-1]))
     options = {"level": level, "with_gradient": with_gradient, "input_scale": input_scale,
                "scale_gradient": scale_gradient and with_gradient, "backend": backend,
                "scale_part": scale_part}
-    # One patch per task: patches differ in cost (3-12 ms), and Pool.map's default chunks of
-    # two left one worker idle (gradient evaluations about 9% slower on 2 workers).
-    if isinstance(executor, ResidentPatches | ClusterPatches):
-        _held_by(executor, patches)
-        if isinstance(executor, ResidentPatches):
-            one = functools.partial(_resident_patch_negative_log_likelihood, *arguments,
-                                    **options)
-            by_cost = wait_for(executor.pool,
-                               executor.pool.map_async(one, executor.order, chunksize=1))
-        else:
-            client = executor.client
-            by_cost = client.gather([
-                client.submit(_patch_negative_log_likelihood, *arguments,
-                              executor.futures[index], pure=False, **options)
-                for index in executor.order])
-        terms = [None] * len(patches)
-        for index, term in zip(executor.order, by_cost, strict=True):
-            terms[index] = term
-    else:
-        one = functools.partial(_patch_negative_log_likelihood, *arguments, **options)
-        terms = (list(executor.map(one, patches, chunksize=1)) if executor is not None
-                 else _patch_negative_log_likelihoods(*arguments, patches, **options))
+    terms = _patch_terms(arguments, patches, executor, options)
     value = 0.0
     grad = np.zeros(len(params) + (1 if scale_gradient else 0))
     for term in terms:
@@ -290,6 +302,33 @@ def negative_log_likelihood(
         if term[1] is not None:
             grad += term[1]
     return float(value), grad
+
+
+def likelihood_with_fisher(
+    params: np.ndarray, kernel, patches: list[LocalProblem], level: int,
+    executor: Executor | Pool | ResidentPatches | ClusterPatches | None = None,
+    with_scale: bool = False, backend: str = "auto",
+) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """The -LML over patches, its gradient (P,) and its Fisher information (P, P), all in
+    ``params`` = ``[kernel.theta..., log noise_variance(, log g)]`` (``with_scale``: g of
+    :mod:`gpocc.gp.inputscale` on whole covariances, which needs
+    :func:`~gpocc.gp.expected.supports_scale_gradient`); None where K is not a
+    covariance. ``executor``: as :func:`negative_log_likelihood`'s."""
+    if with_scale:
+        kernel_params, input_scale = params[:-1], math.exp(params[-1])
+    else:
+        kernel_params, input_scale = params, 1.0
+    arguments = (kernel.with_theta(kernel_params[:-1]), math.exp(kernel_params[-1]))
+    options = {"level": level, "with_gradient": True, "input_scale": input_scale,
+               "scale_gradient": with_scale, "backend": backend, "with_fisher": True}
+    value, grad, fisher = 0.0, np.zeros(len(params)), np.zeros((len(params), len(params)))
+    for term in _patch_terms(arguments, patches, executor, options):
+        if term is None:
+            return None
+        value += term.value
+        grad += term.gradient
+        fisher += term.fisher
+    return value, grad, fisher
 
 
 def negative_log_likelihood_with_scale(
@@ -350,7 +389,8 @@ def learn_hyperparameters(
     box is moved onto it, and one that fits the patches worse than the initial values
     (or whose covariance is not positive definite) falls back to the full search, which
     then gives the result of learning without a start. ``refine_iterations``: at most
-    this many L-BFGS-B iterations from a ``warm_start`` it refines (default
+    this many steps from a ``warm_start`` it refines (Fisher scoring steps, one
+    evaluation each; L-BFGS-B iterations for loops without dK/dlog g; default
     ``config.lbfgs_maxiter``).
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
@@ -386,9 +426,20 @@ def learn_hyperparameters(
                 on_evaluation(1)
             return result
 
+        def fisher_counted(params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
+            result = likelihood_with_fisher(params, kernel, patches, level, executor=pool,
+                                            with_scale=learn_scale, backend=backend)
+            if on_evaluation is not None:
+                on_evaluation(1)
+            return result
+
+        # The scoring refinement needs dK/dlog g from the loops (whole covariances).
+        scoring = warm_start is not None and (not learn_scale or (
+            config.input_noise_scale_part == "all"
+            and supports_scale_gradient(kernel, backend)))
         return _optimise(kernel, noise_variance, patches, level, config, seed,
                          negative_log_likelihood_counted, learn_scale, warm_start,
-                         refine_iterations)
+                         refine_iterations, fisher_counted if scoring else None)
 
 
 def load_optimiser() -> None:
@@ -421,9 +472,12 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
               config: TrainingConfig, seed: int,
               negative_log_likelihood_counted: Callable[..., tuple[float, np.ndarray]],
               learn_scale: bool = False, warm_start: TrainingResult | None = None,
-              refine_iterations: int | None = None) -> TrainingResult:
-    """Global annealing on values (none from a valid ``warm_start``), then L-BFGS-B on values and
-    gradients."""
+              refine_iterations: int | None = None,
+              fisher: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray] | None]
+              | None = None) -> TrainingResult:
+    """Global annealing on values, then L-BFGS-B on values and gradients; from a valid
+    ``warm_start``, Fisher scoring (:mod:`gpocc.gp.refine`) given ``fisher`` (params ->
+    value, gradient, Fisher information), else L-BFGS-B alone."""
     # Imported here: a map loads models through this module but never learns.
     from scipy.optimize import dual_annealing, minimize
 
@@ -487,7 +541,11 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
             given = np.append(given, math.log(warm_start.input_noise_scale))
         given = np.clip(given, [lo for lo, _ in bounds], [hi for _, hi in bounds])
         given = lift(given[free])
-        given_value = value_only(given)
+        if fisher is not None:
+            first = fisher(given)
+            given_value = _REJECTED if first is None else first[0]
+        else:
+            given_value = value_only(given)
         evaluations += 1
         # A start worse than the initial values (a model of few logs that learned a kernel
         # far too smooth for the walls) is dropped: the search is then learning's own.
@@ -504,15 +562,20 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
             best, best_value = lift(annealed.x), float(annealed.fun)
     iterations = (refine_iterations if from_start and refine_iterations is not None
                   else config.lbfgs_maxiter)
-    refined = minimize(
-        objective_free, best[free], args=(kernel, patches, level), jac=True,
-        method="L-BFGS-B", bounds=free_bounds, options={"maxiter": iterations},
-    )
-    evaluations += int(refined.nfev)
-    if refined.fun <= best_value:
-        final, final_value = lift(refined.x), float(refined.fun)
+    if from_start and fisher is not None:
+        final, final_value, spent = _score_from(best, first, fisher, free, tied, lift,
+                                                free_bounds, iterations)
+        evaluations += spent
     else:
-        final, final_value = best, best_value
+        refined = minimize(
+            objective_free, best[free], args=(kernel, patches, level), jac=True,
+            method="L-BFGS-B", bounds=free_bounds, options={"maxiter": iterations},
+        )
+        evaluations += int(refined.nfev)
+        if refined.fun <= best_value:
+            final, final_value = lift(refined.x), float(refined.fun)
+        else:
+            final, final_value = best, best_value
     return TrainingResult(
         kernel=kernel.with_theta(final[:noise_at]),
         noise_variance=float(math.exp(final[noise_at])),
@@ -523,3 +586,38 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         patches=(len(patches), len(patches[0].samples)),
         warm_started=from_start,
     )
+
+
+def _score_from(
+    start: np.ndarray, first: tuple[float, np.ndarray, np.ndarray],
+    fisher: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray] | None],
+    free: np.ndarray, tied: tuple[tuple[int, int], ...],
+    lift: Callable[[np.ndarray], np.ndarray], free_bounds: list[tuple[float, float]],
+    max_evaluations: int,
+) -> tuple[np.ndarray, float, int]:
+    """Fisher scoring from ``start`` (all parameters; ``first`` = ``fisher(start)``) over
+    the ``free`` parameters, each tied pair's second following its first: the refined
+    parameters, their value and the evaluations spent after ``first``."""
+    from gpocc.gp.refine import fisher_scoring
+
+    # d(all parameters)/d(free ones): a tied second moves with its first.
+    columns = np.flatnonzero(free)
+    jacobian = np.zeros((free.shape[0], columns.shape[0]))
+    jacobian[columns, np.arange(columns.shape[0])] = 1.0
+    for x, y in tied:
+        jacobian[y, np.searchsorted(columns, x)] = 1.0
+
+    def reduced(evaluation: tuple[float, np.ndarray, np.ndarray]
+                ) -> tuple[float, np.ndarray, np.ndarray]:
+        value, grad, information = evaluation
+        return value, jacobian.T @ grad, jacobian.T @ information @ jacobian
+
+    def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
+        evaluation = fisher(lift(p))
+        return None if evaluation is None else reduced(evaluation)
+
+    lower = np.array([lo for lo, _ in free_bounds])
+    upper = np.array([hi for _, hi in free_bounds])
+    refined = fisher_scoring(evaluate, start[free], lower, upper,
+                             max(1, max_evaluations), start=reduced(first))
+    return lift(refined.x), refined.value, refined.evaluations

@@ -2,17 +2,16 @@
 state (:mod:`gpocc.gp.growth`) without reading its old logs again.
 
 The samples are those training on all logs at once would build. The hyperparameters
-(``hyperparameters``) are by default ``refined``: L-BFGS-B on the union's patches starts
-from the model's values instead of annealing from the config's initial ones. Learning's
-optimum is set by its patches, not by its start, so this heads where training on all
-logs lands (the patches, drawn from the same samples with the same seed, are the same)
-for the cost of the quasi-Newton stage alone. The refinement stops after at most
-``refine_iterations`` L-BFGS-B iterations (:data:`REFINE_ITERATIONS`): its last steps
-raise the likelihood by a few nats at most and barely move the maps (docs/benchmarks.md,
-``update-cost``, compares them with training's). ``kept`` keeps the model's values (cheapest;
-they were learned on other patches, and ten patches' optimum moves with the draw:
-Freiburg held-out AUC up to 0.008 apart); ``relearned`` learns them on the union as
-training does, which gives that model exactly. The classifier is always fitted anew on
+(``hyperparameters``) are by default ``refined``: Fisher scoring on the union's patches
+(:mod:`gpocc.gp.refine`) starts from the model's values instead of annealing from the
+config's initial ones. Learning's optimum is set by its patches, not by its start, so
+this heads where training on all logs lands (the patches, drawn from the same samples
+with the same seed, are the same) in a handful of evaluations, stopping once a step
+gains under 0.01 nats or after ``refine_iterations`` steps (:data:`REFINE_ITERATIONS`).
+``kept`` keeps the model's values (cheapest; they were learned on other patches, and ten
+patches' optimum moves with the draw: Freiburg held-out AUC up to 0.008 apart);
+``relearned`` learns them on the union as training does, which gives that model exactly.
+The classifier is always fitted anew on
 the union.
 """
 
@@ -43,8 +42,9 @@ from gpocc.samples.coverage import beam_coverage, sample_coverage, union_coverag
 from gpocc.samples.heldout import calibration_points
 from gpocc.samples.sampleset import SampleSet
 
-#: L-BFGS-B iterations of a refinement, at most (``gpocc update --refine-iterations``).
-REFINE_ITERATIONS = 15
+#: Steps of a refinement, at most (``gpocc update --refine-iterations``): Intel and
+#: Freiburg cuts took 7-14 to converge.
+REFINE_ITERATIONS = 20
 
 #: Config sections an update takes from the model: its samples were built and its
 #: hyperparameters learned with them.
@@ -126,7 +126,7 @@ def update_model(model: GPModel, growth: Growth, batches: list[ScanBatch],
             module docstring.
         on_evaluation: progress of the likelihood evaluations (``refined``,
             ``relearned``).
-        refine_iterations: L-BFGS-B iterations of a refinement, at most.
+        refine_iterations: steps of a refinement, at most.
 
     Model hyperparameters that fit the union worse than the config's initial values
     (:func:`kept_fit`) are learned again; ``training["hyperparameters"]`` says how they

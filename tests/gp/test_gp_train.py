@@ -198,10 +198,10 @@ def _se_draw(seed: int, lengthscale: tuple[float, float]):
 
 
 def test_a_warm_start_reaches_the_optimum_of_the_full_search():
-    """L-BFGS-B alone from another start (``warm_start``, as ``gpocc update`` refines a
-    model's values) ends where annealing then L-BFGS-B from the initial values ends on the
-    same patches, in fewer evaluations; a start that fits worse than the initial values
-    is dropped for the full search."""
+    """Fisher scoring from another start (``warm_start``, as ``gpocc update`` refines a
+    model's values) ends within its tolerance (0.01 nats) of where annealing then
+    L-BFGS-B from the initial values ends on the same patches, in fewer evaluations; a
+    start that fits worse than the initial values is dropped for the full search."""
     samples = _se_draw(7, (0.7, 0.7))
     config = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=30, lbfgs_maxiter=200,
                             min_noise_variance=0.01)
@@ -213,10 +213,10 @@ def test_a_warm_start_reaches_the_optimum_of_the_full_search():
     refined = learn_hyperparameters(start, 0.5, samples, 1, config, seed=0, workers=1,
                                     warm_start=warm)
     assert refined.warm_started
-    np.testing.assert_allclose(refined.kernel.theta, full.kernel.theta, atol=2e-3)
-    assert refined.noise_variance == pytest.approx(full.noise_variance, rel=2e-3)
+    np.testing.assert_allclose(refined.kernel.theta, full.kernel.theta, atol=2e-2)
+    assert refined.noise_variance == pytest.approx(full.noise_variance, rel=2e-2)
     assert refined.log_marginal_likelihood == pytest.approx(full.log_marginal_likelihood,
-                                                            abs=1e-4)
+                                                            abs=0.01)
     assert refined.evaluations < full.evaluations
     poor = dataclasses.replace(full, kernel=SquaredExponentialKernel(1e4, (0.7, 0.7)))
     dropped = learn_hyperparameters(start, 0.5, samples, 1, config, seed=0, workers=1,

@@ -163,9 +163,10 @@ def test_label_weights_of_an_update_count_every_log(logs, tmp_path):
 
 
 def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_path):
-    """The default update starts L-BFGS-B from the model's values on the patches training
-    on all logs draws (same samples, same seed): run to convergence it reaches the point
-    training reaches by annealing from the initial values, not the model's own."""
+    """The default update takes Fisher-scoring steps from the model's values on the
+    patches training on all logs draws (same samples, same seed): it stops within a
+    hundredth of a nat of the point training reaches by annealing from the initial values
+    and L-BFGS-B run to convergence, not at the model's own."""
     (tmp_path / "job.yaml").write_text(CONFIG.replace("lbfgs_maxiter: 4", "lbfgs_maxiter: 200"))
     job = str(tmp_path / "job.yaml")
     gpocc("train", str(logs["a"]), "--config", job, "--out", str(tmp_path / "a.npz"))
@@ -183,8 +184,8 @@ def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_p
     assert up.training["refine_iterations"] == 200
     assert kept.training["hyperparameters"] == "kept" and kept.kernel == a.kernel
     assert "refine_iterations" not in kept.training
-    # One iteration: a step from the model's values, short of the optimum (its
-    # evaluations: the initial values, the model's, and the line search's).
+    # One step from the model's values, short of the optimum (its evaluations: the
+    # initial values, the model's, and the step's).
     assert short.training["refine_iterations"] == 1
     assert short.training["evaluations"] < up.training["evaluations"]
     assert short.training["log_marginal_likelihood"] < up.training["log_marginal_likelihood"]
@@ -193,13 +194,15 @@ def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_p
         return np.append(m.kernel.theta, [math.log(m.noise_variance),
                                           math.log(m.input_noise_scale)])
 
-    # The model of A alone is elsewhere; the refined update is at training's optimum.
-    assert np.abs(values(a) - values(both)).max() > 0.05
-    np.testing.assert_allclose(values(up), values(both), atol=5e-3)
+    # The model of A alone is elsewhere; the refined update is at training's optimum (in
+    # value: along a flat direction a hundredth of a nat leaves the parameters some room).
+    away = np.abs(values(a) - values(both)).max()
+    assert away > 0.05
+    assert np.abs(values(up) - values(both)).max() < 0.2 * away
     assert up.training["log_marginal_likelihood"] == pytest.approx(
-        both.training["log_marginal_likelihood"], abs=1e-4)
+        both.training["log_marginal_likelihood"], abs=0.02)
     assert up.training["evaluations"] < both.training["evaluations"]
-    assert 0 < np.abs(values(short) - values(a)).max()
+    assert short.training["evaluations"] == 3
     assert np.abs(values(short) - values(both)).max() > 1e-3
 
 

@@ -31,6 +31,7 @@ import numpy as np
 if TYPE_CHECKING:
     from gpocc.gp.expected import _Expansion
     from gpocc.gp.kernels import Kernel
+    from gpocc.gp.local import PatchLikelihood
     from gpocc.samples.sampleset import SampleSet
 
 #: backend name -> its module (``auto`` is not a module: the first of ``compiled``,
@@ -122,11 +123,12 @@ class KernelLoops(Protocol):
 
     def patch_likelihoods(self, kernel: Kernel, noise: float, patches: Sequence[SampleSet],
                           level: int, *, with_gradient: bool, input_scale: float,
-                          scale_gradient: bool, backend: Backend
-                          ) -> Iterable[tuple[float, np.ndarray | None] | None]:
+                          scale_gradient: bool, backend: Backend, with_fisher: bool = False
+                          ) -> Iterable[PatchLikelihood | None]:
         """Each training patch's -LML and its gradient in ``[kernel.theta..., log noise
-        (, log g)]`` (:func:`gpocc.gp.local.negative_log_likelihood`), or None where K is
-        not a covariance; in patch order, and a consumer may stop at the first None."""
+        (, log g)]`` (:func:`gpocc.gp.local.negative_log_likelihood`; with
+        ``with_fisher`` also its Fisher information), or None where K is not a
+        covariance; in patch order, and a consumer may stop at the first None."""
         ...
 
 

@@ -11,7 +11,7 @@ off-diagonal entries, cross-covariances and node sets are the wrapped backend's.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -19,6 +19,9 @@ from gpocc.gp.backends import Backend, Choice, KernelLoops
 from gpocc.gp.expected import two_draw_diag
 from gpocc.gp.kernels import Kernel
 from gpocc.samples.sampleset import SampleSet
+
+if TYPE_CHECKING:
+    from gpocc.gp.local import PatchLikelihood
 
 System = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -63,12 +66,13 @@ class DiagonalLoops:
 
     def patch_likelihoods(self, kernel: Kernel, noise: float, patches: Sequence[SampleSet],
                           level: int, *, with_gradient: bool, input_scale: float,
-                          scale_gradient: bool, backend: Backend
-                          ) -> Iterable[tuple[float, np.ndarray | None] | None]:
+                          scale_gradient: bool, backend: Backend, with_fisher: bool = False
+                          ) -> Iterable[PatchLikelihood | None]:
         # The base's likelihoods build K through expected_kernel_matrix with this backend.
         return self._base.patch_likelihoods(
             kernel, noise, patches, level, with_gradient=with_gradient,
-            input_scale=input_scale, scale_gradient=scale_gradient, backend=self._backend)
+            input_scale=input_scale, scale_gradient=scale_gradient, backend=self._backend,
+            with_fisher=with_fisher)
 
 
 class DiagonalBackend:

@@ -25,7 +25,7 @@ from gpocc.gp.expected import (
     gauss_hermite,
 )
 from gpocc.gp.kernels import Kernel
-from gpocc.gp.local import negative_log_likelihood
+from gpocc.gp.local import PatchLikelihood, negative_log_likelihood
 from gpocc.samples.sampleset import SampleSet
 
 if TYPE_CHECKING:
@@ -122,12 +122,13 @@ class Quadrature:
 
     def patch_likelihoods(self, kernel: Kernel, noise: float, patches: Sequence[SampleSet],
                           level: int, *, with_gradient: bool, input_scale: float,
-                          scale_gradient: bool, backend: Backend
-                          ) -> Iterator[tuple[float, np.ndarray | None] | None]:
+                          scale_gradient: bool, backend: Backend, with_fisher: bool = False
+                          ) -> Iterator[PatchLikelihood | None]:
         # Lazily: the learner stops at the first patch whose K is not a covariance.
         return (negative_log_likelihood(kernel, noise, s, level, with_gradient=with_gradient,
                                         input_scale=input_scale,
-                                        scale_gradient=scale_gradient, backend=backend)
+                                        scale_gradient=scale_gradient, backend=backend,
+                                        with_fisher=with_fisher)
                 for s in patches)
 
 

@@ -1,0 +1,137 @@
+"""Refining hyperparameters from a good start: Fisher scoring in a box.
+
+``gpocc update`` starts from a model's learned values, usually tens of nats from the
+optimum of the union's patches. L-BFGS-B must first learn the likelihood's curvature
+from its own steps (its first, a unit step along the gradient, often leaves the valid
+covariances); the patches give that curvature directly. The Fisher information of a
+Gaussian likelihood, ``F_pq = 1/2 tr(K^-1 dK_p K^-1 dK_q)``, costs a product per
+parameter beside the gradient's, and a scoring step ``-F^-1 g`` damped as
+Levenberg-Marquardt's reaches the optimum in a handful of evaluations (Intel and
+Freiburg cuts: 7-14, against 20-29 for L-BFGS-B to converge from the same start).
+
+Bounds: a parameter on its bound whose gradient pushes outwards is held there for the
+step (an active set), and a step is clipped into the box.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+#: A step is taken while it is predicted to lower the -LML by more than this (nats), and
+#: the refinement stops after a step that lowered it by less. The patches' optimum moves
+#: by far more from one draw of patches to the next.
+TOLERANCE = 0.01
+
+#: Initial damping, relative to the Fisher information's diagonal.
+_DAMPING = 1e-2
+
+#: Damping's range: below it the solve is plain scoring; above it a step is negligible.
+_MIN_DAMPING, _MAX_DAMPING = 1e-8, 1e8
+
+#: Rejected steps in a row after which the start is taken as the optimum.
+_REJECTIONS = 6
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Where a refinement ended.
+
+    Attributes:
+        x: (P,) the parameters (same units as the start).
+        value: the objective there.
+        evaluations: objective evaluations spent, the start's included.
+        converged: stopped by :data:`TOLERANCE` (not by the evaluation budget).
+    """
+
+    x: np.ndarray
+    value: float
+    evaluations: int
+    converged: bool
+
+
+Evaluation = tuple[float, np.ndarray, np.ndarray]
+
+
+def fisher_scoring(
+    evaluate: Callable[[np.ndarray], Evaluation | None], x0: np.ndarray,
+    lower: np.ndarray, upper: np.ndarray, max_evaluations: int,
+    start: Evaluation | None = None, tolerance: float = TOLERANCE,
+) -> Refinement:
+    """Minimise an objective from ``x0`` within ``[lower, upper]`` (each (P,)).
+
+    Args:
+        evaluate: ``x -> (value, gradient (P,), fisher (P, P))``, or None where the
+            objective is not defined (an invalid covariance): the step is rejected.
+        x0: (P,) the start, inside the box.
+        max_evaluations: the budget, the start's evaluation included.
+        start: ``evaluate(x0)`` when the caller has it already.
+        tolerance: see :data:`TOLERANCE`.
+    """
+    x = np.clip(np.asarray(x0, dtype=float), lower, upper)
+    evaluations = 0
+    if start is None:
+        start = evaluate(x)
+        evaluations += 1
+    if start is None:
+        raise ValueError("the refinement's start is not a valid covariance")
+    value, grad, fisher = start
+    damping = _DAMPING
+    rejections = 0
+    while evaluations < max_evaluations:
+        # Converged when the model's own step (undamped) promises under the tolerance.
+        if 0.0 <= _predicted(grad, fisher, _scoring_step(x, grad, fisher, 0.0, lower,
+                                                         upper)) < tolerance:
+            return Refinement(x, value, evaluations, True)
+        step = _scoring_step(x, grad, fisher, damping, lower, upper)
+        if _predicted(grad, fisher, step) <= 0.0:
+            # Clipped into the box, a step along correlated parameters may climb; more
+            # damping turns it towards the (scaled) gradient, which clipping keeps
+            # downhill.
+            damping *= 10.0
+            if damping > _MAX_DAMPING:
+                return Refinement(x, value, evaluations, True)
+            continue
+        trial = evaluate(x + step)
+        evaluations += 1
+        if trial is None or not trial[0] < value:
+            rejections += 1
+            if rejections >= _REJECTIONS:
+                return Refinement(x, value, evaluations, True)
+            damping *= 10.0
+            continue
+        rejections = 0
+        decrease = value - trial[0]
+        if decrease > 0.5 * _predicted(grad, fisher, step):
+            damping = max(damping / 3.0, _MIN_DAMPING)
+        x = x + step
+        value, grad, fisher = trial
+        if decrease < tolerance:
+            return Refinement(x, value, evaluations, True)
+    return Refinement(x, value, evaluations, False)
+
+
+def _predicted(grad: np.ndarray, fisher: np.ndarray, step: np.ndarray) -> float:
+    """The decrease the quadratic model (gradient, Fisher information) predicts."""
+    return float(-(grad @ step + 0.5 * step @ fisher @ step))
+
+
+def _scoring_step(x: np.ndarray, grad: np.ndarray, fisher: np.ndarray, damping: float,
+                  lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The damped scoring step from ``x`` over the parameters not held on a bound,
+    clipped into the box."""
+    held = ((x <= lower) & (grad > 0)) | ((x >= upper) & (grad < 0))
+    free = ~held
+    step = np.zeros_like(x)
+    if not free.any():
+        return step
+    block = fisher[np.ix_(free, free)]
+    scale = np.maximum(np.diag(block), 1e-12 * max(1.0, float(np.abs(block).max())))
+    try:
+        step[free] = np.linalg.solve(block + max(damping, _MIN_DAMPING) * np.diag(scale),
+                                     -grad[free])
+    except np.linalg.LinAlgError:
+        step[free] = -grad[free] / ((1.0 + damping) * scale)
+    return np.clip(x + step, lower, upper) - x
