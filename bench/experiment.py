@@ -196,6 +196,11 @@ VARIANTS: dict[str, dict[str, object]] = {
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
     "calibration-along-beam": {"model.training.calibration_near_wall": 0},
+    # Learning's local search: Fisher scoring (as `gpocc update` refines), and from the
+    # annealing's three best distinct points.
+    "scoring": {"model.training.local_search": "scoring"},
+    "scoring-3-starts": {"model.training.local_search": "scoring",
+                         "model.training.local_starts": 3},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.

@@ -10,8 +10,8 @@ the machine, and says which benchmarks ran and whether the run was quick. The re
 are read from ``../shared/data/carmen`` (or ``GPOCC_CARMEN_DIR``); benchmarks whose data is
 missing are listed as skipped. The benchmarks live in ``bench/pipeline.py`` (whole
 commands), ``bench/stages.py``, ``bench/kernels.py``, ``bench/knobs.py``,
-``bench/cloud_projection.py``, ``bench/update_cost.py``, ``bench/model_file.py`` and
-``bench/fingerprints.py``; a new one is a function registered with
+``bench/local_search.py``, ``bench/cloud_projection.py``, ``bench/update_cost.py``,
+``bench/model_file.py`` and ``bench/fingerprints.py``; a new one is a function registered with
 ``bench.registry.benchmark``.
 """
 
@@ -32,6 +32,7 @@ from . import (  # noqa: F401 (they register)
     fingerprints,
     kernels,
     knobs,
+    local_search,
     model_file,
     pipeline,
     stages,
@@ -45,7 +46,7 @@ PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
 ORDER = ("intel", "intel-repeats", "campus", "city", "city-1km", "growth", "scaling-data",
          "scaling-size", "samples", "sample-memory", "anchor-cost", "expected-kernels",
-         "quadrature", "blas-threads", "anneal-budget", "knobs", "cloud-projection",
+         "quadrature", "blas-threads", "anneal-budget", "local-search", "knobs", "cloud-projection",
          "update-cost", "model-file", "fingerprints")
 
 

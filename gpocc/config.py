@@ -275,6 +275,14 @@ class TrainingConfig:
     kernel's ``weight_variance``, the SE kernel's ``lengthscale``; their initial values must
     then be equal): a map frame's axes mean nothing in the world, while a pair learned from
     a few patches takes its ratio from the walls those patches happen to hold.
+    ``local_search``: the stage after the annealing, ``lbfgs`` (L-BFGS-B, default) or
+    ``scoring`` (Fisher scoring, gpocc.gp.refine, as ``gpocc update`` refines: the same
+    optimum in fewer evaluations; L-BFGS-B where the loops give no derivative in g).
+    ``local_starts``: local searches from that many distinct points the annealing visited
+    (its best first, then the next best at least a factor e apart in some parameter),
+    keeping the best: the patches' likelihood has several optima, and the annealing's
+    best point does not always lie in the best one's basin (docs/benchmarks.md,
+    "Learning's local search").
     """
 
     learn: bool = True
@@ -284,6 +292,8 @@ class TrainingConfig:
     patch_centres: str = "hits"
     anneal_maxfun: int = 20
     lbfgs_maxiter: int = 40
+    local_search: str = "lbfgs"
+    local_starts: int = 1
     fixed: tuple[str, ...] = ()
     isotropic: bool = False
     log_bounds_width: float = 4.0
@@ -525,7 +535,8 @@ _NON_NEGATIVE_KEYS = {
 _POSITIVE_KEYS = {
     "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",
     "alpha", "neighbours", "quadrature_level", "beam_stride", "scan_stride", "patches",
-    "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "lengthscale_m",
+    "patch_size", "tile_pixels", "anneal_maxfun", "lbfgs_maxiter", "local_starts",
+    "lengthscale_m",
     "max_variance_ratio", "max_pgm_pixels", "covariance_sentinel",
     "min_input_noise_scale", "max_input_noise_scale", "calibration_blocks",
     "horizontal_resolution_deg",
@@ -755,7 +766,8 @@ def _validate(config: Config, source: str) -> Config:
                          ("patch_centres", ("hits", "samples")),
                          ("classifier_variance", ("label", "label-map", "latent")),
                          ("classifier_temperature", ("none", "samples", "beams")),
-                         ("classifier_offset", ("holdout", "beams"))):
+                         ("classifier_offset", ("holdout", "beams")),
+                         ("local_search", ("lbfgs", "scoring"))):
         _one_of(getattr(t, key), choices, f"model.training.{key}", source)
     if t.classifier_variance == "label-map" and t.classifier_temperature == "samples":
         raise GpoccError(

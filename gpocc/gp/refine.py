@@ -15,6 +15,7 @@ step (an active set), and a step is clipped into the box.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -67,7 +68,8 @@ def fisher_scoring(
             objective is not defined (an invalid covariance): the step is rejected.
         x0: (P,) the start, inside the box.
         max_evaluations: the budget, the start's evaluation included.
-        start: ``evaluate(x0)`` when the caller has it already.
+        start: ``evaluate(x0)`` when the caller has it already. Where it is None (``x0``
+            is not a valid covariance), the result is ``x0`` with an infinite value.
         tolerance: see :data:`TOLERANCE`.
     """
     x = np.clip(np.asarray(x0, dtype=float), lower, upper)
@@ -75,8 +77,8 @@ def fisher_scoring(
     if start is None:
         start = evaluate(x)
         evaluations += 1
-    if start is None:
-        raise ValueError("the refinement's start is not a valid covariance")
+    if start is None:  # not a valid covariance: nowhere to go from
+        return Refinement(x, math.inf, evaluations, False)
     value, grad, fisher = start
     damping = _DAMPING
     rejections = 0

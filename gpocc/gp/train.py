@@ -5,8 +5,10 @@ neighbourhoods ("patches") of the exact GP log marginal likelihood, each patch c
 at the origin like an inference problem. The expected-kernel matrices and their analytic
 gradients come from Gauss-Hermite quadrature whose nodes do not depend on the
 hyperparameters. Optimisation: ``scipy.optimize.dual_annealing`` (global, bounded,
-seeded) and then L-BFGS-B from its best point. With ``learn_input_noise_scale`` a
-scale g on every input covariance (:mod:`gpocc.gp.inputscale`) is learned with them.
+seeded) and then L-BFGS-B (or Fisher scoring, ``local_search: scoring``) from its best
+point, and from its next best distinct points with ``local_starts`` above 1. With
+``learn_input_noise_scale`` a scale g on every input covariance
+(:mod:`gpocc.gp.inputscale`) is learned with them.
 Given a ``warm_start`` (the values of a model of part of the samples, ``gpocc update``), the
 annealing is skipped and Fisher scoring (:mod:`gpocc.gp.refine`; L-BFGS-B where the loops
 give no dK/dlog g) starts there: the optimum of a set of patches does not depend on
@@ -433,10 +435,10 @@ def learn_hyperparameters(
                 on_evaluation(1)
             return result
 
-        # The scoring refinement needs dK/dlog g from the loops (whole covariances).
-        scoring = warm_start is not None and (not learn_scale or (
-            config.input_noise_scale_part == "all"
-            and supports_scale_gradient(kernel, backend)))
+        # Scoring needs dK/dlog g from the loops (whole covariances).
+        scoring = (warm_start is not None or config.local_search == "scoring") and (
+            not learn_scale or (config.input_noise_scale_part == "all"
+                                and supports_scale_gradient(kernel, backend)))
         return _optimise(kernel, noise_variance, patches, level, config, seed,
                          negative_log_likelihood_counted, learn_scale, warm_start,
                          refine_iterations, fisher_counted if scoring else None)
@@ -475,9 +477,11 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
               refine_iterations: int | None = None,
               fisher: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray] | None]
               | None = None) -> TrainingResult:
-    """Global annealing on values, then L-BFGS-B on values and gradients; from a valid
-    ``warm_start``, Fisher scoring (:mod:`gpocc.gp.refine`) given ``fisher`` (params ->
-    value, gradient, Fisher information), else L-BFGS-B alone."""
+    """Global annealing on values, then ``config.local_starts`` local searches on values
+    and gradients from its best distinct points: L-BFGS-B, or Fisher scoring
+    (:mod:`gpocc.gp.refine`) with ``config.local_search: scoring`` given ``fisher``
+    (params -> value, gradient, Fisher information). From a valid ``warm_start``, one
+    local search alone: Fisher scoring given ``fisher``, else L-BFGS-B."""
     # Imported here: a map loads models through this module but never learns.
     from scipy.optimize import dual_annealing, minimize
 
@@ -523,8 +527,15 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
             full[y] = full[x]
         return full
 
+    # The annealing's valid points, for further local starts.
+    visited: list[tuple[float, np.ndarray]] = []
+
     def value_only_free(p: np.ndarray) -> float:
-        return value_only(lift(p))
+        point = lift(p)
+        value = value_only(point)
+        if value < _REJECTED:
+            visited.append((value, point))
+        return value
 
     def objective_free(p: np.ndarray, *args: object) -> tuple[float, np.ndarray]:
         value, grad = negative_log_likelihood_counted(lift(p), *args)
@@ -562,20 +573,23 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
             best, best_value = lift(annealed.x), float(annealed.fun)
     iterations = (refine_iterations if from_start and refine_iterations is not None
                   else config.lbfgs_maxiter)
-    if from_start and fisher is not None:
-        final, final_value, spent = _score_from(best, first, fisher, free, tied, lift,
-                                                free_bounds, iterations)
-        evaluations += spent
-    else:
-        refined = minimize(
-            objective_free, best[free], args=(kernel, patches, level), jac=True,
-            method="L-BFGS-B", bounds=free_bounds, options={"maxiter": iterations},
-        )
-        evaluations += int(refined.nfev)
-        if refined.fun <= best_value:
-            final, final_value = lift(refined.x), float(refined.fun)
+    scoring = fisher is not None and (from_start or config.local_search == "scoring")
+    starts = [best] if from_start else distinct_starts(best, visited, config.local_starts)
+    final, final_value = best, best_value
+    for point in starts:
+        if scoring:
+            found, found_value, spent = _score_from(
+                point, first if from_start else None, fisher, free, tied, lift,
+                free_bounds, iterations)
         else:
-            final, final_value = best, best_value
+            refined = minimize(
+                objective_free, point[free], args=(kernel, patches, level), jac=True,
+                method="L-BFGS-B", bounds=free_bounds, options={"maxiter": iterations},
+            )
+            found, found_value, spent = lift(refined.x), float(refined.fun), int(refined.nfev)
+        evaluations += spent
+        if found_value <= final_value:
+            final, final_value = found, found_value
     return TrainingResult(
         kernel=kernel.with_theta(final[:noise_at]),
         noise_variance=float(math.exp(final[noise_at])),
@@ -588,16 +602,36 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     )
 
 
+#: Local starts after the annealing's best differ from each earlier start by at least
+#: this much (natural log) in some parameter: a factor e.
+START_SEPARATION = 1.0
+
+
+def distinct_starts(best: np.ndarray, visited: list[tuple[float, np.ndarray]],
+                    count: int) -> list[np.ndarray]:
+    """Up to ``count`` local starts: ``best``, then the lowest-valued ``visited`` points
+    (value, (P,) parameters) at least :data:`START_SEPARATION` from every start so far
+    in some parameter."""
+    starts = [best]
+    for _, point in sorted(visited, key=lambda v: v[0]):
+        if len(starts) >= count:
+            break
+        if all(np.abs(point - s).max() >= START_SEPARATION for s in starts):
+            starts.append(point)
+    return starts
+
+
 def _score_from(
-    start: np.ndarray, first: tuple[float, np.ndarray, np.ndarray],
+    start: np.ndarray, first: tuple[float, np.ndarray, np.ndarray] | None,
     fisher: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray] | None],
     free: np.ndarray, tied: tuple[tuple[int, int], ...],
     lift: Callable[[np.ndarray], np.ndarray], free_bounds: list[tuple[float, float]],
     max_evaluations: int,
 ) -> tuple[np.ndarray, float, int]:
-    """Fisher scoring from ``start`` (all parameters; ``first`` = ``fisher(start)``) over
-    the ``free`` parameters, each tied pair's second following its first: the refined
-    parameters, their value and the evaluations spent after ``first``."""
+    """Fisher scoring from ``start`` (all parameters; ``first`` = ``fisher(start)`` or
+    None: evaluated here) over the ``free`` parameters, each tied pair's second following
+    its first: the refined parameters, their value and the evaluations spent after
+    ``first``."""
     from gpocc.gp.refine import fisher_scoring
 
     # d(all parameters)/d(free ones): a tied second moves with its first.
@@ -618,6 +652,6 @@ def _score_from(
 
     lower = np.array([lo for lo, _ in free_bounds])
     upper = np.array([hi for _, hi in free_bounds])
-    refined = fisher_scoring(evaluate, start[free], lower, upper,
-                             max(1, max_evaluations), start=reduced(first))
+    refined = fisher_scoring(evaluate, start[free], lower, upper, max(1, max_evaluations),
+                             start=None if first is None else reduced(first))
     return lift(refined.x), refined.value, refined.evaluations

@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from samplesets import samples_from
 
 from gpocc.config import TrainingConfig
 from gpocc.constants import JITTER
@@ -17,7 +18,9 @@ from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
 from gpocc.gp.local import negative_log_likelihood as patch_likelihood
 from gpocc.gp.refine import fisher_scoring
 from gpocc.gp.train import (
+    START_SEPARATION,
     TrainingResult,
+    distinct_starts,
     learn_hyperparameters,
     likelihood_with_fisher,
     make_patches,
@@ -144,3 +147,62 @@ def test_a_warm_start_at_the_optimum_stays_there():
     assert again.evaluations <= 3
     assert again.log_marginal_likelihood == pytest.approx(learned.log_marginal_likelihood,
                                                           abs=0.01)
+
+
+def _se_patches_problem():
+    """300 samples labelled by a draw of an SE GP, exact inputs: learning's oracle."""
+    rng = np.random.default_rng(9)
+    means = rng.uniform(0, 8, (300, 2))
+    truth = SquaredExponentialKernel(1.5, (0.7, 0.7))
+    labels = np.linalg.cholesky(truth(means, means) + 0.05 * np.eye(300)) @ (
+        rng.standard_normal(300))
+    return samples_from(means, labels)
+
+
+def test_scoring_as_learning_local_search_reaches_the_optimum_of_lbfgs():
+    # L-BFGS-B run to convergence from the annealing's best point is the oracle.
+    samples = _se_patches_problem()
+    start = SquaredExponentialKernel(0.5, (2.0, 2.0))
+    base = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=30, lbfgs_maxiter=200,
+                          min_noise_variance=0.01)
+    lbfgs = learn_hyperparameters(start, 0.5, samples, 1, base, seed=0, workers=1)
+    scoring = learn_hyperparameters(start, 0.5, samples, 1,
+                                    dataclasses.replace(base, local_search="scoring"),
+                                    seed=0, workers=1)
+    assert scoring.log_marginal_likelihood == pytest.approx(lbfgs.log_marginal_likelihood,
+                                                            abs=0.01)
+    np.testing.assert_allclose(scoring.kernel.theta, lbfgs.kernel.theta, atol=0.02)
+    assert scoring.evaluations < lbfgs.evaluations
+
+
+@pytest.mark.parametrize("search", ["lbfgs", "scoring"])
+def test_more_local_starts_never_end_worse(search):
+    samples = _se_patches_problem()
+    start = SquaredExponentialKernel(0.5, (2.0, 2.0))
+    base = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=30, lbfgs_maxiter=200,
+                          min_noise_variance=0.01, local_search=search)
+    one = learn_hyperparameters(start, 0.5, samples, 1, base, seed=0, workers=1)
+    three = learn_hyperparameters(start, 0.5, samples, 1,
+                                  dataclasses.replace(base, local_starts=3), seed=0,
+                                  workers=1)
+    assert three.log_marginal_likelihood >= one.log_marginal_likelihood - 1e-9
+    assert three.evaluations > one.evaluations
+
+
+def test_local_starts_are_the_best_points_apart_from_each_other():
+    # Brute force over every subset in order: the first `count` points (by value) that are
+    # each at least the separation from all kept before them.
+    rng = np.random.default_rng(10)
+    visited = [(float(v), rng.uniform(-2, 2, 3)) for v in rng.uniform(0, 10, 40)]
+    best = np.zeros(3)
+    starts = distinct_starts(best, visited, 4)
+    assert starts[0] is best and len(starts) == 4
+    kept = [best]
+    for _, point in sorted(visited, key=lambda v: v[0]):
+        if len(kept) == 4:
+            break
+        if min(np.abs(point - k).max() for k in kept) >= START_SEPARATION:
+            kept.append(point)
+    for got, want in zip(starts, kept, strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert distinct_starts(best, visited, 1) == [best]
