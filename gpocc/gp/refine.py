@@ -43,8 +43,10 @@ class Refinement:
     Attributes:
         x: (P,) the parameters (same units as the start).
         value: the objective there.
-        evaluations: objective evaluations spent, the start's included.
-        converged: stopped by :data:`TOLERANCE` (not by the evaluation budget).
+        evaluations: objective evaluations spent here (the start's when it was not
+            given).
+        converged: stopped before the budget ran out: no step promised or gained the
+            tolerance, or none was accepted.
     """
 
     x: np.ndarray
@@ -67,7 +69,8 @@ def fisher_scoring(
         evaluate: ``x -> (value, gradient (P,), fisher (P, P))``, or None where the
             objective is not defined (an invalid covariance): the step is rejected.
         x0: (P,) the start, inside the box.
-        max_evaluations: the budget, the start's evaluation included.
+        max_evaluations: the budget (the start's evaluation included when it is not
+            given).
         start: ``evaluate(x0)`` when the caller has it already. Where it is None (``x0``
             is not a valid covariance), the result is ``x0`` with an infinite value.
         tolerance: see :data:`TOLERANCE`.
