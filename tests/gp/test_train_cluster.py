@@ -74,6 +74,29 @@ def test_train_on_a_local_cluster_gives_the_local_model(local_model, tmp_path):
     _assert_same_model(local_model, out)
 
 
+def test_scoring_from_several_starts_on_a_local_cluster_gives_the_local_model(tmp_path):
+    # Fisher scoring's Fisher information travels back from the workers with the gradient.
+    import yaml
+    from distributed import LocalCluster
+
+    config = yaml.safe_load(SAMPLE_CONFIG.read_text())
+    config.setdefault("model", {}).setdefault("training", {}).update(
+        {"local_search": "scoring", "local_starts": 2})
+    job = tmp_path / "job.yaml"
+    job.write_text(yaml.safe_dump(config))
+
+    def train(out: Path, *extra: str) -> None:
+        result = runner.invoke(app, ["train", "--quiet", str(SAMPLE), "--config", str(job),
+                                     "--out", str(out), *extra])
+        assert result.exit_code == 0, result.output
+
+    train(tmp_path / "local.npz")
+    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1",
+                      dashboard_address=None, processes=True) as cluster:
+        train(tmp_path / "cluster.npz", "--scheduler", cluster.scheduler_address)
+    _assert_same_model(tmp_path / "local.npz", tmp_path / "cluster.npz")
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
