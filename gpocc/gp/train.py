@@ -11,9 +11,11 @@ point, and from its next best distinct points with ``local_starts`` above 1. Wit
 (:mod:`gpocc.gp.inputscale`) is learned with them.
 Given a ``warm_start`` (the values of a model of part of the samples, ``gpocc update``), the
 annealing is skipped and Fisher scoring (:mod:`gpocc.gp.refine`; L-BFGS-B where the loops
-give no dK/dlog g) starts there: the optimum of a set of patches does not depend on
-where the search starts (Freiburg: four annealing seeds and budgets 20 and 60 reach one
-optimum), so the refinement lands where learning from the initial values does.
+give no dK/dlog g) starts there: the optimum of a set of patches mostly does not depend
+on where the search starts (Freiburg: four annealing seeds and budgets 20 and 60 reach
+one optimum), so the refinement usually lands where learning from the initial values
+does; where the annealing's best point lies in another basin, it does not
+(docs/benchmarks.md, ``update-cost`` and ``local-search``).
 """
 
 from __future__ import annotations

@@ -4,15 +4,17 @@ state (:mod:`gpocc.gp.growth`) without reading its old logs again.
 The samples are those training on all logs at once would build. The hyperparameters
 (``hyperparameters``) are by default ``refined``: Fisher scoring on the union's patches
 (:mod:`gpocc.gp.refine`) starts from the model's values instead of annealing from the
-config's initial ones. Learning's optimum is set by its patches, not by its start, so
-this heads where training on all logs lands (the patches, drawn from the same samples
-with the same seed, are the same) in a handful of evaluations, stopping once a step
+config's initial ones. Learning's optimum is mostly set by its patches, not by its
+start, so this heads where training on all logs lands (the patches, drawn from the same
+samples with the same seed, are the same) in a handful of evaluations, stopping once a step
 gains under 0.01 nats or after ``refine_iterations`` steps (:data:`REFINE_ITERATIONS`).
 ``kept`` keeps the model's values (cheapest; they were learned on other patches, and ten
 patches' optimum moves with the draw: Freiburg held-out AUC up to 0.008 apart);
 ``relearned`` learns them on the union as training does, which gives that model exactly.
-The classifier is always fitted anew on
-the union.
+The patches' likelihood can have several optima: where training's annealing ends in
+another basin than the model's values, the refinement finds another optimum than
+training (docs/benchmarks.md, ``update-cost``, gives both log marginal likelihoods).
+The classifier is always fitted anew on the union.
 """
 
 from __future__ import annotations
