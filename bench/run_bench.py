@@ -47,7 +47,7 @@ PAGE = ROOT / "docs" / "benchmarks.md"
 ORDER = ("intel", "intel-repeats", "campus", "city", "city-1km", "growth", "scaling-data",
          "scaling-size", "samples", "sample-memory", "anchor-cost", "expected-kernels",
          "quadrature", "blas-threads", "anneal-budget", "local-search", "knobs", "cloud-projection",
-         "update-cost", "model-file", "fingerprints")
+         "update-cost", "update-site", "model-file", "fingerprints")
 
 
 def ordered() -> list[str]:

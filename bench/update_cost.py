@@ -181,3 +181,79 @@ def update_cost(ctx: Context) -> Result:
                "on them (nats) shows whether they found the same optimum (where the "
                "update's is higher, training's annealing ended in a worse one).")
     return result
+
+
+#: The site of ``update-site``: its side in buildings (the last building is the one added).
+SITE_SIDE = 5
+
+
+def _building_scores(model: Path, out: Path, building, source) -> tuple[float, float]:
+    """AUC and Brier of ``model``'s map at 0.1 m over ``building``'s extent (its source's
+    held-out points moved into place, plus 5 m) on those points."""
+    from gpocc.evaluation.report import probability_raster, read_probability
+    from gpocc.evaluation.roc import evaluate_scores
+    from gpocc.io.rasters import sample_raster
+
+    points = building.apply(source.points)
+    low, high = points.min(axis=0) - 5.0, points.max(axis=0) + 5.0
+    run("map", str(model), "--resolution", "0.1", "--workers", "2", "--bounds",
+        *(f"{v:.2f}" for v in (*low, *high)), "--out", str(out), "--force")
+    probability, spec, nodata = read_probability(probability_raster(out)[1])
+    scores, inside = sample_raster(probability, spec, nodata, points)
+    roc = evaluate_scores("", source.labels, scores, inside)
+    return roc.auc, roc.calibration.brier
+
+
+@benchmark("update-site", "Adding a building to a site's model")
+def update_site(ctx: Context) -> Result:
+    """A site of 5 x 5 buildings laid out as the city's (`bench/city.py`: copies of the
+    logs' training scans, 62.5 m apart, no config): `gpocc train` on all but the last
+    once, then, interleaved `--repeats` times (once in a quick run), `gpocc update` of
+    that model with the last building's log against `gpocc train` on all of them. Median
+    wall seconds and their ratio, each command's stages and the log marginal likelihood
+    it reached on the same patches, and AUC and Brier of each model's map at 0.1 m over
+    the added building, on its source's held-out points moved into place."""
+    from gpocc.gp.model import load_model
+
+    from .campus import grid_layout, write_site
+    from .city import EVERY, KEEP, split_source, training_scans
+
+    require(INTEL, FREIBURG)
+    layout = grid_layout(SITE_SIDE, 62.5)
+    work = ctx.work / "update-site"
+    logs, scans = write_site(work / "logs", layout,
+                             {b.source.name: training_scans(b.source) for b in layout})
+    old, added = logs[:-1], logs[-1]
+    run("train", *map(str, old), "--out", str(work / "old.npz"))
+    repeats = 1 if ctx.quick else ctx.repeats
+    times: dict[str, list[tuple[float, float, str]]] = {"update": [], "train": []}
+    for i in range(repeats):
+        for what in (("update", "train") if i % 2 == 0 else ("train", "update")):
+            if what == "update":
+                times[what].append(run("update", str(work / "old.npz"), str(added),
+                                       "--out", str(work / "update.npz"), "--force"))
+            else:
+                times[what].append(run("train", *map(str, logs), "--out",
+                                       str(work / "train.npz"), "--force"))
+    source = split_source(ctx, layout[-1].source, 0.1)
+    rows = []
+    medians = {k: statistics.median(w for w, _, _ in v) for k, v in times.items()}
+    for what, command in (("update", "update (+1 building)"), ("train", "train (all)")):
+        model = work / f"{what}.npz"
+        auc, brier = _building_scores(model, work / f"map-{what}", layout[-1], source)
+        training = load_model(model).training
+        rows.append([command, f"{len(logs) - 1} + 1" if what == "update" else str(len(logs)),
+                     f"{medians[what]:.2f}", stage_times(times[what][-1][2]),
+                     str(training["evaluations"]),
+                     f"{training['log_marginal_likelihood']:.1f}", f"{auc:.4f}",
+                     f"{brier:.4f}"])
+    result = Result()
+    result.add(Table(("command", "buildings", "median wall s",
+                      "stages (last repeat)", "likelihood evaluations",
+                      "log marginal likelihood", "added building AUC",
+                      "added building Brier"), rows),
+               f"{len(logs)} buildings, {scans} scans (the training scans of `gpocc split "
+               f"--every {EVERY}` of each source log, Freiburg's thinned to every "
+               f"{KEEP[FREIBURG.name]}th), {repeats} repeat(s); update / train wall ratio "
+               f"{medians['update'] / medians['train']:.2f}.")
+    return result
