@@ -521,6 +521,12 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     for _, y in tied:
         free[y] = False
     free_bounds = [b for b, f in zip(bounds, free, strict=True) if f]
+    # d(all parameters)/d(free ones): a tied second moves with its first.
+    columns = np.flatnonzero(free)
+    jacobian = np.zeros((free.shape[0], columns.shape[0]))
+    jacobian[columns, np.arange(columns.shape[0])] = 1.0
+    for x, y in tied:
+        jacobian[y, np.searchsorted(columns, x)] = 1.0
 
     def lift(p: np.ndarray) -> np.ndarray:
         full = x0.copy()
@@ -541,11 +547,7 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
 
     def objective_free(p: np.ndarray, *args: object) -> tuple[float, np.ndarray]:
         value, grad = negative_log_likelihood_counted(lift(p), *args)
-        if tied:
-            grad = grad.copy()
-            for x, y in tied:
-                grad[x] += grad[y]
-        return value, grad[free]
+        return value, jacobian.T @ grad
 
     from_start = False
     if warm_start is not None:
@@ -581,7 +583,7 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     for point in starts:
         if scoring:
             found, found_value, spent = _score_from(
-                point, first if from_start else None, fisher, free, tied, lift,
+                point[free], first if from_start else None, fisher, jacobian, lift,
                 free_bounds, iterations)
         else:
             refined = minimize(
@@ -626,22 +628,14 @@ def distinct_starts(best: np.ndarray, visited: list[tuple[float, np.ndarray]],
 def _score_from(
     start: np.ndarray, first: tuple[float, np.ndarray, np.ndarray] | None,
     fisher: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray] | None],
-    free: np.ndarray, tied: tuple[tuple[int, int], ...],
-    lift: Callable[[np.ndarray], np.ndarray], free_bounds: list[tuple[float, float]],
-    max_evaluations: int,
+    jacobian: np.ndarray, lift: Callable[[np.ndarray], np.ndarray],
+    free_bounds: list[tuple[float, float]], max_evaluations: int,
 ) -> tuple[np.ndarray, float, int]:
-    """Fisher scoring from ``start`` (all parameters; ``first`` = ``fisher(start)`` or
-    None: evaluated here) over the ``free`` parameters, each tied pair's second following
-    its first: the refined parameters, their value and the evaluations spent after
-    ``first``."""
+    """Fisher scoring from ``start`` (the free parameters; ``first`` = ``fisher`` at
+    ``lift(start)``, or None: evaluated here), where ``lift`` maps free parameters to all
+    and ``jacobian`` (all, free) is its derivative: all the refined parameters, their
+    value and the evaluations spent after ``first``."""
     from gpocc.gp.refine import fisher_scoring
-
-    # d(all parameters)/d(free ones): a tied second moves with its first.
-    columns = np.flatnonzero(free)
-    jacobian = np.zeros((free.shape[0], columns.shape[0]))
-    jacobian[columns, np.arange(columns.shape[0])] = 1.0
-    for x, y in tied:
-        jacobian[y, np.searchsorted(columns, x)] = 1.0
 
     def reduced(evaluation: tuple[float, np.ndarray, np.ndarray]
                 ) -> tuple[float, np.ndarray, np.ndarray]:
@@ -654,6 +648,6 @@ def _score_from(
 
     lower = np.array([lo for lo, _ in free_bounds])
     upper = np.array([hi for _, hi in free_bounds])
-    refined = fisher_scoring(evaluate, start[free], lower, upper, max(1, max_evaluations),
+    refined = fisher_scoring(evaluate, start, lower, upper, max(1, max_evaluations),
                              start=None if first is None else reduced(first))
     return lift(refined.x), refined.value, refined.evaluations
