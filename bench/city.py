@@ -123,15 +123,20 @@ def build_site(ctx: Context, side: int, resolution: float) -> Site:
     return _SITES[key]
 
 
-def map_auc(probability: np.ndarray, spec, nodata, points: np.ndarray,
-            labels: np.ndarray) -> float:
-    """AUC of a probability raster's nearest cells at labelled points (uncovered points
-    scored p = 0.5, as `gpocc evaluate` does)."""
+def map_roc(probability: np.ndarray, spec, nodata, points: np.ndarray, labels: np.ndarray):
+    """ROC summary (AUC, calibration) of a probability raster's nearest cells at labelled
+    points (uncovered points scored p = 0.5, as `gpocc evaluate` does)."""
     from gpocc.evaluation.roc import evaluate_scores
     from gpocc.io.rasters import sample_raster
 
     scores, inside = sample_raster(probability, spec, nodata, points)
-    return evaluate_scores("", labels, scores, inside).auc
+    return evaluate_scores("", labels, scores, inside)
+
+
+def map_auc(probability: np.ndarray, spec, nodata, points: np.ndarray,
+            labels: np.ndarray) -> float:
+    """AUC of :func:`map_roc`."""
+    return map_roc(probability, spec, nodata, points, labels).auc
 
 
 def building_aucs(ctx: Context, site: Site) -> list[tuple[Building, float, float]]:

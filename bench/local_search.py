@@ -8,26 +8,16 @@ patches and another annealing), once per setting of ``model.training.local_searc
 
 from __future__ import annotations
 
-import json
 import statistics
-
-from gpocc.constants import RESULTS_FILE
 
 from .harness import gpocc, printed, write_config
 from .paths import FREIBURG, INTEL, LOG_CONFIGS
 from .registry import Context, Result, Table, benchmark, require
+from .update_cost import score
 
 #: (local_search, local_starts); the default first.
 SETTINGS = (("lbfgs", 1), ("scoring", 1), ("scoring", 3))
 SEEDS = (0, 1, 2, 3, 4)
-
-
-def _union(folder) -> tuple[float, float]:
-    """Union-protocol AUC and Brier of an evaluation folder."""
-    results = json.loads((folder / RESULTS_FILE).read_text())
-    protocols = {p["name"]: p["maps"][0] for p in results.get("protocols", [])}
-    scores = protocols.get("union", results["maps"][0])
-    return scores["auc"], scores["brier"]
 
 
 @benchmark("local-search", "Learning's local search")
@@ -63,11 +53,8 @@ def local_search(ctx: Context) -> Result:
                 stage = printed(trained.stdout, r"stages: .*hyperparameters\+classifier "
                                                 r"([0-9.]+) s")
                 training = load_model(model).training
-                gpocc("map", model, "--resolution", "0.1", "--workers", "2", "--out",
-                      split / f"map-{name}", "--force")
-                gpocc("evaluate", split / f"map-{name}", "--ground-truth",
-                      split / "heldout.csv", "--out", split / f"eval-{name}", "--force")
-                auc, brier = _union(split / f"eval-{name}")
+                union = score(split, model, split / "heldout.csv", name)["union"]
+                auc, brier = union["auc"], union["brier"]
                 learn_s = float(stage.group(1)) if stage else float("nan")
                 lml = float(training["log_marginal_likelihood"])
                 found.setdefault((search, starts), []).append(

@@ -191,16 +191,14 @@ def _building_scores(model: Path, out: Path, building, source) -> tuple[float, f
     """AUC and Brier of ``model``'s map at 0.1 m over ``building``'s extent (its source's
     held-out points moved into place, plus 5 m) on those points."""
     from gpocc.evaluation.report import probability_raster, read_probability
-    from gpocc.evaluation.roc import evaluate_scores
-    from gpocc.io.rasters import sample_raster
+
+    from .city import map_roc
 
     points = building.apply(source.points)
     low, high = points.min(axis=0) - 5.0, points.max(axis=0) + 5.0
     run("map", str(model), "--resolution", "0.1", "--workers", "2", "--bounds",
         *(f"{v:.2f}" for v in (*low, *high)), "--out", str(out), "--force")
-    probability, spec, nodata = read_probability(probability_raster(out)[1])
-    scores, inside = sample_raster(probability, spec, nodata, points)
-    roc = evaluate_scores("", source.labels, scores, inside)
+    roc = map_roc(*read_probability(probability_raster(out)[1]), points, source.labels)
     return roc.auc, roc.calibration.brier
 
 
