@@ -599,14 +599,21 @@ def test_compiled_pair_listing_matches_the_numpy_rule():
 
 
 @pytest.mark.parametrize("level", [1, 2, 3])
-@pytest.mark.parametrize("case", ["correlated", "independent", "all zero"])
+@pytest.mark.parametrize("case", ["correlated", "scan runs", "independent", "all zero"])
 def test_local_system_in_one_call_matches_the_separate_calls(level, case):
     """The one-call local system (training matrix plus diagonal term, cross-covariances,
-    query priors) against the numpy reference of the three separate calls."""
+    query priors) against the numpy reference of the three separate calls. "scan runs":
+    each scan's points are consecutive, as in a map's problems (the product rule skips
+    those runs), with points of too small a pose share inside them, and one scan split in
+    two runs."""
     means, covs, scan_ids, factors, _ = _scan_problem(41, n=36)
     if case == "all zero":
         covs[:] = 0.0
         factors[:] = 0.0
+    if case == "scan runs":
+        scan_ids = np.repeat([0, 1, 2, 3, 0], [9, 10, 4, 8, 5])
+        factors[[3, 14]] *= 1e-3
+        covs[[3, 14]] = factors[[3, 14]] @ factors[[3, 14]].transpose(0, 2, 1) + 1e-4 * np.eye(2)
     pairs = {"scan_ids": scan_ids, "pose_factors": factors} if case != "independent" else {}
     kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))
     queries = np.random.default_rng(42).uniform(-1.3, 1.3, (30, 2))
@@ -614,7 +621,7 @@ def test_local_system_in_one_call_matches_the_separate_calls(level, case):
                                                **pairs)
     want = expected_kernel_matrix(kernel, means, covs, level, backend="numpy", **pairs)
     want[np.diag_indices_from(want)] += 0.125
-    if case == "correlated" and level > 1:
+    if case in ("correlated", "scan runs") and level > 1:
         assert ex.same_scan_pairs(covs, scan_ids, factors)[0].shape[0] > 100
         independent = expected_kernel_matrix(kernel, means, covs, level, backend="numpy")
         assert np.abs(want - 0.125 * np.eye(36) - independent).max() > 1e-3
