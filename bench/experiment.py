@@ -37,8 +37,10 @@ raster) and ``cells-noisy-only`` (the cells only platform II saw).
 ``--quick``: one world (``default``) and one log cut (the repository's 50-scan Intel
 sample, every 5th scan held out), to check the pipeline and the page generator in
 minutes. ``--variant`` picks config overrides for the GP rows (:data:`VARIANTS`;
-``defaults``: none, gpocc as shipped); ``--compare`` adds a variant's run to the page,
-and the variants of :data:`WIDENING` also to its section on learned values on bounds.
+``defaults``: none, gpocc as shipped); a variant's run maps with the GP with input noise
+alone, the one row the page compares (``--every-method``: every row); ``--compare`` adds
+a variant's run to the page, and the variants of :data:`WIDENING` also to its section on
+learned values on bounds.
 Each case records the GP's learned values (:func:`learned_values`).
 """
 
@@ -383,21 +385,34 @@ def noisy_only_truth(sim: Path, world: str, seed: int) -> Path:
     return out
 
 
+def every_method(variant: str, asked: bool = False) -> bool:
+    """Whether a run of ``variant`` maps with every method, or (False) with the GP with
+    input noise alone: the page reads nothing else from a variant's or a seed's run (it
+    compares their GPs with input noise with this run's), so their other rows would be
+    about a third of a run's time spent on maps nobody reads. ``asked``: every method
+    anyway (``--every-method``)."""
+    return asked or variant == "defaults"
+
+
 def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
                 shared: Path, bounds: list[str] | None,
-                settings: Path) -> tuple[dict[str, Path], dict]:
+                settings: Path, every: bool = True) -> tuple[dict[str, Path], dict]:
     """Every method's map folder on ``inputs``: the grid, BHM and OctoMap (shared between
     variants, in ``shared``) and both GPs (in ``vdir``, with ``settings``' sections, see
-    :func:`with_overrides`); and the GPs' wall seconds."""
+    :func:`with_overrides`); and the GPs' wall seconds. ``every=False``
+    (:func:`every_method`): the GP with input noise alone."""
     vdir.mkdir(parents=True, exist_ok=True)
-    grid_map(inputs, base_config, shared / "grid", bounds)
-    grid_map(inputs, base_config, shared / "bhm", bounds, "bhm")
-    maps = {"grid": shared / "grid", "bhm": shared / "bhm"}
-    if octomap_row(inputs, base_config, shared / "octomap", shared / "grid"):
-        maps["octomap"] = shared / "octomap"
+    maps = {}
+    if every:
+        grid_map(inputs, base_config, shared / "grid", bounds)
+        grid_map(inputs, base_config, shared / "bhm", bounds, "bhm")
+        maps = {"grid": shared / "grid", "bhm": shared / "bhm"}
+        if octomap_row(inputs, base_config, shared / "octomap", shared / "grid"):
+            maps["octomap"] = shared / "octomap"
     config = with_overrides(base_config, VARIANTS[variant], vdir / "config.yaml", settings)
     seconds = {}
-    for noise, name in (("off", "gp-no-input-noise"), ("on", "gp-input-noise")):
+    gps = (("off", "gp-no-input-noise"), ("on", "gp-input-noise"))
+    for noise, name in gps if every else gps[1:]:
         seconds[name] = gp_map(inputs, config, noise, vdir / name, bounds)
         maps[name] = vdir / name
     return maps, seconds
@@ -458,7 +473,9 @@ def split(log: Path, config: Path, out: Path, every: int) -> Path:
     return out
 
 
-def run_sim(work: Path, variant: str, worlds: list[str], seed: int) -> list[dict]:
+def run_sim(work: Path, variant: str, worlds: list[str], seed: int,
+            every: bool = True) -> list[dict]:
+    """The ``sim`` step's cases (``every``: :func:`run_methods`)."""
     cases = []
     for world in worlds:
         sim = work / "sim" / f"{world}-s{seed}"
@@ -469,7 +486,7 @@ def run_sim(work: Path, variant: str, worlds: list[str], seed: int) -> list[dict
         bounds = truth_bounds(truth)
         vdir = work / variant / "sim" / sim.name
         maps, seconds = run_methods([held / "train.mcap"], held / "train.yaml", variant, vdir,
-                                    sim, bounds, sim / "sim.yaml")
+                                    sim, bounds, sim / "sim.yaml", every)
         result = evaluate(maps, held / "heldout.csv", vdir / "evaluation-heldout")
         result["cells"] = evaluate(maps, truth, vdir / "evaluation-cells")["all"]
         region = noisy_only_truth(sim, world, seed)
@@ -526,10 +543,10 @@ def real_logs(names: list[str], quick: bool) -> list[tuple[str, Path, Path, int]
 
 
 def run_real(work: Path, variant: str, logs: list[tuple[str, Path, Path, int]],
-             seed: int, as_logged: bool = False) -> list[dict]:
+             seed: int, as_logged: bool = False, every: bool = True) -> list[dict]:
     """The ``real`` step's cases, or with ``as_logged`` the ``clean`` step's: every method
     trained on the split's training scans with their recorded poses and the log's
-    config."""
+    config (``every``: :func:`run_methods`)."""
     cases = []
     for name, path, log_config, every in logs:
         if not path.is_file():
@@ -550,7 +567,8 @@ def run_real(work: Path, variant: str, logs: list[tuple[str, Path, Path, int]],
             shared, how = held.parent, "pose noise by stretch"
             vdir = work / variant / "real" / name
         shared.mkdir(parents=True, exist_ok=True)
-        maps, seconds = run_methods([bag], base, variant, vdir, shared, None, log_config)
+        maps, seconds = run_methods([bag], base, variant, vdir, shared, None, log_config,
+                                    every)
         result = evaluate(maps, held / "heldout.csv", vdir / "evaluation-heldout")
         cases.append({"case": f"{path.name} (every {every}th scan held out, {how})",
                       "kind": "real", "as_logged": as_logged, "scores": result,
@@ -1116,6 +1134,10 @@ def main() -> None:
     parser.add_argument("--compare", action="append", default=[], choices=list(VARIANTS),
                         metavar="VARIANT", help="compare with this variant's run in the work "
                         "folder (its summary-VARIANT.json; repeatable)")
+    parser.add_argument("--every-method", action="store_true",
+                        help="map with every method in a variant's run too (by default "
+                        "only the defaults' run does; a variant's runs the GP with input "
+                        "noise alone, all the page compares)")
     parser.add_argument("--spread", action="store_true",
                         help="add the run-to-run spread from the runs of the variants "
                         + ", ".join(f"seed-{k}" for k in SPREAD_SEEDS)
@@ -1133,14 +1155,15 @@ def main() -> None:
     else:
         worlds = ["default"] if args.quick else args.worlds
         cases: list[dict] = []
+        every = every_method(args.variant, args.every_method)
         if "sim" in args.what:
-            cases += run_sim(args.work, args.variant, worlds, args.seed)
+            cases += run_sim(args.work, args.variant, worlds, args.seed, every)
         if "real" in args.what:
             cases += run_real(args.work, args.variant, real_logs(args.logs, args.quick),
-                              args.seed)
+                              args.seed, every=every)
         if "clean" in args.what:
             cases += run_real(args.work, args.variant, real_logs(args.logs, args.quick),
-                              args.seed, as_logged=True)
+                              args.seed, as_logged=True, every=every)
         stored = (json.loads(summary.read_text()) if args.merge and summary.is_file()
                   else {"cases": [], "loop": None, "commands": []})
         made = {c["case"] for c in cases}

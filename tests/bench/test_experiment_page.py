@@ -481,8 +481,36 @@ def test_the_real_log_table_tells_logs_as_logged_apart():
     assert "| settings | case 3 | case 4 as logged |" in lines
 
 
+def test_a_variants_run_maps_with_the_gp_with_input_noise_alone(tmp_path, monkeypatch):
+    """The page reads only the GP with input noise of a variant's or seed's run: such a run
+    trains and maps that GP alone (no baseline, no GP without input noise); the defaults'
+    run, or --every-method, maps with every method."""
+    made: list[list[str]] = []
+
+    def fake_gpocc(cmd: list[str]) -> str:
+        made.append(cmd)
+        Path(cmd[cmd.index("--out") + 1]).mkdir(parents=True, exist_ok=True)
+        return ""
+
+    monkeypatch.setattr(experiment, "run_gpocc", fake_gpocc)
+    monkeypatch.setattr(experiment, "COMMANDS", [])
+    config = experiment.ROOT / "data" / "sample" / "sample.yaml"
+    bag = experiment.ROOT / "data" / "sample" / "intel_sample.mcap"
+    maps, seconds = experiment.run_methods(
+        [bag], config, "fixed-bias", tmp_path / "fixed-bias", tmp_path / "shared", None,
+        config, experiment.every_method("fixed-bias"))
+    assert list(maps) == list(seconds) == ["gp-input-noise"]
+    assert [m[0] for m in made] == ["train", "map"]
+    assert made[0][made[0].index("--input-noise") + 1] == "on"
+    assert not (tmp_path / "shared").exists()
+    assert experiment.every_method("defaults")
+    assert not experiment.every_method("seed-1")
+    assert experiment.every_method("seed-1", asked=True)
+
+
 def test_merge_adds_a_step_to_a_stored_run(tmp_path, monkeypatch):
-    def fake_run_real(work, variant, logs, seed, as_logged=False):
+    def fake_run_real(work, variant, logs, seed, as_logged=False, every=True):
+        assert not every  # a variant's run
         name = "clean case" if as_logged else "real case"
         return [{"case": name, "kind": "real", "as_logged": as_logged,
                  "scores": {"union": {"gp-input-noise": _scores(np.random.default_rng(1))}}}]
