@@ -207,9 +207,10 @@ EXPORT CLONES int gpocc_nn_matrix(const double *restrict u, const double *restri
 /* gpocc_nn_matrix for N points sharing one rule of L nodes (u (3, L N) node-major,
  * weights (L,)); both triangles written, diagonal untouched. At level 2 (L = 4) point
  * i's four nodes are held in registers through each contiguous pass. With ``first``
- * (N,), row i's entries i < j < first[i] are left out (the caller writes them, and their
- * mirrors, after this returns: same-scan pairs); the lower triangle then holds copies of
- * whatever was there. */
+ * (N,), row i leaves out its entries i < j < first[i] in whole vectors of four (so up to
+ * three of them are still computed): the caller writes them, and their mirrors, after
+ * this returns (same-scan pairs); the lower triangle then holds copies of whatever was
+ * there. */
 static CLONES int nn_matrix_uniform_from(const double *restrict u,
                                          const double *restrict weights, i64 size, i64 n,
                                          double scale, const i64 *restrict first,

@@ -632,6 +632,39 @@ def test_local_system_in_one_call_matches_the_separate_calls(level, case):
     np.testing.assert_allclose(prior, kernel.diag(queries), rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("level", [2, 3])
+def test_the_skipped_same_scan_runs_are_written_and_the_rest_is_bit_identical(level):
+    """A map problem's product rule skips the runs of consecutive same-scan points, whose
+    entries the 4-D rule then writes: into a NaN-filled matrix every entry is written,
+    and every entry outside the same-scan pairs is bit for bit the product rule's without
+    skipping (``correlated`` off), whatever the loops leave to their scalar remainders."""
+    from gpocc import compiled as fused
+
+    means, covs, _, factors, _ = _scan_problem(41, n=36)
+    scan_ids = np.repeat([0, 1, 2, 3, 0], [9, 10, 4, 8, 5])
+    factors[[3, 14]] *= 1e-3
+    kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))
+    unit, weights = gauss_hermite(level, 2)
+    unit4, weights4 = gauss_hermite(level, 4)
+
+    def training_matrix(correlated: bool) -> np.ndarray:
+        k = np.full((36, 36), np.nan)
+        fused.nn_local_system(means, covs, scan_ids, factors, np.zeros((1, 2)), unit,
+                              weights, unit4, weights4, kernel.root_two_s,
+                              kernel.arcsin_scale, 0.125, correlated, ex.POSE_SHARE_MIN,
+                              ex.ZERO_VARIANCE_M2, k, np.empty((1, 36)), np.empty(1))
+        return k
+
+    first, second = ex.same_scan_pairs(covs, scan_ids, factors)
+    pairs = np.zeros((36, 36), dtype=bool)
+    pairs[first, second] = pairs[second, first] = True
+    assert pairs.sum() > 200
+    correlated, independent = training_matrix(True), training_matrix(False)
+    assert np.isfinite(correlated).all()
+    np.testing.assert_array_equal(correlated[~pairs], independent[~pairs])
+    assert np.abs(correlated[pairs] - independent[pairs]).max() > 1e-3
+
+
 def test_local_system_declines_what_it_does_not_compile():
     """Mixed zero and non-zero covariances and kernels without compiled loops: None, so
     that the caller takes the separate calls."""
