@@ -396,14 +396,14 @@ def every_method(variant: str, asked: bool = False) -> bool:
 
 def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
                 shared: Path, bounds: list[str] | None,
-                settings: Path, every: bool = True) -> tuple[dict[str, Path], dict]:
+                settings: Path, all_methods: bool = True) -> tuple[dict[str, Path], dict]:
     """Every method's map folder on ``inputs``: the grid, BHM and OctoMap (shared between
     variants, in ``shared``) and both GPs (in ``vdir``, with ``settings``' sections, see
-    :func:`with_overrides`); and the GPs' wall seconds. ``every=False``
+    :func:`with_overrides`); and the GPs' wall seconds. ``all_methods=False``
     (:func:`every_method`): the GP with input noise alone."""
     vdir.mkdir(parents=True, exist_ok=True)
     maps = {}
-    if every:
+    if all_methods:
         grid_map(inputs, base_config, shared / "grid", bounds)
         grid_map(inputs, base_config, shared / "bhm", bounds, "bhm")
         maps = {"grid": shared / "grid", "bhm": shared / "bhm"}
@@ -412,7 +412,7 @@ def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
     config = with_overrides(base_config, VARIANTS[variant], vdir / "config.yaml", settings)
     seconds = {}
     gps = (("off", "gp-no-input-noise"), ("on", "gp-input-noise"))
-    for noise, name in gps if every else gps[1:]:
+    for noise, name in gps if all_methods else gps[1:]:
         seconds[name] = gp_map(inputs, config, noise, vdir / name, bounds)
         maps[name] = vdir / name
     return maps, seconds
@@ -474,8 +474,8 @@ def split(log: Path, config: Path, out: Path, every: int) -> Path:
 
 
 def run_sim(work: Path, variant: str, worlds: list[str], seed: int,
-            every: bool = True) -> list[dict]:
-    """The ``sim`` step's cases (``every``: :func:`run_methods`)."""
+            all_methods: bool = True) -> list[dict]:
+    """The ``sim`` step's cases (``all_methods``: :func:`run_methods`)."""
     cases = []
     for world in worlds:
         sim = work / "sim" / f"{world}-s{seed}"
@@ -486,7 +486,7 @@ def run_sim(work: Path, variant: str, worlds: list[str], seed: int,
         bounds = truth_bounds(truth)
         vdir = work / variant / "sim" / sim.name
         maps, seconds = run_methods([held / "train.mcap"], held / "train.yaml", variant, vdir,
-                                    sim, bounds, sim / "sim.yaml", every)
+                                    sim, bounds, sim / "sim.yaml", all_methods)
         result = evaluate(maps, held / "heldout.csv", vdir / "evaluation-heldout")
         result["cells"] = evaluate(maps, truth, vdir / "evaluation-cells")["all"]
         region = noisy_only_truth(sim, world, seed)
@@ -543,10 +543,10 @@ def real_logs(names: list[str], quick: bool) -> list[tuple[str, Path, Path, int]
 
 
 def run_real(work: Path, variant: str, logs: list[tuple[str, Path, Path, int]],
-             seed: int, as_logged: bool = False, every: bool = True) -> list[dict]:
+             seed: int, as_logged: bool = False, all_methods: bool = True) -> list[dict]:
     """The ``real`` step's cases, or with ``as_logged`` the ``clean`` step's: every method
     trained on the split's training scans with their recorded poses and the log's
-    config (``every``: :func:`run_methods`)."""
+    config (``all_methods``: :func:`run_methods`)."""
     cases = []
     for name, path, log_config, every in logs:
         if not path.is_file():
@@ -568,7 +568,7 @@ def run_real(work: Path, variant: str, logs: list[tuple[str, Path, Path, int]],
             vdir = work / variant / "real" / name
         shared.mkdir(parents=True, exist_ok=True)
         maps, seconds = run_methods([bag], base, variant, vdir, shared, None, log_config,
-                                    every)
+                                    all_methods)
         result = evaluate(maps, held / "heldout.csv", vdir / "evaluation-heldout")
         cases.append({"case": f"{path.name} (every {every}th scan held out, {how})",
                       "kind": "real", "as_logged": as_logged, "scores": result,
@@ -888,10 +888,13 @@ def family_table(cases: list[dict]) -> list[str]:
     lines = ["| family | worlds | protocol | AUC wins vs no input noise | worst AUC diff | "
              "Brier wins | AUC wins vs grid | Table II order (AUC / FPR@TPR0.97) |",
              "|---|---:|---|---:|---:|---:|---:|---|"]
+    compared = ("gp-input-noise", "gp-no-input-noise", "grid")
     for family in families:
         rows = [c for c in cases if c.get("family") == family]
         for protocol in ("cells", "union"):
-            have = [c["scores"][protocol] for c in rows if protocol in c["scores"]]
+            # A variant's run maps with the GP with input noise alone (every_method).
+            have = [c["scores"][protocol] for c in rows if protocol in c["scores"]
+                    and all(m in c["scores"][protocol] for m in compared)]
             if not have:
                 continue
             a = np.array([h["gp-input-noise"]["auc"] - h["gp-no-input-noise"]["auc"]
@@ -901,7 +904,7 @@ def family_table(cases: list[dict]) -> list[str]:
             g = np.array([h["gp-input-noise"]["auc"] - h["grid"]["auc"] for h in have])
             mean = {m: (np.mean([h[m]["auc"] for h in have]),
                         np.mean([h[m]["fpr_at_tpr97"] for h in have]))
-                    for m in ("gp-input-noise", "gp-no-input-noise", "grid")}
+                    for m in compared}
             auc_order = (mean["gp-input-noise"][0] > mean["gp-no-input-noise"][0]
                          > mean["grid"][0])
             fpr_order = (mean["gp-input-noise"][1] < mean["gp-no-input-noise"][1]
@@ -911,7 +914,7 @@ def family_table(cases: list[dict]) -> list[str]:
                 f"{a.min():+.4f} | {int((brier < 0).sum())}/{brier.size} | "
                 f"{int((g > 0).sum())}/{g.size} | "
                 f"{'yes' if auc_order else 'no'} / {'yes' if fpr_order else 'no'} |")
-    return lines
+    return lines if len(lines) > 2 else []
 
 
 def section(title: str, text: str, table: list[str]) -> list[str]:
@@ -1155,15 +1158,15 @@ def main() -> None:
     else:
         worlds = ["default"] if args.quick else args.worlds
         cases: list[dict] = []
-        every = every_method(args.variant, args.every_method)
+        all_methods = every_method(args.variant, args.every_method)
         if "sim" in args.what:
-            cases += run_sim(args.work, args.variant, worlds, args.seed, every)
+            cases += run_sim(args.work, args.variant, worlds, args.seed, all_methods)
         if "real" in args.what:
             cases += run_real(args.work, args.variant, real_logs(args.logs, args.quick),
-                              args.seed, every=every)
+                              args.seed, all_methods=all_methods)
         if "clean" in args.what:
             cases += run_real(args.work, args.variant, real_logs(args.logs, args.quick),
-                              args.seed, as_logged=True, every=every)
+                              args.seed, as_logged=True, all_methods=all_methods)
         stored = (json.loads(summary.read_text()) if args.merge and summary.is_file()
                   else {"cases": [], "loop": None, "commands": []})
         made = {c["case"] for c in cases}

@@ -142,6 +142,17 @@ def test_family_rows_count_wins_and_check_the_table_two_order():
     assert cells[7].split(" / ")[0] == ("yes" if order else "no")
 
 
+def test_a_variants_run_with_the_gp_with_input_noise_alone_makes_a_page():
+    """A variant's or seed's run (every_method false) has no GP without input noise and
+    no grid: its page has no family section, and the rest is made without them."""
+    run = _run(("gp-input-noise",))
+    for case in run["cases"][:3]:
+        case["family"] = "hall"
+    text = experiment.page(run)
+    assert "## By world family" not in text
+    assert "## Protocol `union`" in text
+
+
 def test_world_families():
     assert [experiment.world_family(w) for w in
             ("default", "office", "grown-3", "hall-4", "clutter-0", "offices-12")] == [
@@ -508,9 +519,44 @@ def test_a_variants_run_maps_with_the_gp_with_input_noise_alone(tmp_path, monkey
     assert experiment.every_method("seed-1", asked=True)
 
 
+@pytest.mark.parametrize("all_methods", [False, True])
+def test_a_variants_real_log_step_maps_with_the_gp_with_input_noise_alone(tmp_path,
+                                                                          monkeypatch,
+                                                                          all_methods):
+    """The real-log steps pass the choice on to every log (a log's held-out period is a
+    different thing): the GP with input noise alone, or both GPs and the baselines."""
+    made: list[str] = []
+    config = experiment.ROOT / "data" / "sample" / "sample.yaml"
+
+    def fake_gpocc(cmd: list[str]) -> str:
+        made.append(cmd[0])
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        if cmd[0] == "split":
+            (out / "train.yaml").write_text(config.read_text())
+        return ""
+
+    monkeypatch.setattr(experiment, "run_gpocc", fake_gpocc)
+    monkeypatch.setattr(experiment, "COMMANDS", [])
+    monkeypatch.setattr(experiment, "octomap_row", lambda *args: False)
+    monkeypatch.setattr(experiment, "evaluate",
+                        lambda maps, truth, out: {"union": {m: {} for m in maps}})
+    monkeypatch.setattr(experiment, "free_by_wall_distance", lambda truth, maps: {})
+    monkeypatch.setattr(experiment, "learned_values", lambda model: {})
+    cases = experiment.run_real(tmp_path, "fixed-bias", experiment.real_logs([], True), 0,
+                                as_logged=True, all_methods=all_methods)
+    if all_methods:
+        assert made == ["split", "grid", "bhm", "train", "map", "train", "map"]
+        assert sorted(cases[0]["scores"]["union"]) == ["bhm", "gp-input-noise",
+                                                        "gp-no-input-noise", "grid"]
+    else:
+        assert made == ["split", "train", "map"]
+        assert list(cases[0]["scores"]["union"]) == ["gp-input-noise"]
+
+
 def test_merge_adds_a_step_to_a_stored_run(tmp_path, monkeypatch):
-    def fake_run_real(work, variant, logs, seed, as_logged=False, every=True):
-        assert not every  # a variant's run
+    def fake_run_real(work, variant, logs, seed, as_logged=False, all_methods=True):
+        assert not all_methods  # a variant's run
         name = "clean case" if as_logged else "real case"
         return [{"case": name, "kind": "real", "as_logged": as_logged,
                  "scores": {"union": {"gp-input-noise": _scores(np.random.default_rng(1))}}}]
