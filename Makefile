@@ -67,7 +67,9 @@ bench: $(BENCH_STAMP) bytecode
 # The variants the defaults are compared with on the page ("Against other settings"):
 # each changes one default, or one setting of offset-holdout (bench/experiment.py
 # VARIANTS, HOLDOUT_BASED).
-EXPERIMENT_COMPARE ?= offset-holdout accurate-poses-offset-beams thin-0.1-n192-offset-beams \
+EXPERIMENT_COMPARE ?= offset-holdout accurate-poses-offset-beams \
+	accurate-poses-n384-offset-beams accurate-poses-free-0.2-offset-beams \
+	thin-0.1-n192-offset-beams \
 	thin-0.1-n256-offset-beams thin-0.1-n160-offset-beams thin-0.12-n160-offset-beams \
 	fixed-scale-offset-beams thin-0.1-n192-fixed-scale-offset-beams \
 	hit-gap-0.25 no-temperature \

@@ -178,6 +178,13 @@ VARIANTS: dict[str, dict[str, object]] = {
     "offset-beams": {"model.training.classifier_offset": "beams"},
     "accurate-poses-offset-beams": {**_ACCURATE_POSES,
                                     "model.training.classifier_offset": "beams"},
+    # The same with more of the finer samples per local problem, or free samples as
+    # dense as bench BHM's (0.2 m): more of the data each local problem sees.
+    "accurate-poses-n384-offset-beams": {**_ACCURATE_POSES, "model.neighbours": 384,
+                                         "model.training.classifier_offset": "beams"},
+    "accurate-poses-free-0.2-offset-beams": {**_ACCURATE_POSES,
+                                             "samples.free_spacing_m": 0.2,
+                                             "model.training.classifier_offset": "beams"},
     # Finer samples and more neighbours (g learned) with the default classifier offset.
     "thin-0.1-n192-offset-beams": {**_THIN_N192, "model.training.classifier_offset": "beams"},
     "thin-0.1-n256-offset-beams": {**_THIN_N256, "model.training.classifier_offset": "beams"},
