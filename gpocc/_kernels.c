@@ -766,27 +766,6 @@ EXPORT i64 gpocc_correlated_pairs(const double *restrict cov, const i64 *restric
     return k;
 }
 
-/* first[i] (N,): one past the run of points after i that are, with i, both live (of
- * gpocc_correlated_pairs) and of i's scan; i + 1 if there is none. Every (i, j) with
- * i < j < first[i] is one of gpocc_correlated_pairs' pairs (which also holds the pairs of
- * a scan whose points are not consecutive). */
-static int same_scan_runs(const double *restrict cov, const i64 *restrict scan_ids,
-                          const double *restrict pf, i64 n, double pose_share_min,
-                          double zero_variance, i64 *restrict first)
-{
-    unsigned char *live = malloc((size_t)(n > 0 ? n : 1));
-    if (!live)
-        return -1;
-    for (i64 a = 0; a < n; a++)
-        live[a] = (unsigned char)pair_is_live(cov, pf, a, pose_share_min, zero_variance);
-    for (i64 i = n - 1; i >= 0; i--)
-        first[i] = i + 1 < n && live[i] && live[i + 1] && scan_ids[i + 1] == scan_ids[i]
-                       ? first[i + 1]
-                       : i + 1;
-    free(live);
-    return 0;
-}
-
 /* Every covariance one local GP problem needs, in one call, for N points that all share
  * one 2-D rule (unit (L, 2), weights (L,)):
  *   k_out (N, N): the expected training matrix (product rule; same-scan pairs by the 4-D
@@ -827,13 +806,31 @@ EXPORT int gpocc_nn_local_system(const double *restrict means, const double *res
                        &u[2 * total + k * n + i], &inv);
         }
     }
-    /* The product rule skips the runs of same-scan pairs: the 4-D rule below replaces
-     * them (a fifth of a map problem's pairs on the Intel log). */
+    i64 pairs = 0;
     if (correlated && size > 1) {
-        first = malloc((size_t)(n > 0 ? n : 1) * sizeof(i64));
-        if (!first || same_scan_runs(cov, scan_ids, pf, n, pose_share_min, zero_variance,
-                                     first) != 0)
+        pairs = gpocc_correlated_pairs(cov, scan_ids, pf, n, pose_share_min, zero_variance,
+                                       NULL, NULL);
+        if (pairs < 0)
             goto done;
+        if (pairs > 0) {
+            pair_index = malloc((size_t)(2 * pairs) * sizeof(i64));
+            values = malloc((size_t)pairs * sizeof(double));
+            first = malloc((size_t)n * sizeof(i64));
+            if (!pair_index || !values || !first)
+                goto done;
+            gpocc_correlated_pairs(cov, scan_ids, pf, n, pose_share_min, zero_variance,
+                                   pair_index, pair_index + pairs);
+            /* The product rule skips, in each row i, the run of partners i + 1, i + 2, ...
+             * that the 4-D rule below replaces (a fifth of a map problem's pairs on the
+             * Intel log): pairs come in row-major order. */
+            for (i64 i = 0; i < n; i++)
+                first[i] = i + 1;
+            for (i64 p = 0; p < pairs; p++) {
+                i64 a = pair_index[p], b = pair_index[pairs + p];
+                if (b == first[a])
+                    first[a] = b + 1;
+            }
+        }
     }
     if (nn_matrix_uniform_from(u, weights, size, n, scale, first, k_out) != 0)
         goto done;
@@ -846,27 +843,15 @@ EXPORT int gpocc_nn_local_system(const double *restrict means, const double *res
         }
         k_out[i * n + i] = scale * acc + diagonal;
     }
-    if (correlated && size > 1) {
-        i64 pairs = gpocc_correlated_pairs(cov, scan_ids, pf, n, pose_share_min, zero_variance,
-                                           NULL, NULL);
-        if (pairs < 0)
+    if (pairs > 0) {
+        if (gpocc_nn_same_scan_pairs(means, cov, pf, pair_index, pair_index + pairs, pairs,
+                                     unit4, weights4, size4, root, scale, 1.0, values, 0,
+                                     0) != 0)
             goto done;
-        if (pairs > 0) {
-            pair_index = malloc((size_t)(2 * pairs) * sizeof(i64));
-            values = malloc((size_t)pairs * sizeof(double));
-            if (!pair_index || !values)
-                goto done;
-            gpocc_correlated_pairs(cov, scan_ids, pf, n, pose_share_min, zero_variance,
-                                   pair_index, pair_index + pairs);
-            if (gpocc_nn_same_scan_pairs(means, cov, pf, pair_index, pair_index + pairs, pairs,
-                                         unit4, weights4, size4, root, scale, 1.0, values, 0,
-                                         0) != 0)
-                goto done;
-            for (i64 p = 0; p < pairs; p++) {
-                i64 a = pair_index[p], b = pair_index[pairs + p];
-                k_out[a * n + b] = values[p];
-                k_out[b * n + a] = values[p];
-            }
+        for (i64 p = 0; p < pairs; p++) {
+            i64 a = pair_index[p], b = pair_index[pairs + p];
+            k_out[a * n + b] = values[p];
+            k_out[b * n + a] = values[p];
         }
     }
     for (i64 r = 0; r < nq; r++) {

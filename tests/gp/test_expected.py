@@ -40,6 +40,17 @@ def _scan_problem(seed: int, n: int = 12, pose_std: float = 0.15, noise_std: flo
     return means, covs, scan_ids, factors, noise
 
 
+def _scan_runs_problem():
+    """:func:`_scan_problem` (36 points) with each scan's points consecutive, as in a map's
+    problems, one scan split in two runs, and two points inside runs whose pose share is
+    too small for the correlated rule."""
+    means, covs, _, factors, _ = _scan_problem(41, n=36)
+    scan_ids = np.repeat([0, 1, 2, 3, 0], [9, 10, 4, 8, 5])
+    factors[[3, 14]] *= 1e-3
+    covs[[3, 14]] = factors[[3, 14]] @ factors[[3, 14]].transpose(0, 2, 1) + 1e-4 * np.eye(2)
+    return means, covs, scan_ids, factors
+
+
 def _mc(values: np.ndarray) -> tuple[float, float]:
     return float(values.mean()), float(values.std() / np.sqrt(len(values)))
 
@@ -603,17 +614,13 @@ def test_compiled_pair_listing_matches_the_numpy_rule():
 def test_local_system_in_one_call_matches_the_separate_calls(level, case):
     """The one-call local system (training matrix plus diagonal term, cross-covariances,
     query priors) against the numpy reference of the three separate calls. "scan runs":
-    each scan's points are consecutive, as in a map's problems (the product rule skips
-    those runs), with points of too small a pose share inside them, and one scan split in
-    two runs."""
+    :func:`_scan_runs_problem`, whose runs the product rule skips."""
     means, covs, scan_ids, factors, _ = _scan_problem(41, n=36)
     if case == "all zero":
         covs[:] = 0.0
         factors[:] = 0.0
     if case == "scan runs":
-        scan_ids = np.repeat([0, 1, 2, 3, 0], [9, 10, 4, 8, 5])
-        factors[[3, 14]] *= 1e-3
-        covs[[3, 14]] = factors[[3, 14]] @ factors[[3, 14]].transpose(0, 2, 1) + 1e-4 * np.eye(2)
+        means, covs, scan_ids, factors = _scan_runs_problem()
     pairs = {"scan_ids": scan_ids, "pose_factors": factors} if case != "independent" else {}
     kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))
     queries = np.random.default_rng(42).uniform(-1.3, 1.3, (30, 2))
@@ -640,9 +647,7 @@ def test_the_skipped_same_scan_runs_are_written_and_the_rest_is_bit_identical(le
     skipping (``correlated`` off), whatever the loops leave to their scalar remainders."""
     from gpocc import compiled as fused
 
-    means, covs, _, factors, _ = _scan_problem(41, n=36)
-    scan_ids = np.repeat([0, 1, 2, 3, 0], [9, 10, 4, 8, 5])
-    factors[[3, 14]] *= 1e-3
+    means, covs, scan_ids, factors = _scan_runs_problem()
     kernel = NeuralNetworkKernel(2.3, 30.0, (25.0, 70.0))
     unit, weights = gauss_hermite(level, 2)
     unit4, weights4 = gauss_hermite(level, 4)
