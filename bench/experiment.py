@@ -396,8 +396,7 @@ def every_method(variant: str, asked: bool = False) -> bool:
     """Whether a run of ``variant`` maps with every method, or (False) with the GP with
     input noise alone: the page reads nothing else from a variant's or a seed's run (it
     compares their GPs with input noise with this run's), so their other rows would be
-    about a third of a run's time spent on maps nobody reads. ``asked``: every method
-    anyway (``--every-method``)."""
+    maps nobody reads. ``asked``: every method anyway (``--every-method``)."""
     return asked or variant == "defaults"
 
 

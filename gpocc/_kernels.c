@@ -821,8 +821,7 @@ EXPORT int gpocc_nn_local_system(const double *restrict means, const double *res
             gpocc_correlated_pairs(cov, scan_ids, pf, n, pose_share_min, zero_variance,
                                    pair_index, pair_index + pairs);
             /* The product rule skips, in each row i, the run of partners i + 1, i + 2, ...
-             * that the 4-D rule below replaces (a fifth of a map problem's pairs on the
-             * Intel log): pairs come in row-major order. */
+             * that the 4-D rule below replaces: pairs come in row-major order. */
             for (i64 i = 0; i < n; i++)
                 first[i] = i + 1;
             for (i64 p = 0; p < pairs; p++) {
