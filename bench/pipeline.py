@@ -1,5 +1,6 @@
 """Whole commands on real logs: the Intel log against the grid baseline and OctoMap,
-back-to-back repeats, the campus case, and scaling with data and map size."""
+back-to-back repeats against OctoMap on both logs, the campus case, and scaling with
+data and map size."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 
 from .campus import write_campus
 from .harness import Measurement, gpocc, measure, printed, stage_times, write_config
-from .paths import FREIBURG, INTEL
+from .paths import FREIBURG, FREIBURG_CONFIG, INTEL
 from .registry import Context, Result, Table, benchmark, require
 
 MEASURED = ("method", "stage", "wall s", "CPU s", "peak MiB", "detail")
@@ -44,8 +45,9 @@ def _train_and_map(ctx: Context, name: str, config, noise: str = "on",
     return train, mapped
 
 
-def _build(ctx: Context, name: str, config, resolution: float = 0.1) -> Measurement:
-    return gpocc("build", INTEL, "--config", config, "--resolution", resolution, "--out",
+def _build(ctx: Context, name: str, config, resolution: float = 0.1,
+           log=INTEL) -> Measurement:
+    return gpocc("build", log, "--config", config, "--resolution", resolution, "--out",
                  ctx.work / name, "--force")
 
 
@@ -94,17 +96,34 @@ def intel_repeats(ctx: Context) -> Result:
     """`gpocc build` on the whole Intel log and OctoMap on the same scans, alternately,
     `--repeats` times (2 in a quick run): one run of each says little on a machine whose
     speed drifts from minute to minute, so the table gives every pair and the medians."""
-    require(INTEL)
+    return _repeats(ctx, INTEL, "intel")
+
+
+@benchmark("freiburg-repeats", "Freiburg 079, 0.1 m: `gpocc build` and OctoMap back to back")
+def freiburg_repeats(ctx: Context) -> Result:
+    """The same on the dense log: the whole Freiburg 079 log (4,791 scans x 360 beams,
+    `configs/carmen_freiburg.yaml`), `gpocc build` and OctoMap alternately, `--repeats`
+    times (2 in a quick run). OctoMap casts every beam into its tree; gpocc reads every
+    beam into samples too, but learns and maps from the thinned samples, which grow with
+    the area mapped rather than the beams: the Intel log (910 scans x 180 beams) and this
+    one are the sparse and dense ends of the real logs here."""
+    return _repeats(ctx, FREIBURG, "freiburg", FREIBURG_CONFIG)
+
+
+def _repeats(ctx: Context, log, name: str, base=None) -> Result:
+    """`gpocc build` of ``log`` (with ``base``'s config, Intel's by default) and OctoMap
+    on the same scans, alternately, `--repeats` times: every pair and the medians."""
+    require(log)
     no_octomap = _octomap_missing()
-    config = write_config(ctx.work, "intel")
+    config = write_config(ctx.work, name, **({} if base is None else {"base": base}))
     repeats = min(ctx.repeats, 2) if ctx.quick else ctx.repeats
     rows, builds, octos = [], [], []
     for run in range(1, repeats + 1):
-        built = _build(ctx, "intel-repeat", config)
+        built = _build(ctx, f"{name}-repeat", config, log=log)
         builds.append(built.wall_s)
         row = [str(run), f"{built.wall_s:.2f}", f"{built.peak_mib:.0f}"]
         if not no_octomap:
-            octo = octomap([INTEL], config, 0.1)
+            octo = octomap([log], config, 0.1)
             octos.append(octo.wall_s)
             row += [f"{octo.wall_s:.2f}", f"{built.wall_s / octo.wall_s:.1f}"]
         rows.append(row)

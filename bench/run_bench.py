@@ -44,10 +44,11 @@ from .stamp import commit, load, machine, usable_cores
 
 PAGE = ROOT / "docs" / "benchmarks.md"
 #: The page's order; a benchmark not named here comes last.
-ORDER = ("intel", "intel-repeats", "campus", "city", "city-1km", "growth", "scaling-data",
-         "scaling-size", "samples", "sample-memory", "anchor-cost", "expected-kernels",
-         "quadrature", "blas-threads", "anneal-budget", "local-search", "knobs", "cloud-projection",
-         "update-cost", "update-site", "model-file", "fingerprints")
+ORDER = ("intel", "intel-repeats", "freiburg-repeats", "campus", "city", "city-1km", "growth",
+         "scaling-data", "scaling-size", "samples", "sample-memory", "anchor-cost",
+         "expected-kernels", "quadrature", "blas-threads", "anneal-budget", "local-search",
+         "knobs", "cloud-projection", "update-cost", "update-site", "model-file",
+         "fingerprints")
 
 
 def ordered() -> list[str]:
@@ -100,7 +101,7 @@ def page(done: list[tuple[str, Result | str, float]], quick: bool, repeats: int,
         "",
         "Times are wall-clock unless a column says CPU or a description says process",
         "time. On a shared machine they drift from run to run: compare figures within one",
-        "page, or repeat (`intel-repeats`).",
+        "page, or repeat (`intel-repeats`, `freiburg-repeats`).",
         "",
         "## Reproduce",
         "",
@@ -173,7 +174,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true",
                         help="smaller sizes; benchmarks marked slow are left out unless named")
     parser.add_argument("--repeats", type=int, default=5,
-                        help="back-to-back pairs of `intel-repeats` (default 5)")
+                        help="back-to-back pairs of `intel-repeats` and `freiburg-repeats` "
+                        "(default 5)")
     parser.add_argument("--out", default=str(PAGE),
                         help="where to write the page ('-': stdout; default docs/benchmarks.md)")
     args = parser.parse_args()

@@ -23,7 +23,8 @@ def run_bench(*args: str, env: dict[str, str] | None = None) -> str:
 def test_list_names_each_benchmark_once() -> None:
     listed = [line.split()[0] for line in run_bench("--list").splitlines()]
     assert len(listed) == len(set(listed))
-    assert {"intel", "campus", "quadrature", "fingerprints"} <= set(listed)
+    assert {"intel", "intel-repeats", "freiburg-repeats", "campus", "quadrature",
+            "fingerprints"} <= set(listed)
 
 
 def test_page_is_stamped_and_quadrature_error_falls_with_the_level() -> None:
@@ -42,6 +43,7 @@ def test_page_is_stamped_and_quadrature_error_falls_with_the_level() -> None:
 
 
 def test_a_benchmark_without_its_data_is_listed_as_skipped(tmp_path: Path) -> None:
-    page = run_bench("--only", "samples", "--out", "-",
+    page = run_bench("--only", "samples", "--only", "freiburg-repeats", "--out", "-",
                      env={"GPOCC_CARMEN_DIR": str(tmp_path)})
     assert f"skipped: {tmp_path / 'intel.gfs.log'} not found" in page
+    assert f"skipped: {tmp_path / 'freiburg-079-corrected.log'} not found" in page
