@@ -899,13 +899,30 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
      * are the same for every sample of a scan: set once per scan. */
     double steps[SIGMA][N_INPUTS];
     double step_cos[SIGMA][2], step_sin[SIGMA][2]; /* columns: yaw, beam angle */
+    /* Also per scan: the cosine and sine of its yaw, and the products of its pose root
+     * and pose map that weight the cross-covariance into the pose factor. Per beam (the
+     * samples of one beam come one after another): the cosine and sine of the beam's
+     * direction. Each is the value each sample computed for itself before, bit for bit. */
+    double c0 = 1.0, s0 = 0.0, cp0 = 1.0, sp0 = 0.0, last_bearing = 0.0;
+    /* Each sigma point's rotation by the yaw (per scan) and by the beam's direction (per
+     * beam): cos and sin of the centre's angle plus the point's step. */
+    double yaw_cos[SIGMA], yaw_sin[SIGMA], beam_cos[SIGMA], beam_sin[SIGMA];
+    double weights[3][3][3]; /* [j][d][m]: root[d][j] * pmap[d][m] */
     memset(steps, 0, sizeof(steps));
     i64 last_scan = 0;
     for (i64 i = 0; i < n; i++) {
         i64 s = scan[i];
         const double *root = pose_root + 9 * s;
-        if (i == 0 || s != last_scan) {
+        int new_scan = i == 0 || s != last_scan;
+        if (new_scan) {
             last_scan = s;
+            const double *pmap = pose_map + 9 * s;
+            for (int j = 0; j < 3; j++)
+                for (int d = 0; d < 3; d++)
+                    for (int m = 0; m < 3; m++)
+                        weights[j][d][m] = root[d * 3 + j] * pmap[d * 3 + m];
+            c0 = cos(poses[3 * s + 2]);
+            s0 = sin(poses[3 * s + 2]);
             steps[2][1] = gamma * bearing_sd;
             steps[2 + N_INPUTS][1] = -gamma * bearing_sd;
             for (int j = 0; j < 3; j++) {
@@ -921,6 +938,8 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
                 step_sin[k][0] = sin(yaw);
                 step_cos[k][1] = cos(angle);
                 step_sin[k][1] = sin(angle);
+                yaw_cos[k] = c0 * step_cos[k][0] - s0 * step_sin[k][0];
+                yaw_sin[k] = s0 * step_cos[k][0] + c0 * step_sin[k][0];
             }
         }
         steps[1][0] = gamma * range_sd[i];
@@ -931,16 +950,28 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
             for (int d = 0; d < N_INPUTS; d++)
                 points[k][d] = centre[d] + steps[k][d];
         double mean_x = 0.0, mean_y = 0.0;
-        double th0 = centre[4];
-        double phi0 = th0 + myaw + centre[1];
-        double c0 = cos(th0), s0 = sin(th0);
-        double cp0 = cos(phi0), sp0 = sin(phi0);
+        if (new_scan || centre[1] != last_bearing) {
+            double phi0 = centre[4] + myaw + centre[1];
+            last_bearing = centre[1];
+            cp0 = cos(phi0);
+            sp0 = sin(phi0);
+            for (int k = 0; k < SIGMA; k++) {
+                beam_cos[k] = cp0 * step_cos[k][1] - sp0 * step_sin[k][1];
+                beam_sin[k] = sp0 * step_cos[k][1] + cp0 * step_sin[k][1];
+            }
+        }
+        /* Without range noise the range's two sigma points are the centre itself. */
+        int exact_range = range_sd[i] == 0.0;
         for (int k = 0; k < SIGMA; k++) {
+            if (exact_range && (k == 1 || k == 1 + N_INPUTS)) {
+                ys[k][0] = ys[0][0];
+                ys[k][1] = ys[0][1];
+                mean_x += wm[k] * ys[k][0];
+                mean_y += wm[k] * ys[k][1];
+                continue;
+            }
             double r = points[k][0], x = points[k][2], y = points[k][3];
-            double c = c0 * step_cos[k][0] - s0 * step_sin[k][0];
-            double sn = s0 * step_cos[k][0] + c0 * step_sin[k][0];
-            double cp = cp0 * step_cos[k][1] - sp0 * step_sin[k][1];
-            double sp = sp0 * step_cos[k][1] + cp0 * step_sin[k][1];
+            double c = yaw_cos[k], sn = yaw_sin[k], cp = beam_cos[k], sp = beam_sin[k];
             ys[k][0] = x + c * mx - sn * my + r * cp;
             ys[k][1] = y + sn * mx + c * my + r * sp;
             mean_x += wm[k] * ys[k][0];
@@ -964,19 +995,93 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
         double *f = factors + 6 * i;
         for (int k = 0; k < 6; k++)
             f[k] = 0.0;
-        const double *pmap = pose_map + 9 * s;
         for (int j = 0; j < 3; j++) {
             double dpx = (ys[3 + j][0] - ys[3 + j + N_INPUTS][0]) * gamma * wc[1];
             double dpy = (ys[3 + j][1] - ys[3 + j + N_INPUTS][1]) * gamma * wc[1];
             for (int d = 0; d < 3; d++) {
                 for (int m = 0; m < 3; m++) {
-                    double weight = root[d * 3 + j] * pmap[d * 3 + m];
+                    double weight = weights[j][d][m];
                     f[m] += weight * dpx;
                     f[3 + m] += weight * dpy;
                 }
             }
         }
     }
+}
+
+/* ------------------------------------------------------------------ thinning */
+
+static inline i64 thin_slot(i64 key, i64 mask)
+{
+    /* Fibonacci hashing: packed cells of one neighbourhood differ in their low bits. */
+    return (i64)(((uint64_t)key * 0x9E3779B97F4A7C15ULL) >> 32) & mask;
+}
+
+/* Thinning's groups (gpocc/samples/beams.py, _thinned): the samples' (cell, label) keys
+ * (N,) and covariance traces (N,), single precision and finite. For each distinct key,
+ * in the order of its first sample: the key, its number of samples, and the index of
+ * its sample with the smallest trace (the earliest of those that have it). Writes up to
+ * N entries of each output; returns the number of distinct keys, or -1 when memory ran
+ * out. One pass over a hash table of the keys seen, which grows with the keys, not with
+ * N: a chunk of 100,000 beam samples has a few thousand. */
+EXPORT i64 gpocc_thin_groups(const i64 *restrict keys, const float *restrict trace, i64 n,
+                             i64 *restrict group_keys, i64 *restrict group_counts,
+                             i64 *restrict kept)
+{
+    i64 capacity = 1024, mask = capacity - 1, groups = 0;
+    i64 *table = malloc(sizeof(i64) * (size_t)capacity);
+    float *best = malloc(sizeof(float) * (size_t)(n > 0 ? n : 1));
+    if (table == NULL || best == NULL) {
+        free(table);
+        free(best);
+        return -1;
+    }
+    for (i64 t = 0; t < capacity; t++)
+        table[t] = -1;
+    for (i64 i = 0; i < n; i++) {
+        i64 key = keys[i];
+        i64 slot = thin_slot(key, mask);
+        i64 g;
+        while ((g = table[slot]) >= 0 && group_keys[g] != key)
+            slot = (slot + 1) & mask;
+        if (g >= 0) {
+            group_counts[g] += 1;
+            if (trace[i] < best[g]) { /* strictly: ties keep the earliest sample */
+                best[g] = trace[i];
+                kept[g] = i;
+            }
+            continue;
+        }
+        g = groups++;
+        table[slot] = g;
+        group_keys[g] = key;
+        group_counts[g] = 1;
+        best[g] = trace[i];
+        kept[g] = i;
+        if (2 * groups > capacity) { /* half full: double the table and re-insert */
+            i64 *grown = malloc(sizeof(i64) * (size_t)(2 * capacity));
+            if (grown == NULL) {
+                free(table);
+                free(best);
+                return -1;
+            }
+            free(table);
+            table = grown;
+            capacity *= 2;
+            mask = capacity - 1;
+            for (i64 t = 0; t < capacity; t++)
+                table[t] = -1;
+            for (i64 h = 0; h < groups; h++) {
+                i64 at = thin_slot(group_keys[h], mask);
+                while (table[at] >= 0)
+                    at = (at + 1) & mask;
+                table[at] = h;
+            }
+        }
+    }
+    free(table);
+    free(best);
+    return groups;
 }
 
 /* Set the cells of covered (H, W) (one byte each) that hold a point every 1 cell along

@@ -66,6 +66,8 @@ void gpocc_beam_unscented(const double *dist, const double *bearing, const doubl
                           double gamma, double *means, double *covariances, double *factors);
 void gpocc_mark_segments(const double *start, const double *end, i64 n,
                          unsigned char *covered, i64 height, i64 width);
+i64 gpocc_thin_groups(const i64 *keys, const float *trace, i64 n, i64 *group_keys,
+                      i64 *group_counts, i64 *kept);
 """
 
 #: Pointer arguments the C code accepts as NULL (count-only mode).
@@ -74,7 +76,8 @@ NULLABLE = {("gpocc_correlated_pairs", "first"), ("gpocc_correlated_pairs", "sec
 #: C scalar type -> ctypes type; C pointee type -> the numpy dtypes accepted for it.
 _SCALARS = {"i64": ctypes.c_int64, "int": ctypes.c_int, "double": ctypes.c_double,
             "void": None}
-_POINTEES = {"double": (np.dtype(np.float64),), "i64": (np.dtype(np.int64),),
+_POINTEES = {"double": (np.dtype(np.float64),), "float": (np.dtype(np.float32),),
+             "i64": (np.dtype(np.int64),),
              "unsigned char": (np.dtype(np.uint8), np.dtype(np.bool_))}
 
 
@@ -513,6 +516,25 @@ def beam_unscented(distances: np.ndarray, bearings: np.ndarray, range_sd: np.nda
         scan=scans, n=n, poses=poses, pose_root=pose_roots, pose_map=pose_maps, mount=mount,
         wm=wm, wc=wc, gamma=gamma, means=means, covariances=covariances, factors=factors)
     return means, covariances, factors
+
+
+def thin_groups(keys: np.ndarray, trace: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each distinct key of ``keys`` (N,) int64, in the order of its first sample:
+    the key, its number of samples, and the index of its sample with the smallest
+    ``trace`` (N,) float32 (the earliest of those that have it): three (G,) int64
+    arrays. ``trace`` must be finite (the loops assume it; not checked here)."""
+    keys = np.ascontiguousarray(keys, dtype=np.int64)
+    trace = np.ascontiguousarray(trace, dtype=np.float32)
+    n = keys.shape[0]
+    if keys.ndim != 1 or trace.shape != (n,):
+        raise ValueError("keys and trace must both be (N,)")
+    group_keys, counts, kept = (np.empty(n, np.int64) for _ in range(3))
+    groups = _c.thin_groups(keys=keys, trace=trace, n=n, group_keys=group_keys,
+                            group_counts=counts, kept=kept)
+    if groups < 0:
+        raise MemoryError("thinning's hash table")
+    return group_keys[:groups], counts[:groups], kept[:groups]
 
 
 def mark_segments(start: np.ndarray, end: np.ndarray, covered: np.ndarray) -> None:

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from gpocc import compiled
 from gpocc.config import Config, MountConfig, SamplesConfig, SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import ScanBatch
@@ -238,6 +239,32 @@ def test_thin_samples_matches_a_brute_force_oracle(cell_m):
     assert len(best) < n  # some groups hold several samples
     kept = thin_samples(samples, cell_m)
     np.testing.assert_array_equal(kept.scan_ids, sorted(best.values()))
+
+
+@pytest.mark.parametrize("n, n_keys", [(0, 1), (5, 1), (3000, 40), (40_000, 9000)])
+def test_thin_groups_match_a_dictionary_oracle(n, n_keys):
+    """The compiled grouping (a hash table that doubles as keys arrive: 9000 keys take
+    it from 1024 slots through several doublings): per key in order of first sight, its
+    count and its sample with the smallest single-precision trace, the earliest on ties.
+    Keys on both sides of zero and far apart, traces with many ties."""
+    rng = np.random.default_rng(n)
+    pool = rng.choice(np.array([-(2**40), -7, 0, 1, 2**33], np.int64), n_keys) \
+        + rng.integers(-(2**20), 2**20, n_keys)
+    keys = pool[rng.integers(0, n_keys, n)]
+    trace = rng.choice([0.5, 0.25, 0.125, 1.0], n).astype(np.float32)
+    first: dict[int, int] = {}
+    count: dict[int, int] = {}
+    best: dict[int, int] = {}
+    for i, key in enumerate(keys.tolist()):
+        first.setdefault(key, i)
+        count[key] = count.get(key, 0) + 1
+        if key not in best or trace[i] < trace[best[key]]:
+            best[key] = i
+    order = sorted(first, key=first.get)
+    group_keys, counts, kept = compiled.thin_groups(keys, trace)
+    np.testing.assert_array_equal(group_keys, order)
+    np.testing.assert_array_equal(counts, [count[k] for k in order])
+    np.testing.assert_array_equal(kept, [best[k] for k in order])
 
 
 def test_scan_ids_unique_across_batches_and_sensor_ids_by_first_appearance():
