@@ -316,7 +316,7 @@ def unique_cells(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     of a large site."""
     if len(cells) == 0:
         return np.zeros((0, 2), dtype=cells.dtype), np.zeros(0, dtype=np.intp)
-    low = cells.min(axis=0)
+    low = np.array([cells[:, 0].min(), cells[:, 1].min()])  # column by column: faster
     shifted = cells - low
     if shifted.max() >= 2**31:  # past one packed key: rows as records
         unique, inverse = np.unique(cells, axis=0, return_inverse=True)

@@ -100,8 +100,10 @@ def coverage_of_segments(start: np.ndarray, end: np.ndarray,
     step = cell_m
     if len(start) == 0:
         return Coverage(0.0, 0.0, cell_m, step, np.zeros((0, 0), dtype=bool))
-    lo = np.minimum(start.min(axis=0), end.min(axis=0))
-    hi = np.maximum(start.max(axis=0), end.max(axis=0))
+    # Column by column: numpy reduces an (N, 2) array along axis 0 two numbers at a time
+    # (0.25 s for Freiburg 079's 1.7 million beams, against 0.01 s).
+    lo = np.array([min(start[:, j].min(), end[:, j].min()) for j in (0, 1)])
+    hi = np.array([max(start[:, j].max(), end[:, j].max()) for j in (0, 1)])
     x0, y0 = (np.floor(lo / cell_m) - 1) * cell_m
     width = int(np.floor((hi[0] - x0) / cell_m)) + 2
     height = int(np.floor((hi[1] - y0) / cell_m)) + 2
