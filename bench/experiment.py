@@ -202,9 +202,6 @@ VARIANTS: dict[str, dict[str, object]] = {
         **_THIN_N192, "model.training.learn_input_noise_scale": False,
         "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
-    # Free samples of a beam that hit carry its range variance, as its hit does: a noisy
-    # sensor's free samples then weigh as little as its hits where both meet.
-    "free-range": {"samples.free_range_variance": True},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
     "calibration-along-beam": {"model.training.calibration_near_wall": 0},
