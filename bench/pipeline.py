@@ -11,7 +11,7 @@ import numpy as np
 
 from .campus import write_campus
 from .harness import Measurement, gpocc, measure, printed, stage_times, write_config
-from .paths import FREIBURG, FREIBURG_CONFIG, INTEL
+from .paths import FREIBURG, FREIBURG_CONFIG, INTEL, INTEL_CONFIG
 from .registry import Context, Result, Table, benchmark, require
 
 MEASURED = ("method", "stage", "wall s", "CPU s", "peak MiB", "detail")
@@ -110,12 +110,12 @@ def freiburg_repeats(ctx: Context) -> Result:
     return _repeats(ctx, FREIBURG, "freiburg", FREIBURG_CONFIG)
 
 
-def _repeats(ctx: Context, log, name: str, base=None) -> Result:
-    """`gpocc build` of ``log`` (with ``base``'s config, Intel's by default) and OctoMap
-    on the same scans, alternately, `--repeats` times: every pair and the medians."""
+def _repeats(ctx: Context, log, name: str, base=INTEL_CONFIG) -> Result:
+    """`gpocc build` of ``log`` (with ``base``'s config) and OctoMap on the same scans,
+    alternately, `--repeats` times: every pair and the medians."""
     require(log)
     no_octomap = _octomap_missing()
-    config = write_config(ctx.work, name, **({} if base is None else {"base": base}))
+    config = write_config(ctx.work, name, base)
     repeats = min(ctx.repeats, 2) if ctx.quick else ctx.repeats
     rows, builds, octos = [], [], []
     for run in range(1, repeats + 1):

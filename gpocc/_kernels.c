@@ -899,14 +899,13 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
      * are the same for every sample of a scan: set once per scan. */
     double steps[SIGMA][N_INPUTS];
     double step_cos[SIGMA][2], step_sin[SIGMA][2]; /* columns: yaw, beam angle */
-    /* Also per scan: the cosine and sine of its yaw, and the products of its pose root
-     * and pose map that weight the cross-covariance into the pose factor. Per beam (the
-     * samples of one beam come one after another): the cosine and sine of the beam's
-     * direction. Each is the value each sample computed for itself before, bit for bit. */
-    double c0 = 1.0, s0 = 0.0, cp0 = 1.0, sp0 = 0.0, last_bearing = 0.0;
-    /* Each sigma point's rotation by the yaw (per scan) and by the beam's direction (per
-     * beam): cos and sin of the centre's angle plus the point's step. */
+    /* Also per scan: each sigma point's rotation by the yaw (cos and sin of the scan's
+     * yaw plus the point's step), and the products of the pose root and pose map that
+     * weight the cross-covariance into the pose factor. Per beam (the samples of one beam
+     * come one after another): each sigma point's rotation by the beam's direction. Each
+     * is the very value a sample would compute for itself. */
     double yaw_cos[SIGMA], yaw_sin[SIGMA], beam_cos[SIGMA], beam_sin[SIGMA];
+    double last_bearing = 0.0;
     double weights[3][3][3]; /* [j][d][m]: root[d][j] * pmap[d][m] */
     memset(steps, 0, sizeof(steps));
     i64 last_scan = 0;
@@ -921,8 +920,7 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
                 for (int d = 0; d < 3; d++)
                     for (int m = 0; m < 3; m++)
                         weights[j][d][m] = root[d * 3 + j] * pmap[d * 3 + m];
-            c0 = cos(poses[3 * s + 2]);
-            s0 = sin(poses[3 * s + 2]);
+            double c0 = cos(poses[3 * s + 2]), s0 = sin(poses[3 * s + 2]);
             steps[2][1] = gamma * bearing_sd;
             steps[2 + N_INPUTS][1] = -gamma * bearing_sd;
             for (int j = 0; j < 3; j++) {
@@ -953,8 +951,7 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
         if (new_scan || centre[1] != last_bearing) {
             double phi0 = centre[4] + myaw + centre[1];
             last_bearing = centre[1];
-            cp0 = cos(phi0);
-            sp0 = sin(phi0);
+            double cp0 = cos(phi0), sp0 = sin(phi0);
             for (int k = 0; k < SIGMA; k++) {
                 beam_cos[k] = cp0 * step_cos[k][1] - sp0 * step_sin[k][1];
                 beam_sin[k] = sp0 * step_cos[k][1] + cp0 * step_sin[k][1];
@@ -966,14 +963,12 @@ EXPORT void gpocc_beam_unscented(const double *restrict dist, const double *rest
             if (exact_range && (k == 1 || k == 1 + N_INPUTS)) {
                 ys[k][0] = ys[0][0];
                 ys[k][1] = ys[0][1];
-                mean_x += wm[k] * ys[k][0];
-                mean_y += wm[k] * ys[k][1];
-                continue;
+            } else {
+                double r = points[k][0], x = points[k][2], y = points[k][3];
+                double c = yaw_cos[k], sn = yaw_sin[k], cp = beam_cos[k], sp = beam_sin[k];
+                ys[k][0] = x + c * mx - sn * my + r * cp;
+                ys[k][1] = y + sn * mx + c * my + r * sp;
             }
-            double r = points[k][0], x = points[k][2], y = points[k][3];
-            double c = yaw_cos[k], sn = yaw_sin[k], cp = beam_cos[k], sp = beam_sin[k];
-            ys[k][0] = x + c * mx - sn * my + r * cp;
-            ys[k][1] = y + sn * mx + c * my + r * sp;
             mean_x += wm[k] * ys[k][0];
             mean_y += wm[k] * ys[k][1];
         }
