@@ -210,6 +210,11 @@ VARIANTS: dict[str, dict[str, object]] = {
     "scoring": {"model.training.local_search": "scoring"},
     "scoring-3-starts": {"model.training.local_search": "scoring",
                          "model.training.local_starts": 3},
+    # Label noise divided by the square root of the label's count in its cell (and
+    # weighed by its share, as label-weights); with the learned g, and with g = 1.
+    "label-count": {"samples.label_weights": "count"},
+    "label-count-fixed-scale": {"samples.label_weights": "count",
+                                "model.training.learn_input_noise_scale": False},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.

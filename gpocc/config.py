@@ -107,6 +107,10 @@ class UnscentedConfig:
     kappa: float = 0.0
 
 
+#: The values of ``samples.label_weights`` (the first is the default).
+LABEL_WEIGHTS: tuple[str, ...] = ("none", "share", "count")
+
+
 @dataclass(frozen=True)
 class SamplesConfig:
     """How beams become training samples.
@@ -153,7 +157,13 @@ class SamplesConfig:
     Against the defaults on ``make experiment`` (docs/results.md, "Against other
     settings", variant ``label-weights``) it ranks better (held-out union AUC, per-cell
     AUC) and is less well calibrated (union and per-cell Brier), so it is a knob, not the
-    default; docs/guide.md has the figures.
+    default; docs/guide.md has the figures. ``count`` does what ``share`` does and also
+    divides the noise by the label's count in the cell to the power
+    ``label_count_power``: a wall cell hit by a hundred beams pins the map harder than
+    a cell one beam crossed. In a cell that saw one label, power 1 is the GP of every
+    counted sample as an independent observation at one point; lower powers temper it,
+    since a cell's samples share their scans' pose errors. The learned label noise is
+    then that of a sample counted once.
     """
 
     free_spacing_m: float = 0.4
@@ -166,6 +176,7 @@ class SamplesConfig:
     free_clearance_m: float = 0.05
     free_range_variance: bool = False
     label_weights: str = "none"
+    label_count_power: float = 0.5
     unscented: UnscentedConfig = field(default_factory=UnscentedConfig)
 
     @property
@@ -177,8 +188,9 @@ class SamplesConfig:
 
     @property
     def weighs_labels(self) -> bool:
-        """Whether kept samples carry label-noise factors (``label_weights: share``)."""
-        return self.thin_cell_m > 0 and self.label_weights == "share"
+        """Whether kept samples carry label-noise factors (``label_weights``: ``share``
+        or ``count``)."""
+        return self.thin_cell_m > 0 and self.label_weights in LABEL_WEIGHTS[1:]
 
 
 @dataclass(frozen=True)
@@ -757,7 +769,11 @@ def _validate(config: Config, source: str) -> Config:
             f"{source}: key 'map.georef.epsg' must be a projected EPSG code (e.g. 32633 for "
             f"UTM 33N), got {georef.epsg}"
         )
-    _one_of(config.samples.label_weights, ("none", "share"), "samples.label_weights", source)
+    _one_of(config.samples.label_weights, LABEL_WEIGHTS, "samples.label_weights", source)
+    if not 0.0 <= config.samples.label_count_power <= 1.0:
+        raise GpoccError(f"{source}: key 'samples.label_count_power' must be between 0 and 1 "
+                         f"(1: every counted sample an independent observation), got "
+                         f"{config.samples.label_count_power}")
     t = config.model.training
     if t.fixed or t.isotropic:
         _check_fixed(config, source)

@@ -112,12 +112,13 @@ def format_samples(batches: list[ScanBatch], config: Config) -> list[str]:
 
 
 def _weights_note(samples: SampleSet) -> str:
-    """How many samples carry a label-noise factor above 1 (``samples.label_weights``)."""
+    """How many samples carry a label-noise factor other than 1 (``samples.label_weights``)."""
     factors = samples.noise_factors
     if factors is None:
         return ""
-    return (f"; label weights by share: {int(np.count_nonzero(factors > 1.0))} with "
-            f"more label noise (factor up to {float(factors.max()):.3g})")
+    return (f"; label weights: {int(np.count_nonzero(factors > 1.0))} with more label "
+            f"noise, {int(np.count_nonzero(factors < 1.0))} with less (factors "
+            f"{float(factors.min()):.3g} to {float(factors.max()):.3g})")
 
 
 def format_model(path: Path, model: GPModel) -> list[str]:

@@ -63,7 +63,7 @@ FORMAT_NAME = "gpocc-model"
 #: ``pool_*``, ``vote_*`` and ``calibration_*`` arrays and a ``growth`` record); files of
 #: formats 1 and 2 load without it. 4: the classifier's temperature; earlier files load
 #: with temperature 1 (and ``classifier_temperature: none`` in their config). 5: an
-#: optional ``noise_factors`` array (``samples.label_weights: share``), which a format 4
+#: optional ``noise_factors`` array (``samples.label_weights``), which a format 4
 #: reader would ignore; earlier files load with every factor 1. 6: the samples may be
 #: stored as ``sample_index``, their rows in the growth pool (:func:`_rows_in_pool`),
 #: instead of their own arrays: about half the file, and half the time to write it.

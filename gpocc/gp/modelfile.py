@@ -284,23 +284,26 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str,
 def validate_noise_factors(factors: np.ndarray | None, config: Config, n: int,
                            path: str | Path) -> np.ndarray | None:
     """The samples' (N,) label-noise factors, checked: present exactly when the model's
-    config weighs labels (``samples.label_weights: share`` with thinning), and numbers in
-    [1, :data:`MAX_NOISE_FACTOR`], one per sample."""
+    config weighs labels (``samples.label_weights`` ``share`` or ``count``, with thinning),
+    and numbers in [1 / :data:`MAX_NOISE_FACTOR`, :data:`MAX_NOISE_FACTOR`], one per
+    sample."""
     expected = config.samples.weighs_labels
     if factors is None:
         if expected:
             raise GpoccError(f"{path}: damaged model file: its config weighs labels "
-                             "(samples.label_weights: share) but the array 'noise_factors' is "
-                             "missing; re-create it with `gpocc train`")
+                             f"(samples.label_weights: {config.samples.label_weights}) but the "
+                             "array 'noise_factors' is missing; re-create it with `gpocc train`")
         return None
     converted = (factors.astype(np.float64)
                  if factors.dtype.kind == "f" and factors.dtype.itemsize <= 8 else None)
     if not expected or converted is None or converted.shape != (n,) \
-            or not np.isfinite(converted).all() or (converted < 1.0).any() \
+            or not np.isfinite(converted).all() \
+            or (converted < 1.0 / MAX_NOISE_FACTOR).any() \
             or (converted > MAX_NOISE_FACTOR).any():
         raise GpoccError(f"{path}: damaged model file: array 'noise_factors' is not "
-                         f"{n} numbers in [1, {MAX_NOISE_FACTOR:g}] of a config with "
-                         "samples.label_weights: share; re-create it with `gpocc train`")
+                         f"{n} numbers in [{1.0 / MAX_NOISE_FACTOR:g}, {MAX_NOISE_FACTOR:g}] "
+                         "of a config that weighs labels (samples.label_weights); re-create "
+                         "it with `gpocc train`")
     return converted
 
 

@@ -189,6 +189,18 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
     return SamplePool(result, *votes.table(), offset)
 
 
+def label_noise_factors(share: np.ndarray, counts: np.ndarray | None,
+                        power: float) -> np.ndarray:
+    """(N,) label-noise factors of kept samples (``samples.label_weights``): 1 / ``share``
+    (their label's share of their cell's counted samples, NaN for a cell never counted:
+    factor 1), times ``counts ** -power`` (their label's count in the cell; None: not
+    weighed by count), within [1 / MAX_NOISE_FACTOR, MAX_NOISE_FACTOR]."""
+    factors = 1.0 / np.clip(np.nan_to_num(share, nan=1.0), 1.0 / MAX_NOISE_FACTOR, 1.0)
+    if counts is not None:
+        factors = factors * np.maximum(counts, 1).astype(float) ** -power
+    return np.clip(factors, 1.0 / MAX_NOISE_FACTOR, MAX_NOISE_FACTOR)
+
+
 def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
     """The training samples of ``pool``: ``samples.min_label_share`` (by the pool's
     votes), then ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)."""
@@ -202,7 +214,9 @@ def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
             keep = share >= min_share
             result, share = result.subset(keep), share[keep]
         if config.samples.weighs_labels:
-            factors = 1.0 / np.clip(np.nan_to_num(share, nan=1.0), 1.0 / MAX_NOISE_FACTOR, 1.0)
+            counts = (votes.count(result) if config.samples.label_weights == "count"
+                      else None)
+            factors = label_noise_factors(share, counts, config.samples.label_count_power)
             result = dataclasses.replace(result, noise_factors=factors)
     return clear_free_near_hits(result, float(config.samples.free_clearance_m))
 
@@ -341,6 +355,12 @@ class LabelVotes:
         """The (cell, label) keys, ascending, and their counts: (K,) int64 each."""
         self._merge()
         return self.keys, self.counts
+
+    def count(self, samples: SampleSet) -> np.ndarray:
+        """(N,) int64 counted samples of each sample's label in its cell (0 for a cell
+        never counted)."""
+        self._merge()
+        return self._count(self._keys(samples))
 
     def share(self, samples: SampleSet) -> np.ndarray:
         """(N,) fraction of its cell's counted samples that carry each sample's label

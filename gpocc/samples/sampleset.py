@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Largest label-noise factor (``SampleSet.noise_factors``, ``samples.label_weights:
-#: share``): a label seen in under 0.1% of its cell's samples.
+#: Largest label-noise factor (``SampleSet.noise_factors``, ``samples.label_weights``): a
+#: label seen in under 0.1% of its cell's samples. The smallest is its inverse (``count``).
 MAX_NOISE_FACTOR = 1000.0
 
 
@@ -36,8 +36,9 @@ class SampleSet:
         sensor_ids: (N,) int16 index into ``sensor_names``.
         sensor_names: the job's sensor names, in ``sensor_ids`` order (empty when not
             known, e.g. a local problem's copy).
-        noise_factors: (N,) >= 1 or None (all 1): each label's noise variance is the
-            learned label noise times its factor (``samples.label_weights``).
+        noise_factors: (N,) in [1 / MAX_NOISE_FACTOR, MAX_NOISE_FACTOR] or None (all 1):
+            each label's noise variance is the learned label noise times its factor
+            (``samples.label_weights``).
     """
 
     means: np.ndarray

@@ -1,5 +1,6 @@
-"""``samples.label_weights: share``: a thinned sample's label noise grows as its label's
-share of its cell falls, so a kept sample stands for the labels counted there."""
+"""``samples.label_weights``: a thinned sample's label noise grows as its label's share of
+its cell falls (``share``), and shrinks as its label's count there grows (``count``), so a
+kept sample stands for the labels counted there."""
 
 from __future__ import annotations
 
@@ -102,10 +103,73 @@ def test_finish_samples_weights_each_label_by_its_share():
     assert len(both) == len(kept) - 1 and both.noise_factors.max() == pytest.approx(4.0)
 
 
+@pytest.mark.parametrize("power", [0.5, 1.0])
+def test_finish_samples_weights_each_label_by_its_share_and_count(power):
+    """Oracle: the counts of each (cell, label) as :func:`_pool` made its raw samples; a
+    kept sample's factor is 1 / share * count^-power."""
+    pool, kept = _pool(0.25)
+    votes = LabelVotes(0.25)
+    votes.add_counts(pool.vote_keys, pool.vote_counts)
+    counts = {(0, 1): 1, (0, -1): 9, (1, 1): 6, (1, -1): 2, (2, -1): 4}  # as _pool made them
+    config = Config(samples=SamplesConfig(thin_cell_m=0.25, free_clearance_m=0.0,
+                                          label_weights="count", label_count_power=power))
+    samples = finish_samples(pool, config)
+    np.testing.assert_array_equal(votes.count(samples),
+                                  [counts[(int(m[0] // 0.25), int(lab))] for m, lab in
+                                   zip(samples.means, samples.labels, strict=True)])
+    for m, lab, factor in zip(samples.means, samples.labels, samples.noise_factors,
+                              strict=True):
+        cell = int(m[0] // 0.25)
+        own, other = counts[(cell, int(lab))], counts.get((cell, -int(lab)), 0)
+        assert factor == pytest.approx((own + other) / own * own ** -power)
+    assert samples.noise_factors.min() < 1.0  # the free cell counted four times
+
+
+def test_count_weights_at_power_one_predict_as_every_counted_sample():
+    """Oracle: the dense GP of c_i copies of each site's one label, each copy with the
+    same noise, solved with plain numpy. At power 1, one kept sample per site with the
+    noise divided by its count carries the same sufficient statistics (cells hold one
+    label each, so their share is 1), through the pool's counts and finish_samples."""
+    rng = np.random.default_rng(5)
+    cell = 0.5
+    sites = (rng.choice(64, 14, replace=False)[:, None] // [8, 1] % 8 + 0.5) * cell - 2.0
+    labels = np.where(rng.random(14) < 0.4, 1.0, -1.0)
+    copies = rng.integers(1, 12, 14)
+    raw = samples_from(np.repeat(sites, copies, axis=0), np.repeat(labels, copies))
+    votes = LabelVotes(cell)
+    votes.add(raw)
+    first = np.r_[0, np.cumsum(copies)[:-1]]
+    pool = SamplePool(raw.subset(first), *votes.table(), n_scans=len(raw))
+    config = Config(samples=SamplesConfig(thin_cell_m=cell, free_clearance_m=0.0,
+                                          label_weights="count", label_count_power=1.0))
+    kept = finish_samples(pool, config)
+    np.testing.assert_allclose(kept.noise_factors, 1.0 / copies)
+    kernel = NeuralNetworkKernel(2.0, 1.5, (4.0, 6.0))
+    noise = 0.3
+    queries = rng.uniform(-2.5, 2.5, (25, 2))
+    k = kernel(raw.means) + noise * np.eye(len(raw))
+    cross = kernel(queries, raw.means)
+    mean = cross @ np.linalg.solve(k, raw.labels)
+    variance = kernel.diag(queries) - np.einsum("qi,iq->q", cross, np.linalg.solve(k, cross.T))
+    pred = predict_full(kernel, noise, kept, queries, level=1)
+    # The copies make the raw system nearly singular: round-off of a few 1e-8.
+    np.testing.assert_allclose(pred.mean, mean, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(pred.variance, variance, rtol=1e-5, atol=1e-6)
+
+
 def test_a_bad_label_weights_value_is_one_clear_error(tmp_path):
     path = tmp_path / "bad.yaml"
     path.write_text("samples:\n  label_weights: counts\n")
-    with pytest.raises(GpoccError, match="samples.label_weights' must be 'none' or 'share'"):
+    with pytest.raises(GpoccError,
+                       match="samples.label_weights' must be 'none', 'share' or 'count'"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("power", [-0.5, 1.5])
+def test_a_label_count_power_out_of_range_is_one_clear_error(tmp_path, power):
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"samples:\n  label_weights: count\n  label_count_power: {power}\n")
+    with pytest.raises(GpoccError, match="samples.label_count_power' must be between 0 and 1"):
         load_config(path)
 
 
@@ -139,12 +203,12 @@ def test_cli_train_and_map_with_label_weights(tmp_path):
         maps.append(read_raster(tmp_path / out / "probability.tif")[0])
     np.testing.assert_array_equal(maps[0], maps[1])
     result = runner.invoke(app, ["info", str(path)])
-    assert result.exit_code == 0 and f"factor up to {factors.max():.3g}" in result.output
+    assert result.exit_code == 0 and f"to {factors.max():.3g})" in result.output
     # A damaged, out-of-range or missing factor array is refused with one line naming
     # the file (a model that weighs labels never loads unweighted).
     with np.load(path) as data:
         arrays = {k: data[k] for k in data.files}
-    for damage in (lambda f: f * 0.5, lambda f: f * 1e300, lambda f: f.astype(np.float32),
+    for damage in (lambda f: f * 1e-6, lambda f: f * 1e300, lambda f: f.astype(np.float32),
                    None):
         changed = dict(arrays)
         if damage is None:
@@ -160,3 +224,22 @@ def test_cli_train_and_map_with_label_weights(tmp_path):
         assert result.exit_code != 0 and "noise_factors" in result.output, result.output
         assert "Traceback" not in result.output
         assert len(result.output.strip().splitlines()) == 1
+
+
+def test_cli_train_map_and_info_with_count_weights(tmp_path):
+    """``count``: factors below 1 (cells counted many times) are saved, loaded and mapped;
+    the same samples as unweighted, and ``gpocc info`` counts both kinds of factor."""
+    plain = load_model(_train(tmp_path, "none", "plain"))
+    path = _train(tmp_path, "count", "counted")
+    counted = load_model(path)
+    np.testing.assert_array_equal(counted.samples.means, plain.samples.means)
+    factors = counted.samples.noise_factors
+    assert factors.min() < 1.0 < factors.max()
+    runner = CliRunner()
+    result = runner.invoke(app, ["map", str(path), "--out", str(tmp_path / "map"),
+                                 "--resolution", "0.2", "--workers", "1"])
+    assert result.exit_code == 0, result.output
+    assert np.isfinite(read_raster(tmp_path / "map" / "probability.tif")[0]).any()
+    result = runner.invoke(app, ["info", str(path)])
+    assert result.exit_code == 0, result.output
+    assert f"{int((factors < 1).sum())} with less" in result.output

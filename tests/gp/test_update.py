@@ -150,12 +150,13 @@ def _trained_and_relearned(logs: dict[str, Path], tmp_path: Path, config: str):
     return tuple(load_model(tmp_path / n) for n in ("ab.npz", "up.npz"))
 
 
-def test_label_weights_of_an_update_count_every_log(logs, tmp_path):
-    """With ``samples.label_weights: share`` (and no ``min_label_share``, so the votes are
-    kept for the weights alone) the updated model's factors are those of training on all
+@pytest.mark.parametrize("weights", ["share", "count"])
+def test_label_weights_of_an_update_count_every_log(logs, tmp_path, weights):
+    """With ``samples.label_weights`` (and no ``min_label_share``, so the votes are kept
+    for the weights alone) the updated model's factors are those of training on all
     logs: the votes of both logs add up."""
     both, up = _trained_and_relearned(logs, tmp_path, CONFIG.replace(
-        "min_label_share: 0.1", "label_weights: share"))
+        "min_label_share: 0.1", f"label_weights: {weights}"))
     _same_samples(both.samples, up.samples)
     assert both.samples.noise_factors is not None and both.samples.noise_factors.max() > 1
     np.testing.assert_array_equal(both.samples.noise_factors, up.samples.noise_factors)
