@@ -76,7 +76,8 @@ EXPERIMENT_COMPARE ?= offset-holdout accurate-poses-offset-beams \
 	label-map fixed-scale thin-0.1 patches-20 label-weights anneal-1 bounds-6 g-max-16 \
 	floor-0.03 overlap-0.5 clearance-0 pose-scale two-draw-pose-scale fixed-bias \
 	thin-0.1-n192 thin-0.1-n256 thin-0.1-n256-fixed-scale accurate-poses isotropic \
-	calibration-along-beam scoring scoring-3-starts label-count label-count-fixed-scale
+	calibration-along-beam scoring scoring-3-starts label-count label-count-fixed-scale \
+	latent-offset label-count-fixed-scale-latent-offset
 # The defaults learned with other seeds (bench/experiment.py's SPREAD_SEEDS): the page's
 # run-to-run spread. A variant's or seed's run maps with the GP with input noise alone (all
 # the page compares); the defaults' run, last, maps with every method.

@@ -215,6 +215,12 @@ VARIANTS: dict[str, dict[str, object]] = {
     "label-count": {"samples.label_weights": "count"},
     "label-count-fixed-scale": {"samples.label_weights": "count",
                                 "model.training.learn_input_noise_scale": False},
+    # The classifier's re-fitted offset kept among the latent means it is fitted on:
+    # alone, and with the count-weighted labels and g = 1.
+    "latent-offset": {"model.training.classifier_offset_range": "latent"},
+    "label-count-fixed-scale-latent-offset": {
+        "samples.label_weights": "count", "model.training.learn_input_noise_scale": False,
+        "model.training.classifier_offset_range": "latent"},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.

@@ -107,6 +107,9 @@ class UnscentedConfig:
     kappa: float = 0.0
 
 
+#: The values of ``model.training.classifier_offset_range`` (the first is the default).
+OFFSET_RANGES: tuple[str, ...] = ("wide", "latent")
+
 #: The values of ``samples.label_weights`` (the first is the default).
 LABEL_WEIGHTS: tuple[str, ...] = ("none", "share", "count")
 
@@ -268,6 +271,11 @@ class TrainingConfig:
     there too: probabilities calibrated where beams end, hits and the free space along and
     in front of them, as map cells are predicted. ``holdout`` keeps the leave-one-out
     fit's offset (docs/results.md, "Against other settings", variant ``offset-holdout``).
+    ``classifier_offset_range``: the range of that re-fitted offset c. ``wide`` (default)
+    within +-100; ``latent`` within the largest |mu| of the points it is fitted on, so the
+    decision stays among the latent means it saw. Where those means barely separate the
+    labels, a wide fit can run c and T far out together, and p then follows the latent
+    variance alone (gpocc.gp.classify.fit_offset_and_temperature).
     ``learn_input_noise_scale``: also learn a scale g on every input covariance (S -> g S,
     pose factors -> sqrt(g) A; gpocc.gp.inputscale) within ``[min_input_noise_scale,
     max_input_noise_scale]``, starting at 1; false keeps g = 1. Defaults (g learned, label
@@ -312,6 +320,7 @@ class TrainingConfig:
     min_noise_variance: float = 0.1
     classifier_holdout: str = "sample"
     classifier_offset: str = "beams"
+    classifier_offset_range: str = "wide"
     classifier_variance: str = "label"
     classifier_temperature: str = "beams"
     calibration_every: int = 10
@@ -783,6 +792,7 @@ def _validate(config: Config, source: str) -> Config:
                          ("classifier_variance", ("label", "label-map", "latent")),
                          ("classifier_temperature", ("none", "samples", "beams")),
                          ("classifier_offset", ("holdout", "beams")),
+                         ("classifier_offset_range", OFFSET_RANGES),
                          ("local_search", ("lbfgs", "scoring"))):
         _one_of(getattr(t, key), choices, f"model.training.{key}", source)
     if t.classifier_variance == "label-map" and t.classifier_temperature == "samples":

@@ -333,33 +333,49 @@ def _predict_block(kernel: Kernel, noise_variance: float,
     return pred.mean, pred.variance
 
 
+def offset_bound(mean: np.ndarray, offset_range: str = "wide") -> float:
+    """The largest |c| an offset fitted on held-out predictions (N,) may take
+    (``model.training.classifier_offset_range``): :data:`C_BOUND` for ``wide``; for
+    ``latent`` the largest |mean| (at most C_BOUND, at least 1e-6)."""
+    if offset_range == "wide" or mean.size == 0:
+        return C_BOUND
+    return float(np.clip(np.max(np.abs(mean)), 1e-6, C_BOUND))
+
+
 def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
-               extra_variance: float, temperature: float = 1.0) -> PlattClassifier:
+               extra_variance: float, temperature: float = 1.0,
+               bound: float = C_BOUND) -> PlattClassifier:
     """The offset c maximising :func:`held_out_log_probability` of held-out predictions
     (N,) with the extra variance s and temperature T fixed (bounded Brent search in
-    [-C_BOUND, C_BOUND])."""
+    [-bound, bound]; :func:`offset_bound`)."""
     from scipy.optimize import minimize_scalar  # here: `gpocc map` never fits
 
     best = minimize_scalar(
         lambda c: -held_out_log_probability(c, extra_variance, mean, variance, labels,
                                             temperature),
-        bounds=(-C_BOUND, C_BOUND), method="bounded", options={"xatol": 1e-6})
+        bounds=(-bound, bound), method="bounded", options={"xatol": 1e-6})
     return PlattClassifier(offset=float(best.x), extra_variance=extra_variance,
                            temperature=temperature)
 
 
 def fit_offset_and_temperature(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
-                               extra_variance: float) -> PlattClassifier:
+                               extra_variance: float, bound: float = C_BOUND
+                               ) -> PlattClassifier:
     """The offset c and temperature T maximising :func:`held_out_log_probability` of
     held-out predictions (N,) together, the extra variance s fixed (L-BFGS-B on (c, log T)
-    within [-C_BOUND, C_BOUND] and [T_MIN, T_MAX], from c = 0, T = 1).
+    within [-bound, bound] (:func:`offset_bound`) and [T_MIN, T_MAX], from c = 0, T = 1).
+
+    As c and T grow together with c / T fixed, p tends to Phi(c / (T sqrt(s + var))): a
+    function of the latent variance alone. Where the means barely separate the labels
+    that limit can beat every c among the means, and a wide box lets the fit run to it;
+    ``bound`` at the largest |mean| keeps the decision among the means.
 
     Fitted one after the other (c at T = 1, then T), c is chosen for probabilities far
     sharper than the map's: on points few of which lie near the decision it runs toward
     one label (on some simulated worlds, toward occupied). Points that one label holds
     entirely give no temperature: c alone is fitted then, at T = 1."""
     if not has_both_labels(labels):
-        return fit_offset(mean, variance, labels, extra_variance)
+        return fit_offset(mean, variance, labels, extra_variance, bound=bound)
     from scipy.optimize import minimize  # here: `gpocc map` never fits
 
     def negative(params: np.ndarray) -> float:
@@ -367,7 +383,7 @@ def fit_offset_and_temperature(mean: np.ndarray, variance: np.ndarray, labels: n
                                          float(np.exp(params[1])))
 
     best = minimize(negative, np.zeros(2), method="L-BFGS-B",
-                    bounds=[(-C_BOUND, C_BOUND), (np.log(T_MIN), np.log(T_MAX))])
+                    bounds=[(-bound, bound), (np.log(T_MIN), np.log(T_MAX))])
     return PlattClassifier(offset=float(best.x[0]), extra_variance=extra_variance,
                            temperature=float(np.exp(best.x[1])))
 

@@ -32,6 +32,7 @@ from gpocc.gp.classify import (
     fit_offset,
     fit_offset_and_temperature,
     fit_temperature,
+    offset_bound,
     separates,
 )
 from gpocc.gp.growth import Growth
@@ -277,12 +278,14 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
                 "kept the held-out samples' fit (temperature 1)")
         elif training.classifier_offset == "beams":
             classifier, offset = fit_offset_and_temperature(
-                mean, variance, labels, classifier.extra_variance), "beams"
+                mean, variance, labels, classifier.extra_variance,
+                offset_bound(mean, training.classifier_offset_range)), "beams"
         else:
             classifier = fit_temperature(classifier, mean, variance, labels)
     elif training.classifier_offset == "beams":
-        classifier, offset = fit_offset(mean, variance, labels, classifier.extra_variance,
-                                        classifier.temperature), "beams"
+        classifier, offset = fit_offset(
+            mean, variance, labels, classifier.extra_variance, classifier.temperature,
+            offset_bound(mean, training.classifier_offset_range)), "beams"
     return classifier, offset, int(labels.size)
 
 

@@ -8,12 +8,14 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from gpocc.config import Config, ModelConfig, SamplesConfig, TrainingConfig
+from gpocc.config import Config, ModelConfig, SamplesConfig, TrainingConfig, load_config
+from gpocc.errors import GpoccError
 from gpocc.gp.classify import (
     beam_holdout_predictions,
     fit_offset,
     fit_offset_and_temperature,
     held_out_log_probability,
+    offset_bound,
     unique_cells,
 )
 from gpocc.gp.kernels import NeuralNetworkKernel
@@ -206,12 +208,18 @@ def test_points_placed_by_uncertain_poses_are_left_out():
     np.testing.assert_allclose(std, np.sqrt([0.09, 0.09 + 0.5 * 100 * 1e-4]))
 
 
-def test_offset_and_temperature_maximise_the_heldout_log_probability_together():
+def _flatter_predictions() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Held-out predictions with labels drawn from a flatter classifier than the latent
+    one: T about 2, c = -0.3."""
     rng = np.random.default_rng(9)
     mean, var = rng.normal(0.2, 1.0, 400), rng.uniform(0.01, 0.2, 400)
-    # Labels drawn from a flatter classifier than the latent one: T about 2, c = -0.3.
     labels = np.where(rng.random(400) < ndtr((mean - 0.3) / (2.0 * np.sqrt(0.05 + var))),
                       1.0, -1.0)
+    return mean, var, labels
+
+
+def test_offset_and_temperature_maximise_the_heldout_log_probability_together():
+    mean, var, labels = _flatter_predictions()
     fit = fit_offset_and_temperature(mean, var, labels, 0.05)
     assert fit.extra_variance == 0.05
     offsets, log_t = np.linspace(-1.5, 1.0, 251), np.linspace(-1.0, 2.0, 301)
@@ -224,11 +232,14 @@ def test_offset_and_temperature_maximise_the_heldout_log_probability_together():
                                     fit.temperature) >= scores.max() - 1e-6
 
 
-def test_with_a_beam_temperature_the_offset_is_fitted_with_it():
+@pytest.mark.parametrize("offset_range", ["wide", "latent"])
+def test_with_a_beam_temperature_the_offset_is_fitted_with_it(offset_range):
+    """... within the configured range (``classifier_offset_range``)."""
     batch = room_batch(n_scans=30, n_beams=40, seed=6)
     config = dataclasses.replace(_training("beams"), model=dataclasses.replace(
         _training("beams").model, training=dataclasses.replace(
-            _training("beams").model.training, classifier_temperature="beams")))
+            _training("beams").model.training, classifier_temperature="beams",
+            classifier_offset_range=offset_range)))
     samples = build_samples([batch], config)
     calib = calibration_points([batch], config, config.model.training.calibration_every)
     model = build_model(samples, config, calibration=calib)
@@ -237,8 +248,57 @@ def test_with_a_beam_temperature_the_offset_is_fitted_with_it():
         model.kernel, model.noise_variance, model.samples, calib, model.level, 64, 1.0, 20,
         np.random.default_rng(config.seed + 2))
     assert model.training["classifier_offset"] == "beams"
+    bound = 100.0 if offset_range == "wide" else float(np.max(np.abs(mean)))
     assert model.classifier == fit_offset_and_temperature(
-        mean, var, labels, plain.classifier.extra_variance)
+        mean, var, labels, plain.classifier.extra_variance, bound)
+
+
+def _uninformative_means(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Held-out predictions whose means barely separate the labels while their variances
+    do: free points where the map is sure, occupied ones where it is not."""
+    rng = np.random.default_rng(seed)
+    var = rng.uniform(0.001, 0.3, 600)
+    labels = np.where(rng.random(600) < var / 0.3, 1.0, -1.0)
+    mean = rng.normal(0.0, 0.5, 600) + 0.01 * labels
+    return mean, var, labels
+
+
+def test_a_wide_offset_runs_out_with_the_temperature_where_the_means_do_not_separate():
+    """The limit the latent range rules out: c and T far out together, p a function of
+    the variance alone, beats every fit with c among the means; a latent range keeps c
+    within the largest |mean| and is the best fit in that box (grid oracle)."""
+    mean, var, labels = _uninformative_means(4)
+    wide = fit_offset_and_temperature(mean, var, labels, 1e-6)
+    bound = offset_bound(mean, "latent")
+    assert bound == pytest.approx(np.max(np.abs(mean)))
+    assert abs(wide.offset) > 10 * bound and wide.temperature > 10
+    latent = fit_offset_and_temperature(mean, var, labels, 1e-6, bound)
+    assert abs(latent.offset) <= bound + 1e-12
+    offsets, log_t = np.linspace(-bound, bound, 201), np.linspace(np.log(1e-2), np.log(1e3), 301)
+    scores = np.array([[held_out_log_probability(c, 1e-6, mean, var, labels, np.exp(lt))
+                        for lt in log_t] for c in offsets])
+    assert held_out_log_probability(latent.offset, 1e-6, mean, var, labels,
+                                    latent.temperature) >= scores.max() - 1e-6
+    assert held_out_log_probability(wide.offset, 1e-6, mean, var, labels,
+                                    wide.temperature) > scores.max()
+
+
+def test_a_latent_offset_range_changes_nothing_where_the_means_separate():
+    mean, var, labels = _flatter_predictions()
+    wide = fit_offset_and_temperature(mean, var, labels, 0.05)
+    latent = fit_offset_and_temperature(mean, var, labels, 0.05,
+                                        offset_bound(mean, "latent"))
+    assert abs(wide.offset) < np.max(np.abs(mean))
+    assert latent.offset == pytest.approx(wide.offset, abs=1e-4)
+    assert latent.temperature == pytest.approx(wide.temperature, rel=1e-3)
+    assert offset_bound(mean, "wide") == offset_bound(np.zeros(0), "latent") == 100.0
+
+
+def test_a_bad_offset_range_is_one_clear_error(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("model:\n  training:\n    classifier_offset_range: narrow\n")
+    with pytest.raises(GpoccError, match="classifier_offset_range' must be 'wide' or 'latent'"):
+        load_config(path)
 
 
 @pytest.mark.parametrize("spread", [3, 1000, 2**40])
