@@ -111,6 +111,10 @@ _THIN_N192 = {"samples.thin_cell_m": 0.1, "model.neighbours": 192}
 _THIN_N256 = {**_THIN_N192, "model.neighbours": 256}
 _THIN_N256_FIXED_SCALE = {**_THIN_N256, "model.training.learn_input_noise_scale": False}
 _ACCURATE_POSES = {**_THIN_N256_FIXED_SCALE, "samples.free_spacing_m": 0.3}
+#: Count-weighted labels, then with g = 1; the classifier's offset among the latent means.
+_LABEL_COUNT = {"samples.label_weights": "count"}
+_LABEL_COUNT_FIXED_SCALE = {**_LABEL_COUNT, "model.training.learn_input_noise_scale": False}
+_LATENT_OFFSET = {"model.training.classifier_offset_range": "latent"}
 #: Learning seeds of the run-to-run spread (seed 0 is the defaults' run).
 SPREAD_SEEDS = (1, 2, 3, 4)
 
@@ -212,15 +216,12 @@ VARIANTS: dict[str, dict[str, object]] = {
                          "model.training.local_starts": 3},
     # Label noise divided by the square root of the label's count in its cell (and
     # weighed by its share, as label-weights); with the learned g, and with g = 1.
-    "label-count": {"samples.label_weights": "count"},
-    "label-count-fixed-scale": {"samples.label_weights": "count",
-                                "model.training.learn_input_noise_scale": False},
+    "label-count": _LABEL_COUNT,
+    "label-count-fixed-scale": _LABEL_COUNT_FIXED_SCALE,
     # The classifier's re-fitted offset kept among the latent means it is fitted on:
     # alone, and with the count-weighted labels and g = 1.
-    "latent-offset": {"model.training.classifier_offset_range": "latent"},
-    "label-count-fixed-scale-latent-offset": {
-        "samples.label_weights": "count", "model.training.learn_input_noise_scale": False,
-        "model.training.classifier_offset_range": "latent"},
+    "latent-offset": _LATENT_OFFSET,
+    "label-count-fixed-scale-latent-offset": {**_LABEL_COUNT_FIXED_SCALE, **_LATENT_OFFSET},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.
