@@ -101,7 +101,8 @@ _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "model.blend_overlap": 1.0,
               "samples.hit_gap_m": 0.25,
               "model.training.classifier_temperature": "none",
-              "model.training.classifier_offset": "holdout"}
+              "model.training.classifier_offset": "holdout",
+              "samples.label_weights": "none"}
 _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}
 _HIT_PATCHES = {**_LEARNED, "model.training.patch_centres": "hits",
@@ -111,10 +112,11 @@ _THIN_N192 = {"samples.thin_cell_m": 0.1, "model.neighbours": 192}
 _THIN_N256 = {**_THIN_N192, "model.neighbours": 256}
 _THIN_N256_FIXED_SCALE = {**_THIN_N256, "model.training.learn_input_noise_scale": False}
 _ACCURATE_POSES = {**_THIN_N256_FIXED_SCALE, "samples.free_spacing_m": 0.3}
-#: Count-weighted labels, then with g = 1; the classifier's offset among the latent means.
-_LABEL_COUNT = {"samples.label_weights": "count"}
-_LABEL_COUNT_FIXED_SCALE = {**_LABEL_COUNT, "model.training.learn_input_noise_scale": False}
-_LATENT_OFFSET = {"model.training.classifier_offset_range": "latent"}
+#: The three settings whose defaults changed last, at their values before: every kept
+#: sample weighs the same, g is learned, the classifier's offset may run to +-100.
+_BEFORE_COUNT = {"samples.label_weights": "none",
+                 "model.training.learn_input_noise_scale": True,
+                 "model.training.classifier_offset_range": "wide"}
 #: Learning seeds of the run-to-run spread (seed 0 is the defaults' run).
 SPREAD_SEEDS = (1, 2, 3, 4)
 
@@ -136,14 +138,10 @@ VARIANTS: dict[str, dict[str, object]] = {
     "neighbours-256": {**_HIT_PATCHES, "model.neighbours": 256},
     "fixed-scale": {"model.training.learn_input_noise_scale": False},
     "two-draw": {"model.diagonal": "two-draw"},
-    "two-draw-fixed-scale": {"model.diagonal": "two-draw",
-                             "model.training.learn_input_noise_scale": False},
     "hit-gap-0.25": {"samples.hit_gap_m": 0.25},
-    "hit-gap-0.15": {"samples.hit_gap_m": 0.15},
     "hit-gap-0.1": {"samples.hit_gap_m": 0.1},
     "no-temperature": {"model.training.classifier_temperature": "none"},
     "temperature": {"model.training.classifier_temperature": "samples"},
-    "temperature-beams": {"model.training.classifier_temperature": "beams"},
     "temperature-latent": {"model.training.classifier_temperature": "samples",
                            "model.training.classifier_variance": "latent"},
     "label-map": {"model.training.classifier_variance": "label-map"},
@@ -175,11 +173,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     # logs, picked on the real logs' held-out points as logged (so not checked apart).
     "accurate-poses": _ACCURATE_POSES,
     # The classifier's offset fitted on left-out samples (leave-one-out, as published)
-    # instead of on held-out scans' points with its temperature.
-    "offset-holdout": {"model.training.classifier_offset": "holdout"},
-    # The classifier's offset fitted on held-out scans' points with its temperature (as
-    # the held-out protocols draw them) instead of on left-out samples.
-    "offset-beams": {"model.training.classifier_offset": "beams"},
+    # instead of on held-out scans' points with its temperature, with the settings of
+    # before-count (the family of variants that change one of its settings, HOLDOUT_BASED).
+    "offset-holdout": {**_BEFORE_COUNT, "model.training.classifier_offset": "holdout"},
     "accurate-poses-offset-beams": {**_ACCURATE_POSES,
                                     "model.training.classifier_offset": "beams"},
     # The same with more of the finer samples per local problem, or free samples as
@@ -192,19 +188,12 @@ VARIANTS: dict[str, dict[str, object]] = {
     # Finer samples and more neighbours (g learned) with the default classifier offset.
     "thin-0.1-n192-offset-beams": {**_THIN_N192, "model.training.classifier_offset": "beams"},
     "thin-0.1-n256-offset-beams": {**_THIN_N256, "model.training.classifier_offset": "beams"},
-    # g = 1 (learned kernel, label noise and classifier as by default), with the default
-    # classifier offset: sharper walls where the learned g runs to its bound.
-    "fixed-scale-offset-beams": {"model.training.learn_input_noise_scale": False,
-                                 "model.training.classifier_offset": "beams"},
     # Cheaper steps toward finer samples: each local problem covers less area than 0.15
     # and 128 did (fewer neighbours per sample density).
     "thin-0.1-n160-offset-beams": {**_THIN_N192, "model.neighbours": 160,
                                    "model.training.classifier_offset": "beams"},
     "thin-0.12-n160-offset-beams": {"samples.thin_cell_m": 0.12, "model.neighbours": 160,
                                     "model.training.classifier_offset": "beams"},
-    "thin-0.1-n192-fixed-scale-offset-beams": {
-        **_THIN_N192, "model.training.learn_input_noise_scale": False,
-        "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
@@ -214,22 +203,22 @@ VARIANTS: dict[str, dict[str, object]] = {
     "scoring": {"model.training.local_search": "scoring"},
     "scoring-3-starts": {"model.training.local_search": "scoring",
                          "model.training.local_starts": 3},
-    # Label noise divided by the square root of the label's count in its cell (and
-    # weighed by its share, as label-weights); with the learned g, and with g = 1.
-    "label-count": _LABEL_COUNT,
-    "label-count-fixed-scale": _LABEL_COUNT_FIXED_SCALE,
-    # The classifier's re-fitted offset kept among the latent means it is fitted on:
-    # alone, and with the count-weighted labels and g = 1.
-    "latent-offset": _LATENT_OFFSET,
-    "label-count-fixed-scale-latent-offset": {**_LABEL_COUNT_FIXED_SCALE, **_LATENT_OFFSET},
+    # The defaults before count-weighted labels, g = 1 and the latent offset range, and
+    # each of the three changes undone alone.
+    "before-count": _BEFORE_COUNT,
+    "no-label-weights": {"samples.label_weights": "none"},
+    "share-labels": {"samples.label_weights": "share"},
+    "learned-g": {"model.training.learn_input_noise_scale": True},
+    "wide-offset": {"model.training.classifier_offset_range": "wide"},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.
     **{f"seed-{k}": {"seed": k} for k in SPREAD_SEEDS},
 }
 #: Variants that change one setting of ``offset-holdout`` (the classifier's offset fitted
-#: on left-out samples): each pins that offset and is compared with ``offset-holdout``'s
-#: run (:func:`base_of`), so its stored run stays the run of its overrides.
+#: on left-out samples, with the settings of ``before-count``): each pins those and is
+#: compared with ``offset-holdout``'s run (:func:`base_of`), so its stored run stays the
+#: run of its overrides.
 HOLDOUT_BASED = ("hit-gap-0.25", "no-temperature", "label-map", "fixed-scale", "thin-0.1",
                  "patches-20", "label-weights", "anneal-1", "bounds-6", "g-max-16",
                  "floor-0.03", "overlap-0.5", "clearance-0", "pose-scale",
@@ -237,7 +226,8 @@ HOLDOUT_BASED = ("hit-gap-0.25", "no-temperature", "label-map", "fixed-scale", "
                  "thin-0.1-n256-fixed-scale", "accurate-poses", "isotropic",
                  "calibration-along-beam")
 for _name in HOLDOUT_BASED:
-    VARIANTS[_name] = {**VARIANTS[_name], **VARIANTS["offset-holdout"]}
+    VARIANTS[_name] = {**VARIANTS[_name], **{k: v for k, v in VARIANTS["offset-holdout"].items()
+                                             if k not in VARIANTS[_name]}}
 
 
 def base_of(name: str) -> str:

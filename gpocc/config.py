@@ -107,10 +107,10 @@ class UnscentedConfig:
     kappa: float = 0.0
 
 
-#: The values of ``model.training.classifier_offset_range`` (the first is the default).
+#: The values of ``model.training.classifier_offset_range``.
 OFFSET_RANGES: tuple[str, ...] = ("wide", "latent")
 
-#: The values of ``samples.label_weights`` (the first is the default).
+#: The values of ``samples.label_weights``.
 LABEL_WEIGHTS: tuple[str, ...] = ("none", "share", "count")
 
 
@@ -151,22 +151,19 @@ class SamplesConfig:
     variance, like its hit (false: free samples carry no range variance, as published);
     see gpocc.samples.beams.build_samples.
 
-    ``label_weights`` (with thinning): ``none`` (default, as published) gives every kept
-    sample the learned label noise; ``share`` multiplies it by 1 / (the share of the
-    sample's label among all samples counted in its cell, up to 1000), so a kept sample
-    weighs as the labels it stands for: in a cell seen free 90 times and occupied 10
-    times, the GP's mean there leans to the count-weighted -0.8 instead of the 0 of one
-    sample each (for samples at one point, the GP of every counted label exactly).
-    Against the defaults on ``make experiment`` (docs/results.md, "Against other
-    settings", variant ``label-weights``) it ranks better (held-out union AUC, per-cell
-    AUC) and is less well calibrated (union and per-cell Brier), so it is a knob, not the
-    default; docs/guide.md has the figures. ``count`` does what ``share`` does and also
-    divides the noise by the label's count in the cell to the power
-    ``label_count_power``: a wall cell hit by a hundred beams pins the map harder than
-    a cell one beam crossed. In a cell that saw one label, power 1 is the GP of every
-    counted sample as an independent observation at one point; lower powers temper it,
-    since a cell's samples share their scans' pose errors. The learned label noise is
-    then that of a sample counted once.
+    ``label_weights`` (with thinning): ``none`` (as published) gives every kept sample
+    the learned label noise; ``share`` multiplies it by 1 / (the share of the sample's
+    label among all samples counted in its cell, up to 1000), so a kept sample weighs as
+    the labels it stands for: in a cell seen free 90 times and occupied 10 times, the
+    GP's mean there leans to the count-weighted -0.8 instead of the 0 of one sample each
+    (for samples at one point, the GP of every counted label exactly). ``count``
+    (default) does what ``share`` does and also divides the noise by the label's count in
+    the cell to the power ``label_count_power``: a wall cell hit by a hundred beams pins
+    the map harder than a cell one beam crossed. In a cell that saw one label, power 1 is
+    the GP of every counted sample as an independent observation at one point; lower
+    powers temper it, since a cell's samples share their scans' pose errors. The learned
+    label noise is then that of a sample counted once. docs/results.md ("Against other
+    settings", variants ``no-label-weights`` and ``share-labels``) measures the others.
     """
 
     free_spacing_m: float = 0.4
@@ -178,7 +175,7 @@ class SamplesConfig:
     min_label_share: float = 0.0
     free_clearance_m: float = 0.05
     free_range_variance: bool = False
-    label_weights: str = "none"
+    label_weights: str = "count"
     label_count_power: float = 0.5
     unscented: UnscentedConfig = field(default_factory=UnscentedConfig)
 
@@ -193,7 +190,7 @@ class SamplesConfig:
     def weighs_labels(self) -> bool:
         """Whether kept samples carry label-noise factors (``label_weights``: ``share``
         or ``count``)."""
-        return self.thin_cell_m > 0 and self.label_weights in LABEL_WEIGHTS[1:]
+        return self.thin_cell_m > 0 and self.label_weights != "none"
 
 
 @dataclass(frozen=True)
@@ -271,21 +268,19 @@ class TrainingConfig:
     there too: probabilities calibrated where beams end, hits and the free space along and
     in front of them, as map cells are predicted. ``holdout`` keeps the leave-one-out
     fit's offset (docs/results.md, "Against other settings", variant ``offset-holdout``).
-    ``classifier_offset_range``: the range of that re-fitted offset c. ``wide`` (default)
-    within +-100; ``latent`` within the largest |mu| of the points it is fitted on, so the
-    decision stays among the latent means it saw. Where those means barely separate the
+    ``classifier_offset_range``: the range of that re-fitted offset c. ``wide`` within
+    +-100; ``latent`` (default) within the largest |mu| of the points it is fitted on, so
+    the decision stays among the latent means it saw. Where those means barely separate the
     labels, a wide fit can run c and T far out together, and p then follows the latent
     variance alone (gpocc.gp.classify.fit_offset_and_temperature).
     ``learn_input_noise_scale``: also learn a scale g on every input covariance (S -> g S,
     pose factors -> sqrt(g) A; gpocc.gp.inputscale) within ``[min_input_noise_scale,
-    max_input_noise_scale]``, starting at 1; false keeps g = 1. Defaults (g learned, label
-    noise floor 0.1) were chosen on bench/experiment.py's suite (docs/results.md,
-    'Summary', made with ``--variant learned-scale-floor-0.1``); the method as published
-    is ``learn_input_noise_scale: false`` with ``min_noise_variance: 0.01`` (variant
-    ``published``). g often ends on its upper bound (the patches' likelihood keeps rising
-    with it); g = 1 (variant ``fixed-scale``, docs/results.md "Against other settings")
-    ranks better per cell but is less well calibrated on every held-out case and worse on
-    both real logs, so g stays learned. ``input_noise_scale_part``: what g scales,
+    max_input_noise_scale]``, starting at 1; false (default) keeps g = 1, the covariances
+    as the config and the log state them. A learned g often ends on its upper bound: the
+    patches' likelihood keeps rising with it while the maps' walls blur (variant
+    ``learned-g``, docs/results.md "Against other settings"). The method as published is
+    ``learn_input_noise_scale: false`` with ``min_noise_variance: 0.01`` (variant
+    ``published``). ``input_noise_scale_part``: what g scales,
     ``all`` of each input's covariance (default) or only its ``pose`` part (the scan's
     pose error, ``pose_factors``; the sensor's range and bearing noise stay as stated).
     ``calibration_near_wall``: near-wall free points per hit (0.05-0.3 m in front of it,
@@ -320,14 +315,14 @@ class TrainingConfig:
     min_noise_variance: float = 0.1
     classifier_holdout: str = "sample"
     classifier_offset: str = "beams"
-    classifier_offset_range: str = "wide"
+    classifier_offset_range: str = "latent"
     classifier_variance: str = "label"
     classifier_temperature: str = "beams"
     calibration_every: int = 10
     calibration_blocks: int = 64
     calibration_near_wall: int = 1
     calibration_max_position_std_m: float = 0.075
-    learn_input_noise_scale: bool = True
+    learn_input_noise_scale: bool = False
     min_input_noise_scale: float = 0.05
     max_input_noise_scale: float = 4.0
     input_noise_scale_part: str = "all"

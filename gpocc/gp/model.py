@@ -162,7 +162,13 @@ def build_model(
     the initial values and learning searched as without them). ``refine_iterations``:
     at most this many refinement steps from it (default
     ``model.training.lbfgs_maxiter``).
+    Samples without label-noise factors (made without counting each cell's labels, not
+    by :func:`gpocc.samples.beams.finish_samples`) weigh once each, and the model's config
+    says so (``samples.label_weights: none``) whatever ``config`` asked.
     """
+    if config.samples.weighs_labels and samples.noise_factors is None:
+        config = dataclasses.replace(
+            config, samples=dataclasses.replace(config.samples, label_weights="none"))
     model_cfg = config.model
     if not model_cfg.input_noise:
         samples = samples.without_input_noise()

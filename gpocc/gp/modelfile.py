@@ -215,7 +215,9 @@ def _classifier(record: Any, version: Any) -> PlattClassifier:
 #: Settings whose default changed after model files were written without them: the value
 #: such a file was trained with (dotted key, value).
 _OLDER_DEFAULTS = (("samples.free_clearance_m", 0.0), ("model.training.patch_centres", "samples"),
-                   ("model.training.classifier_temperature", "none"))
+                   ("model.training.classifier_temperature", "none"),
+                   ("samples.label_weights", "none"),
+                   ("model.training.classifier_offset_range", "wide"))
 
 
 def _with_settings_of_older_files(config: dict) -> dict:

@@ -56,6 +56,12 @@ def test_summary_counts_wins_per_protocol_and_the_page_is_stamped():
         assert f"## Protocol `{protocol}`" in text
 
 
+#: What ``offset-holdout`` and the variants of it pin, as the page lists overrides.
+PINNED = ("`samples.label_weights: none`, `model.training.learn_input_noise_scale: True`, "
+          "`model.training.classifier_offset_range: wide`, "
+          "`model.training.classifier_offset: holdout`")
+
+
 def test_the_page_compares_the_gp_with_each_variant_case_by_case():
     run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
     other = _run(("grid", "gp-no-input-noise", "gp-input-noise"))["cases"]
@@ -65,8 +71,7 @@ def test_the_page_compares_the_gp_with_each_variant_case_by_case():
             scores["gp-input-noise"] = _scores(rng)
     other = other[1:]
     text = experiment.page(run, {"offset-holdout": other})
-    assert ("| offset-holdout | `model.training.classifier_offset: holdout` | this run |"
-            in text)
+    assert ("| offset-holdout | " + PINNED + " | this run |") in text
     ours = {c["case"]: c["scores"] for c in run["cases"]}
     for protocol in ("union", "cells"):
         pairs = [(ours[c["case"]][protocol]["gp-input-noise"],
@@ -96,8 +101,8 @@ def test_a_variant_of_another_variant_is_compared_with_that_variants_run():
                 scores["gp-input-noise"] = _scores(rng)
     text = experiment.page(run, runs)
     lines = text.splitlines()
-    assert ("| hit-gap-0.25 | `samples.hit_gap_m: 0.25`, "
-            "`model.training.classifier_offset: holdout` | offset-holdout |") in lines
+    assert ("| hit-gap-0.25 | `samples.hit_gap_m: 0.25`, " + PINNED
+            + " | offset-holdout |") in lines
     assert not any("vs gp-input-noise (hit-gap-0.25)" in x and "(offset-holdout) vs" not in x
                    for x in lines)
     for protocol in ("union", "cells"):
@@ -592,6 +597,19 @@ def test_every_variant_overrides_keys_a_config_has(tmp_path, name):
         for part in key.split("."):
             node = node[part]
         assert (list(node) if isinstance(node, tuple) else node) == value, key
+
+
+@pytest.mark.parametrize("name", sorted(set(experiment.VARIANTS) - {"defaults"}))
+def test_every_variant_changes_a_setting_of_the_defaults(tmp_path, name):
+    """A variant whose overrides all equal today's defaults would compare the defaults
+    with themselves (as one does when a default changes to its value)."""
+    from bench.paths import INTEL_CONFIG
+    from gpocc.config import load_config
+
+    def loaded(overrides: dict, file: str):
+        return load_config(experiment.with_overrides(INTEL_CONFIG, overrides, tmp_path / file))
+
+    assert loaded(experiment.VARIANTS[name], "variant.yaml") != loaded({}, "defaults.yaml")
 
 
 def test_a_stored_splits_defaults_do_not_pin_the_gps_settings(tmp_path):

@@ -170,7 +170,9 @@ def test_model_refits_its_offset_on_the_heldout_beams():
         model.kernel, model.noise_variance, model.samples, calib, model.level, 64, 1.0, 20,
         np.random.default_rng(config.seed + 2))
     assert model.training["classifier_points"] == labels.size > 0
-    assert model.classifier == fit_offset(mean, var, labels, plain.classifier.extra_variance)
+    assert model.classifier == fit_offset(
+        mean, var, labels, plain.classifier.extra_variance,
+        bound=offset_bound(mean, config.model.training.classifier_offset_range))
     assert model.classifier.offset != plain.classifier.offset
 
 

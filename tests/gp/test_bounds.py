@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from scipy.special import ndtr
 from typer.testing import CliRunner
 
@@ -46,7 +47,8 @@ def _platt_case(separable: bool, seed: int = 0) -> tuple[np.ndarray, np.ndarray,
 
 
 def _model(**training: object) -> GPModel:
-    config = Config(model=ModelConfig(training=TrainingConfig(**training)))
+    config = Config(model=ModelConfig(training=TrainingConfig(
+        **{"learn_input_noise_scale": True, **training})))
     cfg = config.model
     kernel = make_kernel(cfg.kernel, cfg.hyperparameters)
     classifier = fit_platt(*_platt_case(separable=False))
@@ -127,8 +129,11 @@ def _independent_box(model: GPModel) -> dict[str, tuple[float, float, float]]:
 
 def test_train_warns_and_info_shows_exactly_the_values_on_their_bounds(tmp_path):
     out = tmp_path / "m.npz"
-    result = CliRunner().invoke(app, ["train", str(SAMPLE), "--config", str(SAMPLE_CONFIG),
-                                      "--out", str(out)])
+    config = yaml.safe_load(SAMPLE_CONFIG.read_text())  # with g learned: one more value
+    config.setdefault("model", {}).setdefault("training", {})["learn_input_noise_scale"] = True
+    (tmp_path / "learned-g.yaml").write_text(yaml.safe_dump(config))
+    result = CliRunner().invoke(app, ["train", str(SAMPLE), "--config",
+                                      str(tmp_path / "learned-g.yaml"), "--out", str(out)])
     assert result.exit_code == 0, result.output
     model = load_model(out)
     assert model.config.model.training.learn_input_noise_scale

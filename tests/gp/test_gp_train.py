@@ -371,25 +371,35 @@ def test_one_scan_patch_cannot_be_held_out():
 
 def test_model_files_without_the_new_keys_load_with_the_settings_they_were_trained_with(
         tmp_path):
-    """A file written before ``patch_centres`` and ``free_clearance_m`` existed was trained
-    with all-sample patches and no clearance; a new file keeps what it states."""
+    """A file written before ``patch_centres``, ``free_clearance_m``, ``label_weights``
+    and ``classifier_offset_range`` existed was trained with all-sample patches, no
+    clearance, unweighted labels and the wide offset range; a new file keeps what it
+    states."""
 
     from gpocc.config import Config
     from gpocc.gp.model import GPModel, load_model, save_model
 
+    samples = _correlated_problem()
     model = GPModel(kernel=NeuralNetworkKernel(), noise_variance=0.1,
-                    classifier=PlattClassifier(), samples=_correlated_problem(),
+                    classifier=PlattClassifier(),
+                    samples=dataclasses.replace(samples, noise_factors=np.ones(len(samples))),
                     config=Config(), input_noise=True)
     path = tmp_path / "m.npz"
     save_model(model, path)
-    new = load_model(path).config
-    assert (new.model.training.patch_centres, new.samples.free_clearance_m) == ("hits", 0.05)
+
+    def settings(config):
+        return (config.model.training.patch_centres, config.samples.free_clearance_m,
+                config.samples.label_weights, config.model.training.classifier_offset_range)
+
+    assert settings(load_model(path).config) == ("hits", 0.05, "count", "latent")
     arrays, meta = read_model_file(path)
     del meta["config"]["model"]["training"]["patch_centres"]
     del meta["config"]["samples"]["free_clearance_m"]
+    del meta["config"]["samples"]["label_weights"]
+    del meta["config"]["model"]["training"]["classifier_offset_range"]
+    del arrays["noise_factors"]
     write_model_file(path, arrays, meta)
-    old = load_model(path).config
-    assert (old.model.training.patch_centres, old.samples.free_clearance_m) == ("samples", 0.0)
+    assert settings(load_model(path).config) == ("samples", 0.0, "none", "wide")
 
 
 def test_isotropic_learning_ties_each_axis_pair_at_a_stationary_point_of_the_tie():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from modelfiles import read_model_file, write_model_file
 
-from gpocc.config import Config, ModelConfig, TrainingConfig
+from gpocc.config import Config, ModelConfig, SamplesConfig, TrainingConfig
 from gpocc.gp.expected import expected_kernel_matrix, expected_se_closed_form_pairs
 from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
@@ -172,7 +172,8 @@ def test_files_without_a_scale_load_with_the_stated_covariances(tmp_path):
     samples = dataclasses.replace(samples, covariances=samples.covariances * 3.0)
     model = GPModel(kernel=SquaredExponentialKernel(), noise_variance=0.1,
                     classifier=PlattClassifier(), samples=samples,
-                    config=Config(model=ModelConfig(kernel="se")), input_noise=True,
+                    config=Config(model=ModelConfig(kernel="se"),
+                                  samples=SamplesConfig(label_weights="none")), input_noise=True,
                     input_noise_scale=3.0)
     path = tmp_path / "m.npz"
     save_model(model, path)
@@ -271,7 +272,8 @@ def test_train_and_info_say_when_g_scales_the_pose_part(tmp_path):
 
     sample = Path(__file__).resolve().parents[2] / "data" / "sample"
     config = yaml.safe_load((sample / "sample.yaml").read_text())
-    config.setdefault("model", {}).setdefault("training", {})["input_noise_scale_part"] = "pose"
+    training = config.setdefault("model", {}).setdefault("training", {})
+    training.update(input_noise_scale_part="pose", learn_input_noise_scale=True)
     (tmp_path / "pose.yaml").write_text(yaml.safe_dump(config))
     out = tmp_path / "m.npz"
     trained = CliRunner().invoke(app, ["train", str(sample / "intel_sample.mcap"), "--config",

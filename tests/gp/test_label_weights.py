@@ -94,8 +94,8 @@ def test_finish_samples_weights_each_label_by_its_share():
                zip(samples.means, samples.labels, samples.noise_factors, strict=True)}
     assert by_cell == pytest.approx({(0.05, 1): 10.0, (0.05, -1): 10 / 9, (0.35, 1): 8 / 6,
                                      (0.35, -1): 4.0, (0.65, -1): 1.0})
-    plain = finish_samples(pool, Config(samples=SamplesConfig(thin_cell_m=0.25,
-                                                              free_clearance_m=0.0)))
+    plain = finish_samples(pool, Config(samples=SamplesConfig(
+        thin_cell_m=0.25, free_clearance_m=0.0, label_weights="none")))
     assert plain.noise_factors is None and len(plain) == len(kept)
     # With min_label_share the rare label goes first; the rest keep their factors.
     both = finish_samples(pool, Config(samples=SamplesConfig(

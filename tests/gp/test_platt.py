@@ -105,11 +105,12 @@ def test_numpy_and_compiled_kernels_give_the_same_classifier():
 
 
 def _saved_model(tmp_path, classifier: PlattClassifier):
-    from gpocc.config import Config
+    from gpocc.config import Config, SamplesConfig
     from gpocc.gp.model import GPModel, save_model
 
     model = GPModel(kernel=NeuralNetworkKernel(2.0, 1.0, (3.0, 3.0)), noise_variance=0.02,
-                    classifier=classifier, samples=room_samples(), config=Config(),
+                    classifier=classifier, samples=room_samples(),
+                    config=Config(samples=SamplesConfig(label_weights="none")),
                     input_noise=True)
     path = tmp_path / "model.npz"
     save_model(model, path)

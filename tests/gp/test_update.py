@@ -41,7 +41,8 @@ samples:
   min_label_share: 0.1
 model:
   neighbours: 48
-  training: {patches: 3, patch_size: 48, anneal_maxfun: 4, lbfgs_maxiter: 4}
+  training: {patches: 3, patch_size: 48, anneal_maxfun: 4, lbfgs_maxiter: 4,
+             learn_input_noise_scale: true}
 """
 
 
@@ -520,7 +521,8 @@ def test_a_pose_only_scale_survives_an_update(logs, tmp_path):
     """A model that scales the pose part of its inputs only: relearned on all logs by
     ``update`` it is the model of training on all logs (samples, scale, kernel)."""
     both, up = _trained_and_relearned(logs, tmp_path, CONFIG.replace(
-        "lbfgs_maxiter: 4}", "lbfgs_maxiter: 4, input_noise_scale_part: pose}"))
+        "learn_input_noise_scale: true}",
+        "learn_input_noise_scale: true, input_noise_scale_part: pose}"))
     assert up.config.model.training.input_noise_scale_part == "pose"
     _same_samples(both.samples, up.samples)
     assert both.input_noise_scale == up.input_noise_scale != 1.0
@@ -536,7 +538,8 @@ def _raw_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict]:
 @pytest.mark.parametrize("config_text", [
     CONFIG,
     CONFIG.replace("neighbours: 48", "neighbours: 48\n  input_noise: false"),
-    CONFIG.replace("lbfgs_maxiter: 4}", "lbfgs_maxiter: 4, input_noise_scale_part: pose}"),
+    CONFIG.replace("learn_input_noise_scale: true}",
+                   "learn_input_noise_scale: true, input_noise_scale_part: pose}"),
 ])
 def test_a_model_file_stores_its_samples_as_rows_of_its_pool(logs, tmp_path, config_text):
     from gpocc.commands.train import learn_model

@@ -70,7 +70,7 @@ def test_lidar_bag_without_config_maps_walls_and_the_table_top(tmp_path):
     near = np.minimum(obstacle_distance(occupied[in_room], WALLS),
                       obstacle_distance(occupied[in_room], table))
     near[inside(occupied[in_room], TABLE) | inside(occupied[in_room], BOX)] = 0.0
-    assert in_room.sum() > 100 and near.max() <= 0.26
+    assert in_room.sum() > 60 and near.max() <= 0.26
     # The table top at 0.75 m is in the band: where the lidar's rising rings reach its
     # height over its footprint they hit it (the lower rings pass under it, as a planar
     # laser at 0.45 m would, and clear the rest).
