@@ -65,9 +65,10 @@ bench: $(BENCH_STAMP) bytecode
 
 # The bench extra gives the suite its OctoMap rows (left out with a note without it).
 # The variants the defaults are compared with on the page ("Against other settings"):
-# each changes one default (bench/experiment.py VARIANTS). Any variant can be added, e.g.
-# make experiment EXPERIMENT_COMPARE="$(EXPERIMENT_COMPARE) offset-holdout hit-gap-0.25":
-# the variants of offset-holdout (HOLDOUT_BASED) are compared with its run.
+# each changes one default, or (before-count) the three changed last (bench/experiment.py
+# VARIANTS). Any list can be given, e.g.
+#   make experiment EXPERIMENT_COMPARE="before-count offset-holdout hit-gap-0.25"
+# (the variants of offset-holdout, HOLDOUT_BASED, need its run beside them).
 EXPERIMENT_COMPARE ?= before-count learned-g no-label-weights wide-offset two-draw \
 	thin-0.1-n192-offset-beams
 # The defaults learned with other seeds (bench/experiment.py's SPREAD_SEEDS): the page's

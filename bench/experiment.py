@@ -89,10 +89,9 @@ PROTOCOLS = (*HELDOUT_PROTOCOLS, *CELL_PROTOCOLS)
 DOC = ROOT / "docs" / "results.md"
 
 #: Config overrides (dotted keys) of the GP rows per variant; ``defaults`` is gpocc as
-#: shipped. The others pin every setting they depend on (the classifier hold-out, the
-#: label-noise floor, whether g is learned, the patch centres, the free-sample clearance,
-#: the blend overlap, the hit gap, the classifier temperature), so that they keep their
-#: meaning when defaults change.
+#: shipped. Most change one or a few settings of the defaults; the families of
+#: ``published`` and ``offset-holdout`` pin the settings they depend on, so that they keep
+#: their meaning when defaults change.
 _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "model.training.min_noise_variance": 0.01,
               "model.training.learn_input_noise_scale": False,
@@ -185,7 +184,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "accurate-poses-free-0.2-offset-beams": {**_ACCURATE_POSES,
                                              "samples.free_spacing_m": 0.2,
                                              "model.training.classifier_offset": "beams"},
-    # Finer samples and more neighbours (g learned) with the default classifier offset.
+    # Finer samples and more neighbours with the default classifier offset.
     "thin-0.1-n192-offset-beams": {**_THIN_N192, "model.training.classifier_offset": "beams"},
     "thin-0.1-n256-offset-beams": {**_THIN_N256, "model.training.classifier_offset": "beams"},
     # Cheaper steps toward finer samples: each local problem covers less area than 0.15

@@ -122,10 +122,9 @@ class SamplesConfig:
     short of the hit by ``hit_gap_m`` or ``hit_gap_sigmas`` range standard deviations,
     whichever is larger (the true surface may be that much nearer than the reading).
     The band this leaves empty before each hit is what blurs walls (the GP carries the
-    hits' +1 into it); 0.15 m (default; 0.25 before) lowers the held-out union Brier score
-    on most cases of ``make experiment`` and raises union AUC on most (docs/results.md,
-    "Against other settings", variant ``hit-gap-0.25``); shorter gaps raise the learned
-    label noise and smooth the whole map (docs/walls.md).
+    hits' +1 into it); 0.15 m is the default (0.25 before: ``make experiment``'s variant
+    ``hit-gap-0.25`` measures it); shorter gaps raise the learned label noise and smooth
+    the whole map (docs/walls.md).
     ``thin_cell_m`` keeps at most one sample of each label
     per square cell of that side (the most certain one), which bounds the training set by
     the mapped area instead of the log length; 0 disables thinning.
@@ -142,10 +141,7 @@ class SamplesConfig:
     ``free_clearance_m`` drops free samples within that distance of an occupied sample
     (after thinning): beams that graze a wall leave free samples centimetres from its
     hits, and held-out hits on that wall then come out free. 0 keeps them (the method as
-    published). Against 0 (docs/results.md, "Against other settings", variant
-    ``clearance-0``) 0.05 ranks better on the simulated worlds (per-cell and union AUC)
-    but calibrates worse where beams graze walls: the real logs' held-out union Brier
-    is higher with it (docs/guide.md has the figures).
+    published; ``make experiment``'s variant ``clearance-0`` measures it).
 
     ``free_range_variance``: free samples of a beam that hit carry that beam's range
     variance, like its hit (false: free samples carry no range variance, as published);
@@ -163,7 +159,8 @@ class SamplesConfig:
     the GP of every counted sample as an independent observation at one point; lower
     powers temper it, since a cell's samples share their scans' pose errors. The learned
     label noise is then that of a sample counted once. docs/results.md ("Against other
-    settings", variants ``no-label-weights`` and ``share-labels``) measures the others.
+    settings", variant ``no-label-weights``) compares ``none``; variant ``share-labels``
+    of ``make experiment`` measures ``share``.
     """
 
     free_spacing_m: float = 0.4
@@ -258,16 +255,14 @@ class TrainingConfig:
     latent variance (``samples``) or on labelled points of held-out scans predicted as
     map cells are (``beams``, default: the points of ``classifier_offset: beams``): the
     probabilities of map cells move, their ranking (AUC) does not (gpocc.gp.classify).
-    ``beams`` against ``none`` on ``make experiment``: held-out union and per-cell Brier
-    scores lower on most cases (docs/results.md, "Against other settings", variant
-    ``no-temperature``).
+    ``make experiment``'s variant ``no-temperature`` measures ``none``.
     ``classifier_offset: beams`` (default) then re-fits the classifier's offset on
     labelled points of every ``calibration_every``-th scan (those known to
     ``calibration_max_position_std_m``), predicted from the other scans' samples in up to
     ``calibration_blocks`` map blocks, together with the temperature when that is fitted
     there too: probabilities calibrated where beams end, hits and the free space along and
     in front of them, as map cells are predicted. ``holdout`` keeps the leave-one-out
-    fit's offset (docs/results.md, "Against other settings", variant ``offset-holdout``).
+    fit's offset (``make experiment``'s variant ``offset-holdout``).
     ``classifier_offset_range``: the range of that re-fitted offset c. ``wide`` within
     +-100; ``latent`` (default) within the largest |mu| of the points it is fitted on, so
     the decision stays among the latent means it saw. Where those means barely separate the
@@ -859,6 +854,12 @@ def load_config(path: str | Path | None) -> Config:
     """Read and validate a YAML config; ``None`` gives the defaults."""
     if path is None:
         return Config()
+    return config_from_dict(read_config_mapping(path), str(path))
+
+
+def read_config_mapping(path: str | Path) -> Any:
+    """The parsed YAML of a config file, before validation: the keys it states (what
+    :func:`load_config` fills with defaults)."""
     p = Path(path)
     if not p.is_file():
         raise GpoccError(f"{p}: config file not found; check the path")
@@ -876,7 +877,7 @@ def load_config(path: str | Path | None) -> Config:
         problem = getattr(exc, "problem", None)
         what = f" ({problem})" if problem else ""
         raise GpoccError(f"{p}: not valid YAML{where}{what}; fix the syntax") from None
-    return config_from_dict(data, str(p))
+    return data
 
 
 def config_to_dict(config: Config) -> dict[str, Any]:

@@ -10,7 +10,7 @@ import typer
 
 from gpocc.commands.options import Force, Inputs, check_at_least
 from gpocc.commands.train import echo_model
-from gpocc.config import load_config
+from gpocc.config import config_from_dict, read_config_mapping
 from gpocc.errors import GpoccError
 from gpocc.gp.model import load_model, save_model
 from gpocc.gp.update import REFINE_ITERATIONS, model_growth, update_config, update_model
@@ -51,8 +51,12 @@ def update(
     prepare_output(out, force, folder=False, inputs=[model_path, *inputs, config])
     started = time.perf_counter()
     model = load_model(model_path)
-    cfg = update_config(model, load_config(config) if config is not None else None,
-                        model_path, config)
+    given, stated = None, None
+    if config is not None:
+        stated = read_config_mapping(config)
+        given = config_from_dict(stated, str(config))
+        stated = stated or {}  # an empty file states nothing
+    cfg = update_config(model, given, model_path, config, stated)
     growth, lacking = model_growth(model)
     for note in lacking:
         log(f"note: {model_path} (model format of an older gpocc) does not keep {note}")

@@ -7,7 +7,9 @@ there or the box is too narrow. Checked are the Platt slope ``a`` and offset ``c
 search_bounds`), the kernel hyperparameters, the label-noise variance (whose lower
 bound is the floor ``min_noise_variance``) and the input-noise scale ``g``. A positive
 value is on a bound when its log is within ``log(1 + REL_TOL)`` of the bound's; the
-offset ``c`` when within ``REL_TOL * C_BOUND``.
+offset ``c`` when within ``REL_TOL`` times the bound its fit had (``C_BOUND``, or with
+``classifier_offset_range: latent`` the largest latent mean among its points, which the
+model's training record keeps as ``classifier_offset_bound``).
 """
 
 from __future__ import annotations
@@ -92,16 +94,27 @@ def learned_scale(model: GPModel) -> bool:
             and bool(np.any(model.samples.covariances)))
 
 
+def _offset_bound(training: object) -> float:
+    """The largest |c| the classifier's offset fit allowed, as the model's training
+    record states it (files written before it: :data:`C_BOUND`)."""
+    bound = training.get("classifier_offset_bound") if isinstance(training, dict) else None
+    valid = isinstance(bound, int | float) and math.isfinite(bound) and 0 < bound <= C_BOUND
+    return float(bound) if valid else C_BOUND
+
+
 def values_on_bounds(model: GPModel, rel_tol: float = REL_TOL) -> list[OnBound]:
     """Every learned value of ``model`` on a bound of its search (see the module doc)."""
     found = []
     a_lower, a_upper = 1.0 / math.sqrt(S_MAX), 1.0 / math.sqrt(S_MIN)
+    offset_box = _offset_bound(model.training)
     checks: list[tuple[str, float, float, float, bool, str]] = [
         ("classifier slope a", model.classifier.a, a_lower, a_upper, True,
          "gpocc.gp.classify.S_MIN/S_MAX; model.training.classifier_variance: latent "
          "fits it on the latent variance"),
-        ("classifier offset c", model.classifier.offset, -C_BOUND, C_BOUND, False,
-         "gpocc.gp.classify.C_BOUND"),
+        ("classifier offset c", model.classifier.offset, -offset_box, offset_box, False,
+         "gpocc.gp.classify.C_BOUND" if offset_box == C_BOUND else
+         "model.training.classifier_offset_range: latent, the largest latent mean among "
+         "its points"),
     ]
     if model.config.model.training.classifier_temperature != "none":
         checks.append(("classifier temperature T", model.classifier.temperature, T_MIN, T_MAX,

@@ -34,8 +34,9 @@ points whose position is known to ``calibration_max_position_std_m``:
 :mod:`gpocc.samples.heldout`), predicted as map cells are from the samples of all other
 scans, in up to ``calibration_blocks`` randomly chosen map blocks. Held-out hits lie on
 wall surfaces, where the latent mean crosses zero, so this offset makes the probability
-mean what it says at points where beams end, while the default is calibrated for map
-cells; docs/results.md (variant ``offset-beams``) measures both.
+mean what it says at points where beams end, while the leave-one-out offset is
+calibrated for the training samples (``make experiment``'s variant ``offset-holdout``
+measures both).
 
 ``model.training.classifier_temperature`` then divides the classifier's argument by a
 temperature ``T`` fitted on the same held-out predictions, their variances taken as a map

@@ -25,6 +25,7 @@ from gpocc.config import Config, config_to_dict
 from gpocc.errors import GpoccError
 from gpocc.gp import backends
 from gpocc.gp.classify import (
+    C_BOUND,
     MapFunction,
     PlattClassifier,
     beam_holdout_predictions,
@@ -188,8 +189,8 @@ def build_model(
         samples = scale_input_noise(samples, result.input_noise_scale,
                                     model_cfg.training.input_noise_scale_part)
         map_fn = map if client is None else cluster_map(client)
-        classifier, offset, points = _fit_classifier(result, samples, config, calibration,
-                                                     map_fn)
+        classifier, offset, points, bound = _fit_classifier(result, samples, config,
+                                                            calibration, map_fn)
     training = {
         "log_marginal_likelihood": result.log_marginal_likelihood,
         "initial_log_marginal_likelihood": result.initial_log_marginal_likelihood,
@@ -197,6 +198,7 @@ def build_model(
         "patches": list(result.patches),
         "classifier_holdout": model_cfg.training.classifier_holdout,
         "classifier_offset": offset,
+        "classifier_offset_bound": bound,
         "classifier_temperature": model_cfg.training.classifier_temperature,
         "classifier_points": points,
     }
@@ -228,9 +230,10 @@ def refit_model(
     with single_threaded_blas():
         samples = scale_input_noise(samples, kept.input_noise_scale,
                                     config.model.training.input_noise_scale_part)
-        classifier, offset, points = _fit_classifier(result, samples, config, calibration)
+        classifier, offset, points, bound = _fit_classifier(result, samples, config,
+                                                            calibration)
     training = {**kept.training, "classifier_holdout": config.model.training.classifier_holdout,
-                "classifier_offset": offset,
+                "classifier_offset": offset, "classifier_offset_bound": bound,
                 "classifier_temperature": config.model.training.classifier_temperature,
                 "classifier_points": points}
     return GPModel(
@@ -243,9 +246,10 @@ def refit_model(
 
 def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
                     calibration: CalibrationPoints | None, map_fn: MapFunction = map,
-                    ) -> tuple[PlattClassifier, str, int]:
+                    ) -> tuple[PlattClassifier, str, int, float]:
     """The Platt classifier of the learned GP, where its offset came from (``holdout`` or
-    ``beams``) and the number of held-out beam points it was fitted on (0 for holdout)."""
+    ``beams``), the number of held-out beam points it was fitted on (0 for holdout) and
+    the largest |offset| its fit allowed (:func:`gpocc.gp.classify.offset_bound`)."""
     model_cfg = config.model
     training = model_cfg.training
     backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
@@ -262,21 +266,23 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         classifier = dataclasses.replace(
             classifier, extra_variance=classifier.extra_variance + result.noise_variance)
     if not training.uses_beam_points:
-        return classifier, "holdout", 0
+        return classifier, "holdout", 0, C_BOUND
     if calibration is None or not calibration.usable:
         log("note: too few labelled points of held-out scans (every "
             f"{training.calibration_every}th scan) to fit the classifier's "
             + ("offset and temperature" if training.classifier_offset == "beams"
                else "temperature") + " on; kept the held-out samples' fit")
-        return classifier, "holdout", 0
+        return classifier, "holdout", 0, C_BOUND
     mean, variance, labels = beam_holdout_predictions(
         result.kernel, result.noise_variance, samples, calibration,
         model_cfg.quadrature_level, model_cfg.neighbours, model_cfg.block_size_m,
         training.calibration_blocks, np.random.default_rng(config.seed + 2),
         backend, map_fn)
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
-        return classifier, "holdout", 0
-    offset = "holdout"
+        return classifier, "holdout", 0, C_BOUND
+    offset, bound = "holdout", C_BOUND
+    if training.classifier_offset == "beams":
+        bound = offset_bound(mean, training.classifier_offset_range)
     if training.classifier_temperature == "beams":
         if separates(classifier, mean, labels):
             log(f"note: the classifier puts all {labels.size} labelled points of held-out "
@@ -284,15 +290,16 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
                 "kept the held-out samples' fit (temperature 1)")
         elif training.classifier_offset == "beams":
             classifier, offset = fit_offset_and_temperature(
-                mean, variance, labels, classifier.extra_variance,
-                offset_bound(mean, training.classifier_offset_range)), "beams"
+                mean, variance, labels, classifier.extra_variance, bound), "beams"
         else:
             classifier = fit_temperature(classifier, mean, variance, labels)
     elif training.classifier_offset == "beams":
         classifier, offset = fit_offset(
             mean, variance, labels, classifier.extra_variance, classifier.temperature,
-            offset_bound(mean, training.classifier_offset_range)), "beams"
-    return classifier, offset, int(labels.size)
+            bound), "beams"
+    if offset == "holdout":
+        bound = C_BOUND
+    return classifier, offset, int(labels.size), bound
 
 
 def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:

@@ -53,28 +53,38 @@ REFINE_ITERATIONS = 20
 MODEL_SECTIONS = ("samples", "model")
 
 
-def _differences(kept: object, given: object, prefix: str) -> list[str]:
-    if isinstance(kept, dict) and isinstance(given, dict):
-        return [d for key in kept for d in _differences(kept[key], given.get(key),
-                                                         f"{prefix}.{key}")]
+def _differences(kept: object, given: object, stated: object, prefix: str) -> list[str]:
+    """The dotted keys that the config file states (``stated``, its parsed YAML) with a
+    value (``given``, validated) other than the model's (``kept``)."""
+    if isinstance(kept, dict) and isinstance(stated, dict):
+        given = given if isinstance(given, dict) else {}
+        return [d for key in stated if key in kept
+                for d in _differences(kept[key], given.get(key), stated[key],
+                                      f"{prefix}.{key}")]
     return [] if kept == given else [prefix]
 
 
 def update_config(model: GPModel, given: Config | None, model_path: str | Path,
-                  config_path: str | Path | None) -> Config:
+                  config_path: str | Path | None, stated: object = None) -> Config:
     """The config of an update: the model's, with ``given``'s job settings (``seed``,
     ``sensors`` added to the model's, ``inputs``, ``classify``, ``map``, ``grid``).
+    ``stated``: the config file's parsed YAML (:func:`gpocc.config.read_config_mapping`):
+    only the ``samples`` and ``model`` keys it states are checked against the model's,
+    so that a default changed since the model was trained is no conflict (without it,
+    every key is checked).
 
     Raises:
-        GpoccError: ``given`` sets a ``samples`` or ``model`` key (the kernel, say) other
-            than the model's, or changes a sensor the model already holds.
+        GpoccError: ``given`` states a ``samples`` or ``model`` key (the kernel, say)
+            other than the model's, or changes a sensor the model already holds.
     """
     kept = model.config
     if given is None:
         return kept
     kept_dict, given_dict = config_to_dict(kept), config_to_dict(given)
+    stated_dict = stated if isinstance(stated, dict) else given_dict
     for section in MODEL_SECTIONS:
-        changed = _differences(kept_dict[section], given_dict[section], section)
+        changed = _differences(kept_dict[section], given_dict[section],
+                               stated_dict.get(section) or {}, section)
         if changed:
             raise GpoccError(
                 f"{config_path}: key '{changed[0]}' differs from the model {model_path}'s "

@@ -89,8 +89,8 @@ def test_the_page_compares_the_gp_with_each_variant_case_by_case():
 
 
 def test_a_variant_of_another_variant_is_compared_with_that_variants_run():
-    """``hit-gap-0.25`` pins ``offset-holdout``'s classifier offset: its table compares it
-    with that run's GP, not with this run's."""
+    """``hit-gap-0.25`` pins ``offset-holdout``'s settings: its table compares it with
+    that run's GP, not with this run's."""
     run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
     rng = np.random.default_rng(6)
     runs = {}
@@ -597,6 +597,28 @@ def test_every_variant_overrides_keys_a_config_has(tmp_path, name):
         for part in key.split("."):
             node = node[part]
         assert (list(node) if isinstance(node, tuple) else node) == value, key
+
+
+@pytest.mark.parametrize("name", experiment.HOLDOUT_BASED)
+def test_a_variant_of_offset_holdout_keeps_its_pins_and_changes_one_of_them(tmp_path, name):
+    """Each ``HOLDOUT_BASED`` variant states every setting ``offset-holdout`` pins, with
+    its own value where it changes one, and so differs from that run's config."""
+    from bench.paths import INTEL_CONFIG
+    from gpocc.config import load_config
+
+    base, variant = experiment.VARIANTS["offset-holdout"], experiment.VARIANTS[name]
+    assert set(base) <= set(variant)
+    assert all(variant[k] == v for k, v in base.items() if k not in _OWN.get(name, ()))
+    configs = [load_config(experiment.with_overrides(INTEL_CONFIG, o, tmp_path / f"{i}.yaml"))
+               for i, o in enumerate((base, variant))]
+    assert configs[0] != configs[1]
+
+
+#: The settings of offset-holdout that a variant of it changes (the others add a setting).
+_OWN = {"fixed-scale": ("model.training.learn_input_noise_scale",),
+        "label-weights": ("samples.label_weights",),
+        "thin-0.1-n256-fixed-scale": ("model.training.learn_input_noise_scale",),
+        "accurate-poses": ("model.training.learn_input_noise_scale",)}
 
 
 @pytest.mark.parametrize("name", sorted(set(experiment.VARIANTS) - {"defaults"}))

@@ -11,6 +11,7 @@ from scipy.special import ndtr
 from gpocc.config import Config, ModelConfig, SamplesConfig, TrainingConfig, load_config
 from gpocc.errors import GpoccError
 from gpocc.gp.classify import (
+    C_BOUND,
     beam_holdout_predictions,
     fit_offset,
     fit_offset_and_temperature,
@@ -170,9 +171,11 @@ def test_model_refits_its_offset_on_the_heldout_beams():
         model.kernel, model.noise_variance, model.samples, calib, model.level, 64, 1.0, 20,
         np.random.default_rng(config.seed + 2))
     assert model.training["classifier_points"] == labels.size > 0
-    assert model.classifier == fit_offset(
-        mean, var, labels, plain.classifier.extra_variance,
-        bound=offset_bound(mean, config.model.training.classifier_offset_range))
+    bound = offset_bound(mean, config.model.training.classifier_offset_range)
+    assert model.classifier == fit_offset(mean, var, labels, plain.classifier.extra_variance,
+                                          bound=bound)
+    assert model.training["classifier_offset_bound"] == bound < C_BOUND
+    assert plain.training["classifier_offset_bound"] == C_BOUND
     assert model.classifier.offset != plain.classifier.offset
 
 

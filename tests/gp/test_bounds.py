@@ -78,6 +78,21 @@ def test_a_separable_platt_fit_ends_on_the_slope_bound_and_a_noisy_one_does_not(
     assert found[0].bound == pytest.approx(1000.0)
 
 
+def test_an_offset_on_the_latent_range_its_fit_had_is_named():
+    """With ``classifier_offset_range: latent`` the offset's box is the largest latent
+    mean among its points, which the training record states; files without it had the
+    wide box."""
+    base = _model()
+    on = dataclasses.replace(base, classifier=dataclasses.replace(base.classifier, offset=-2.5),
+                             training={"classifier_offset_bound": 2.5})
+    [found] = [b for b in values_on_bounds(on) if b.name == "classifier offset c"]
+    assert (found.side, found.bound) == ("lower", pytest.approx(-2.5))
+    inside = dataclasses.replace(on, training={"classifier_offset_bound": 3.0})
+    assert "classifier offset c" not in {b.name for b in values_on_bounds(inside)}
+    older = dataclasses.replace(on, training={})
+    assert "classifier offset c" not in {b.name for b in values_on_bounds(older)}
+
+
 def test_hyperparameters_on_the_box_of_the_search_are_named():
     base = _model(log_bounds_width=2.0, min_noise_variance=0.1, max_input_noise_scale=4.0)
     theta = base.kernel.theta.copy()

@@ -325,6 +325,32 @@ def test_a_config_at_odds_with_the_model_is_one_error_line(logs, tmp_path, confi
     assert not (tmp_path / "new.npz").exists()
 
 
+def test_a_setting_the_job_config_does_not_state_is_the_models(logs, tmp_path):
+    """A model trained with settings other than today's defaults (as one trained before a
+    default changed): the job's config, which does not state them, updates it with the
+    model's settings; the same config stating another value is refused."""
+    (tmp_path / "old.yaml").write_text(CONFIG.replace(
+        "min_label_share: 0.1", "min_label_share: 0.1\n  label_weights: share").replace(
+        "learn_input_noise_scale: true}", "learn_input_noise_scale: true,\n"
+        "             classifier_offset_range: wide}"))
+    gpocc("train", str(logs["a"]), "--out", str(tmp_path / "a.npz"),
+          "--config", str(tmp_path / "old.yaml"))
+    (tmp_path / "job.yaml").write_text(CONFIG)
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--config",
+          str(tmp_path / "job.yaml"), "--out", str(tmp_path / "new.npz"))
+    updated = load_model(tmp_path / "new.npz").config
+    assert updated.samples.label_weights == "share"
+    assert updated.model.training.classifier_offset_range == "wide"
+    (tmp_path / "other.yaml").write_text(CONFIG.replace(
+        "min_label_share: 0.1", "min_label_share: 0.1\n  label_weights: count"))
+    result = gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--config",
+                   str(tmp_path / "other.yaml"), "--out", str(tmp_path / "other.npz"), ok=False)
+    assert result.exit_code == 2 and "key 'samples.label_weights' differs" in result.output
+    (tmp_path / "empty.yaml").write_text("")
+    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--config",
+          str(tmp_path / "empty.yaml"), "--out", str(tmp_path / "empty.npz"))
+
+
 def test_an_input_already_in_the_model_is_one_error_line(logs, tmp_path):
     gpocc("train", str(logs["a"]), "--out", str(tmp_path / "a.npz"),
           "--config", str(logs["config"]))

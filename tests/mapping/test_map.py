@@ -57,6 +57,10 @@ def model_path(tmp_path_factory):
 
 def test_model_round_trip(model_path):
     model = load_model(model_path)
+    # Hand-made samples carry no label-noise factors: the model says its labels weigh once
+    # each, whatever the default (Config() asks for count weights).
+    assert Config().samples.label_weights == "count"
+    assert model.config.samples.label_weights == "none" and model.samples.noise_factors is None
     again = model_path.with_name("again.npz")
     save_model(model, again)
     other = load_model(again)
