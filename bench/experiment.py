@@ -152,6 +152,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "clearance-0": {"samples.free_clearance_m": 0.0},
     "pose-scale": {"model.training.input_noise_scale_part": "pose"},
     "clearance-0-pose-scale": {"samples.free_clearance_m": 0.0,
+                               "model.training.learn_input_noise_scale": True,
                                "model.training.input_noise_scale_part": "pose"},
     # The NN kernel's bias variance held where learning leaves it in most cases (its
     # upper bound, 10 e^4), a likelihood ridge along which the maps do not change.
@@ -1032,8 +1033,9 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
                               if base in variants else
                               [f"(`{base}`'s run was not given: `--compare {base}`.)"])]
         lines += ["## Against other settings", "",
-                  "The GP with input noise of this run against the same GP with one "
-                  "setting changed (each made with `.venv/bin/python -m bench.experiment "
+                  "The GP with input noise of this run against the same GP with the "
+                  "settings of each variant's overrides changed (each made with "
+                  "`.venv/bin/python -m bench.experiment "
                   "sim real clean --variant NAME`, on the same worlds, logs and held-out points): "
                   "how the defaults were chosen. Wins count the cases where this run is "
                   "better; differences are this run minus the variant. A variant whose "
