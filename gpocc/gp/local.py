@@ -148,7 +148,9 @@ def training_covariance(
         pose_factors=samples.pose_factors if correlated else None,
         backend=backend,
     )
-    k[np.diag_indices_from(k)] += samples.label_noise(noise_variance) + JITTER
+    # Through a writable view of the diagonal: the same sums as fancy indexing, without
+    # building index arrays on every local problem.
+    np.einsum("ii->i", k)[:] += samples.label_noise(noise_variance) + JITTER
     return k
 
 
@@ -225,7 +227,7 @@ def _predict(kernel: Kernel, noise_variance: float, problem: LocalProblem,
     if system is not None:
         k, k_cross, prior = system
         if samples.noise_factors is not None:  # the system's diagonal has the base noise
-            k[np.diag_indices_from(k)] += noise_variance * (samples.noise_factors - 1.0)
+            np.einsum("ii->i", k)[:] += noise_variance * (samples.noise_factors - 1.0)
         chol = try_cholesky(k)
     if chol is None:  # no one-pass system, or the fallbacks of factor_training_covariance
         chol = factor_training_covariance(kernel, noise_variance, samples, level, backend)
@@ -289,7 +291,7 @@ def negative_log_likelihood(
             pose_factors=s.pose_factors, input_scale=input_scale, backend=backend,
         )
     label_noise = s.label_noise(noise)
-    cov[np.diag_indices_from(cov)] += label_noise + JITTER
+    np.einsum("ii->i", cov)[:] += label_noise + JITTER
     chol = try_cholesky(cov, jitter=False)
     if chol is None:
         return None

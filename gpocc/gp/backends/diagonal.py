@@ -43,7 +43,7 @@ class DiagonalLoops:
         if system is None:
             return None
         k = system[0]
-        k[np.diag_indices_from(k)] = two_draw_diag(
+        np.einsum("ii->i", k)[:] = two_draw_diag(  # the diagonal, as a writable view
             kernel, means, covariances, level, scan_ids=scan_ids, pose_factors=pose_factors,
             backend=self._backend) + diagonal
         return system
