@@ -280,9 +280,7 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         backend, map_fn)
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0, C_BOUND
-    offset, bound = "holdout", C_BOUND
-    if training.classifier_offset == "beams":
-        bound = offset_bound(mean, training.classifier_offset_range)
+    offset, bound = "holdout", offset_bound(mean, training.classifier_offset_range)
     if training.classifier_temperature == "beams":
         if separates(classifier, mean, labels):
             log(f"note: the classifier puts all {labels.size} labelled points of held-out "
@@ -297,9 +295,7 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
         classifier, offset = fit_offset(
             mean, variance, labels, classifier.extra_variance, classifier.temperature,
             bound), "beams"
-    if offset == "holdout":
-        bound = C_BOUND
-    return classifier, offset, int(labels.size), bound
+    return classifier, offset, int(labels.size), bound if offset == "beams" else C_BOUND
 
 
 def save_model(model: GPModel, path: str | Path, force: bool = False) -> None:

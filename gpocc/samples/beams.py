@@ -209,14 +209,14 @@ def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
     if config.samples.counts_labels and pool.vote_keys.size:
         votes = LabelVotes(float(config.samples.thin_cell_m))
         votes.add_counts(pool.vote_keys, pool.vote_counts)
-        share = votes.share(result)
+        share, counts = votes.share_and_count(result)
         if min_share > 0:
             keep = share >= min_share
-            result, share = result.subset(keep), share[keep]
+            result, share, counts = result.subset(keep), share[keep], counts[keep]
         if config.samples.weighs_labels:
-            counts = (votes.count(result) if config.samples.label_weights == "count"
-                      else None)
-            factors = label_noise_factors(share, counts, config.samples.label_count_power)
+            factors = label_noise_factors(
+                share, counts if config.samples.label_weights == "count" else None,
+                config.samples.label_count_power)
             result = dataclasses.replace(result, noise_factors=factors)
     return clear_free_near_hits(result, float(config.samples.free_clearance_m))
 
@@ -356,20 +356,24 @@ class LabelVotes:
         self._merge()
         return self.keys, self.counts
 
-    def count(self, samples: SampleSet) -> np.ndarray:
-        """(N,) int64 counted samples of each sample's label in its cell (0 for a cell
-        never counted)."""
-        self._merge()
-        return self._count(self._keys(samples))
-
-    def share(self, samples: SampleSet) -> np.ndarray:
+    def share_and_count(self, samples: SampleSet) -> tuple[np.ndarray, np.ndarray]:
         """(N,) fraction of its cell's counted samples that carry each sample's label
-        (NaN for a cell never counted)."""
+        (NaN for a cell never counted), and (N,) int64 how many they are (0 there)."""
         self._merge()
         keys = self._keys(samples)
         own = self._count(keys)
         with np.errstate(invalid="ignore"):
-            return own / (own + self._count(keys ^ 1))
+            return own / (own + self._count(keys ^ 1)), own
+
+    def count(self, samples: SampleSet) -> np.ndarray:
+        """(N,) int64 counted samples of each sample's label in its cell (0 for a cell
+        never counted)."""
+        return self.share_and_count(samples)[1]
+
+    def share(self, samples: SampleSet) -> np.ndarray:
+        """(N,) fraction of its cell's counted samples that carry each sample's label
+        (NaN for a cell never counted)."""
+        return self.share_and_count(samples)[0]
 
 
 def thin_samples(samples: SampleSet, cell_m: float) -> SampleSet:
