@@ -69,7 +69,7 @@ bench: $(BENCH_STAMP) bytecode
 # VARIANTS). Any list can be given, e.g.
 #   make experiment EXPERIMENT_COMPARE="before-count offset-holdout hit-gap-0.25"
 # (the variants of offset-holdout, HOLDOUT_BASED, need its run beside them).
-EXPERIMENT_COMPARE ?= before-count learned-g no-label-weights wide-offset two-draw \
+EXPERIMENT_COMPARE ?= hard-targets before-count learned-g no-label-weights wide-offset two-draw \
 	thin-0.1-n192-offset-beams
 # The defaults learned with other seeds (bench/experiment.py's SPREAD_SEEDS): the page's
 # run-to-run spread. A variant's or seed's run maps with the GP with input noise alone (all

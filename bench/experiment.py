@@ -210,6 +210,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "share-labels": {"samples.label_weights": "share"},
     "learned-g": {"model.training.learn_input_noise_scale": True},
     "wide-offset": {"model.training.classifier_offset_range": "wide"},
+    "hard-targets": {"model.training.classifier_targets": "hard"},
     # The learning seed alone (patches, annealing, the classifier's draws; the worlds,
     # their noise and the held-out points stay): how far a setting's result moves by
     # chance, the yardstick for the differences between settings.

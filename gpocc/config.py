@@ -110,6 +110,9 @@ class UnscentedConfig:
 #: The values of ``model.training.classifier_offset_range``.
 OFFSET_RANGES: tuple[str, ...] = ("wide", "latent")
 
+#: The values of ``model.training.classifier_targets``.
+CLASSIFIER_TARGETS: tuple[str, ...] = ("platt", "hard")
+
 #: The values of ``samples.label_weights``.
 LABEL_WEIGHTS: tuple[str, ...] = ("none", "share", "count")
 
@@ -268,6 +271,15 @@ class TrainingConfig:
     the decision stays among the latent means it saw. Where those means barely separate the
     labels, a wide fit can run c and T far out together, and p then follows the latent
     variance alone (gpocc.gp.classify.fit_offset_and_temperature).
+    ``classifier_targets``: what the offset and temperature fits aim at (on held-out
+    scans' points, or with ``classifier_temperature: samples`` on held-out samples).
+    ``platt`` (default) gives each point Platt's out-of-sample target (N + 1) / (N + 2)
+    of its label (N the points of that label), ``hard`` the label itself (0 or 1). Where
+    the latent means put (nearly) every point on its label's side, hard targets drive the
+    temperature to its lower bound: the map's probabilities then reach 0 and 1 in float32
+    almost everywhere, those cells tie, and the map loses its ranking. Platt's targets
+    keep a finite temperature there and change little elsewhere (``make experiment``'s
+    variant ``hard-targets``).
     ``learn_input_noise_scale``: also learn a scale g on every input covariance (S -> g S,
     pose factors -> sqrt(g) A; gpocc.gp.inputscale) within ``[min_input_noise_scale,
     max_input_noise_scale]``, starting at 1; false (default) keeps g = 1, the covariances
@@ -313,6 +325,7 @@ class TrainingConfig:
     classifier_offset_range: str = "latent"
     classifier_variance: str = "label"
     classifier_temperature: str = "beams"
+    classifier_targets: str = "platt"
     calibration_every: int = 10
     calibration_blocks: int = 64
     calibration_near_wall: int = 1
@@ -783,6 +796,7 @@ def _validate(config: Config, source: str) -> Config:
                          ("classifier_temperature", ("none", "samples", "beams")),
                          ("classifier_offset", ("holdout", "beams")),
                          ("classifier_offset_range", OFFSET_RANGES),
+                         ("classifier_targets", CLASSIFIER_TARGETS),
                          ("local_search", ("lbfgs", "scoring"))):
         _one_of(getattr(t, key), choices, f"model.training.{key}", source)
     if t.classifier_variance == "label-map" and t.classifier_temperature == "samples":

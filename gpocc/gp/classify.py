@@ -63,6 +63,7 @@ from typing import Any
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
+from gpocc.config import CLASSIFIER_TARGETS
 from gpocc.constants import FREE, NO_DATA, OCCUPIED, UNSURE
 from gpocc.gp.expected import expected_kernel_cross
 from gpocc.gp.kernels import Kernel
@@ -137,13 +138,40 @@ class PlattClassifier:
                     / (self.temperature * np.sqrt(self.extra_variance + variance)))
 
 
+def platt_targets(labels: np.ndarray) -> np.ndarray:
+    """(N,) the probability each point's target gives its own label (labels +-1, (N,)):
+    Platt's out-of-sample targets, ``(N_y + 1) / (N_y + 2)`` for a point of a label that
+    N_y points carry (Platt 1999, "Probabilistic outputs for support vector machines",
+    section 2.2). A 0/1 target makes a fit on separable points run to the steepest
+    squashing its box allows; these keep a finite optimum there, and move the fit by
+    about 1 / N where the labels overlap."""
+    occupied = labels > 0
+    n_occupied = float(np.count_nonzero(occupied))
+    n_free = float(labels.size) - n_occupied
+    return np.where(occupied, (n_occupied + 1.0) / (n_occupied + 2.0),
+                    (n_free + 1.0) / (n_free + 2.0))
+
+
 def held_out_log_probability(offset: float, extra_variance: float, mean: np.ndarray,
                              variance: np.ndarray, labels: np.ndarray,
-                             temperature: float = 1.0) -> float:
-    """Sum of log Phi(y_i (mu_i + c) / (T sqrt(s + var_i))) over held-out predictions
-    (N,)."""
+                             temperature: float = 1.0,
+                             targets: np.ndarray | None = None) -> float:
+    """Sum over held-out predictions (N,) of ``t_i log Phi(z_i) + (1 - t_i) log
+    Phi(-z_i)``, ``z_i = y_i (mu_i + c) / (T sqrt(s + var_i))``: the log probability of
+    their labels under targets ``t`` (N,; the probability each target gives the point's
+    own label, :func:`platt_targets`; None: 1, the labels themselves)."""
     z = labels * (mean + offset) / (temperature * np.sqrt(extra_variance + variance))
-    return float(log_ndtr(z).sum())
+    if targets is None:
+        return float(log_ndtr(z).sum())
+    return float((targets * log_ndtr(z) + (1.0 - targets) * log_ndtr(-z)).sum())
+
+
+def target_probabilities(labels: np.ndarray, kind: str) -> np.ndarray | None:
+    """The targets of ``model.training.classifier_targets`` ``kind`` for ``labels`` (N,):
+    :func:`platt_targets` for ``platt``, None (the labels) for ``hard``."""
+    if kind not in CLASSIFIER_TARGETS:
+        raise ValueError(f"unknown classifier targets {kind!r}")
+    return platt_targets(labels) if kind == "platt" else None
 
 
 def _negative_log_probability(params: np.ndarray, mean: np.ndarray, variance: np.ndarray,
@@ -345,23 +373,25 @@ def offset_bound(mean: np.ndarray, offset_range: str = "wide") -> float:
 
 def fit_offset(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
                extra_variance: float, temperature: float = 1.0,
-               bound: float = C_BOUND) -> PlattClassifier:
+               bound: float = C_BOUND, targets: str = "hard") -> PlattClassifier:
     """The offset c maximising :func:`held_out_log_probability` of held-out predictions
     (N,) with the extra variance s and temperature T fixed (bounded Brent search in
-    [-bound, bound]; :func:`offset_bound`)."""
+    [-bound, bound]; :func:`offset_bound`), under ``targets``
+    (:func:`target_probabilities`)."""
     from scipy.optimize import minimize_scalar  # here: `gpocc map` never fits
 
+    t = target_probabilities(labels, targets)
     best = minimize_scalar(
         lambda c: -held_out_log_probability(c, extra_variance, mean, variance, labels,
-                                            temperature),
+                                            temperature, t),
         bounds=(-bound, bound), method="bounded", options={"xatol": 1e-6})
     return PlattClassifier(offset=float(best.x), extra_variance=extra_variance,
                            temperature=temperature)
 
 
 def fit_offset_and_temperature(mean: np.ndarray, variance: np.ndarray, labels: np.ndarray,
-                               extra_variance: float, bound: float = C_BOUND
-                               ) -> PlattClassifier:
+                               extra_variance: float, bound: float = C_BOUND,
+                               targets: str = "hard") -> PlattClassifier:
     """The offset c and temperature T maximising :func:`held_out_log_probability` of
     held-out predictions (N,) together, the extra variance s fixed (L-BFGS-B on (c, log T)
     within [-bound, bound] (:func:`offset_bound`) and [T_MIN, T_MAX], from c = 0, T = 1).
@@ -374,14 +404,18 @@ def fit_offset_and_temperature(mean: np.ndarray, variance: np.ndarray, labels: n
     Fitted one after the other (c at T = 1, then T), c is chosen for probabilities far
     sharper than the map's: on points few of which lie near the decision it runs toward
     one label (on some simulated worlds, toward occupied). Points that one label holds
-    entirely give no temperature: c alone is fitted then, at T = 1."""
+    entirely give no temperature: c alone is fitted then, at T = 1. ``targets``: as in
+    :func:`fit_offset`."""
     if not has_both_labels(labels):
-        return fit_offset(mean, variance, labels, extra_variance, bound=bound)
+        return fit_offset(mean, variance, labels, extra_variance, bound=bound,
+                          targets=targets)
     from scipy.optimize import minimize  # here: `gpocc map` never fits
+
+    t = target_probabilities(labels, targets)
 
     def negative(params: np.ndarray) -> float:
         return -held_out_log_probability(params[0], extra_variance, mean, variance, labels,
-                                         float(np.exp(params[1])))
+                                         float(np.exp(params[1])), t)
 
     best = minimize(negative, np.zeros(2), method="L-BFGS-B",
                     bounds=[(-bound, bound), (np.log(T_MIN), np.log(T_MAX))])
@@ -396,21 +430,23 @@ def separates(classifier: PlattClassifier, mean: np.ndarray, labels: np.ndarray)
 
 
 def fit_temperature(classifier: PlattClassifier, mean: np.ndarray, variance: np.ndarray,
-                    labels: np.ndarray) -> PlattClassifier:
+                    labels: np.ndarray, targets: str = "hard") -> PlattClassifier:
     """``classifier`` with the temperature T maximising :func:`held_out_log_probability`
-    of held-out predictions (N,; ``variance`` of the latent function, as a map cell's),
-    its offset and extra variance kept (bounded Brent search on log T in
-    [log T_MIN, log T_MAX]). ``classifier`` unchanged when the points hold one label or
-    it :func:`separates` them: no T maximises the probability then (it rises as T
-    falls)."""
-    if not has_both_labels(labels) or separates(classifier, mean, labels):
+    of held-out predictions (N,; ``variance`` of the latent function, as a map cell's)
+    under ``targets`` (:func:`target_probabilities`), its offset and extra variance kept
+    (bounded Brent search on log T in [log T_MIN, log T_MAX]). ``classifier`` unchanged
+    when the points hold one label, or when it :func:`separates` them under ``hard``
+    targets: no T maximises the probability then (it rises as T falls)."""
+    if not has_both_labels(labels) or (targets == "hard"
+                                       and separates(classifier, mean, labels)):
         return classifier
     from scipy.optimize import minimize_scalar  # here: `gpocc map` never fits
 
     c, s = classifier.offset, classifier.extra_variance
+    t = target_probabilities(labels, targets)
     best = minimize_scalar(
         lambda log_t: -held_out_log_probability(c, s, mean, variance, labels,
-                                                float(np.exp(log_t))),
+                                                float(np.exp(log_t)), t),
         bounds=(np.log(T_MIN), np.log(T_MAX)), method="bounded", options={"xatol": 1e-6})
     return PlattClassifier(offset=c, extra_variance=s, temperature=float(np.exp(best.x)))
 
@@ -418,11 +454,11 @@ def fit_temperature(classifier: PlattClassifier, mean: np.ndarray, variance: np.
 def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalProblem],
                    level: int, holdout: str = "sample", backend: str = "auto",
                    map_fn: MapFunction = map, latent: bool = False,
-                   temperature: bool = False) -> PlattClassifier:
+                   temperature: bool = False, targets: str = "hard") -> PlattClassifier:
     """Fit the classifier on held-out predictions over ``patches`` (``holdout``: scan or
     sample; ``backend``, ``map_fn`` and ``latent`` as in :func:`holdout_predictions`);
     with ``temperature``, then its temperature on the same predictions with the variance
-    of the latent function (:func:`fit_temperature`)."""
+    of the latent function (:func:`fit_temperature`, under ``targets``)."""
     mu, var, y = holdout_predictions(kernel, noise_variance, patches, level, holdout, backend,
                                      map_fn, latent)
     classifier = fit_platt(mu, var, y)
@@ -430,7 +466,7 @@ def fit_classifier(kernel: Kernel, noise_variance: float, patches: list[LocalPro
         return classifier
     if holdout == "sample" and not latent:
         var = latent_variance(var, noise_variance)
-    return fit_temperature(classifier, mu, var, y)
+    return fit_temperature(classifier, mu, var, y, targets)
 
 
 def class_counts(classes: np.ndarray) -> dict[str, int]:

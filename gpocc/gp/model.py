@@ -259,7 +259,8 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
                                 model_cfg.quadrature_level, training.classifier_holdout,
                                 backend, map_fn, training.classifier_variance == "latent",
-                                training.classifier_temperature == "samples")
+                                training.classifier_temperature == "samples",
+                                training.classifier_targets)
     if training.classifier_variance == "label-map":
         # Fitted on the label's variance, applied to a cell's latent variance plus the
         # label noise: the same quantity.
@@ -281,20 +282,21 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     if not has_both_labels(labels):  # the chosen blocks may hold one class only
         return classifier, "holdout", 0, C_BOUND
     offset, bound = "holdout", offset_bound(mean, training.classifier_offset_range)
+    targets = training.classifier_targets
     if training.classifier_temperature == "beams":
-        if separates(classifier, mean, labels):
+        if targets == "hard" and separates(classifier, mean, labels):
             log(f"note: the classifier puts all {labels.size} labelled points of held-out "
-                "scans on their label's side, which leaves its temperature undetermined; "
-                "kept the held-out samples' fit (temperature 1)")
+                "scans on their label's side, which leaves its temperature undetermined "
+                "with hard targets; kept the held-out samples' fit (temperature 1)")
         elif training.classifier_offset == "beams":
             classifier, offset = fit_offset_and_temperature(
-                mean, variance, labels, classifier.extra_variance, bound), "beams"
+                mean, variance, labels, classifier.extra_variance, bound, targets), "beams"
         else:
-            classifier = fit_temperature(classifier, mean, variance, labels)
+            classifier = fit_temperature(classifier, mean, variance, labels, targets)
     elif training.classifier_offset == "beams":
         classifier, offset = fit_offset(
             mean, variance, labels, classifier.extra_variance, classifier.temperature,
-            bound), "beams"
+            bound, targets), "beams"
     return classifier, offset, int(labels.size), bound if offset == "beams" else C_BOUND
 
 

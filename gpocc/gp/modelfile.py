@@ -217,7 +217,8 @@ def _classifier(record: Any, version: Any) -> PlattClassifier:
 _OLDER_DEFAULTS = (("samples.free_clearance_m", 0.0), ("model.training.patch_centres", "samples"),
                    ("model.training.classifier_temperature", "none"),
                    ("samples.label_weights", "none"),
-                   ("model.training.classifier_offset_range", "wide"))
+                   ("model.training.classifier_offset_range", "wide"),
+                   ("model.training.classifier_targets", "hard"))
 
 
 def _with_settings_of_older_files(config: dict) -> dict:

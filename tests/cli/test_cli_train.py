@@ -73,6 +73,24 @@ def test_train_can_keep_the_offset_of_the_left_out_samples(tmp_path):
     assert f"fitted leaving one sample out; temperature from {points} points" in output
 
 
+def test_train_fits_the_classifier_on_the_configured_targets(trained, tmp_path):
+    """``classifier_targets: hard`` (the labels themselves) against the default Platt
+    targets: the same GP, and a classifier no steeper than the hard one's."""
+    path, _ = trained
+    config = tmp_path / "hard.yaml"
+    data = yaml.safe_load(SAMPLE_CONFIG.read_text())
+    data.setdefault("model", {}).setdefault("training", {})["classifier_targets"] = "hard"
+    config.write_text(yaml.safe_dump(data))
+    out = tmp_path / "hard.npz"
+    invoke("train", SAMPLE, "--config", config, "--out", out)
+    platt, hard = load_model(path), load_model(out)
+    assert platt.config.model.training.classifier_targets == "platt"
+    assert hard.config.model.training.classifier_targets == "hard"
+    assert platt.kernel == hard.kernel and platt.noise_variance == hard.noise_variance
+    assert platt.classifier != hard.classifier
+    assert platt.classifier.temperature >= hard.classifier.temperature
+
+
 def test_training_is_reproducible_with_a_seed(trained, tmp_path):
     path, _ = trained
     again = tmp_path / "again.npz"

@@ -173,7 +173,8 @@ def test_model_refits_its_offset_on_the_heldout_beams():
     assert model.training["classifier_points"] == labels.size > 0
     bound = offset_bound(mean, config.model.training.classifier_offset_range)
     assert model.classifier == fit_offset(mean, var, labels, plain.classifier.extra_variance,
-                                          bound=bound)
+                                          bound=bound,
+                                          targets=config.model.training.classifier_targets)
     assert model.training["classifier_offset_bound"] == bound < C_BOUND
     assert plain.training["classifier_offset_bound"] == C_BOUND
     assert model.classifier.offset != plain.classifier.offset
@@ -255,7 +256,8 @@ def test_with_a_beam_temperature_the_offset_is_fitted_with_it(offset_range):
     assert model.training["classifier_offset"] == "beams"
     bound = 100.0 if offset_range == "wide" else float(np.max(np.abs(mean)))
     assert model.classifier == fit_offset_and_temperature(
-        mean, var, labels, plain.classifier.extra_variance, bound)
+        mean, var, labels, plain.classifier.extra_variance, bound,
+        config.model.training.classifier_targets)
 
 
 def _uninformative_means(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -297,6 +299,13 @@ def test_a_latent_offset_range_changes_nothing_where_the_means_separate():
     assert latent.offset == pytest.approx(wide.offset, abs=1e-4)
     assert latent.temperature == pytest.approx(wide.temperature, rel=1e-3)
     assert offset_bound(mean, "wide") == offset_bound(np.zeros(0), "latent") == 100.0
+
+
+def test_a_bad_classifier_targets_value_is_one_clear_error(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("model:\n  training:\n    classifier_targets: soft\n")
+    with pytest.raises(GpoccError, match="classifier_targets' must be 'platt' or 'hard'"):
+        load_config(path)
 
 
 def test_a_bad_offset_range_is_one_clear_error(tmp_path):

@@ -371,10 +371,10 @@ def test_one_scan_patch_cannot_be_held_out():
 
 def test_model_files_without_the_new_keys_load_with_the_settings_they_were_trained_with(
         tmp_path):
-    """A file written before ``patch_centres``, ``free_clearance_m``, ``label_weights``
-    and ``classifier_offset_range`` existed was trained with all-sample patches, no
-    clearance, unweighted labels and the wide offset range; a new file keeps what it
-    states."""
+    """A file written before ``patch_centres``, ``free_clearance_m``, ``label_weights``,
+    ``classifier_offset_range`` and ``classifier_targets`` existed was trained with
+    all-sample patches, no clearance, unweighted labels, the wide offset range and hard
+    targets; a new file keeps what it states."""
 
     from gpocc.config import Config
     from gpocc.gp.model import GPModel, load_model, save_model
@@ -389,17 +389,19 @@ def test_model_files_without_the_new_keys_load_with_the_settings_they_were_train
 
     def settings(config):
         return (config.model.training.patch_centres, config.samples.free_clearance_m,
-                config.samples.label_weights, config.model.training.classifier_offset_range)
+                config.samples.label_weights, config.model.training.classifier_offset_range,
+                config.model.training.classifier_targets)
 
-    assert settings(load_model(path).config) == ("hits", 0.05, "count", "latent")
+    assert settings(load_model(path).config) == ("hits", 0.05, "count", "latent", "platt")
     arrays, meta = read_model_file(path)
     del meta["config"]["model"]["training"]["patch_centres"]
     del meta["config"]["samples"]["free_clearance_m"]
     del meta["config"]["samples"]["label_weights"]
     del meta["config"]["model"]["training"]["classifier_offset_range"]
+    del meta["config"]["model"]["training"]["classifier_targets"]
     del arrays["noise_factors"]
     write_model_file(path, arrays, meta)
-    assert settings(load_model(path).config) == ("samples", 0.0, "none", "wide")
+    assert settings(load_model(path).config) == ("samples", 0.0, "none", "wide", "hard")
 
 
 def test_isotropic_learning_ties_each_axis_pair_at_a_stationary_point_of_the_tie():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from modelfiles import read_model_file, write_model_file
-from scipy.special import ndtr
+from scipy.special import ndtr, ndtri
 
 from gpocc.config import TrainingConfig
 from gpocc.errors import GpoccError
@@ -15,9 +15,11 @@ from gpocc.gp.classify import (
     T_MIN,
     PlattClassifier,
     fit_classifier,
+    fit_offset_and_temperature,
     fit_platt,
     fit_temperature,
     held_out_log_probability,
+    platt_targets,
     separates,
 )
 from gpocc.gp.kernels import NeuralNetworkKernel
@@ -170,15 +172,21 @@ def test_temperature_divides_the_argument_and_keeps_the_order():
     assert not np.allclose(warm.probability(mean, var), plain.probability(mean, var))
 
 
-def test_fitted_temperature_recovers_the_one_that_drew_the_labels():
-    # Labels drawn from Phi(z / 3) for a known (c, s): the maximum-likelihood temperature
-    # must be 3 to the sampling error of 40000 labels; (c, s) are kept as given.
+def _drawn_at_temperature_3() -> tuple[PlattClassifier, np.ndarray, np.ndarray, np.ndarray]:
+    """40000 labels drawn from Phi(z / 3) for a known (c, s), and that (c, s) at T = 1."""
     rng = np.random.default_rng(4)
     n = 40000
     mean, var = rng.normal(0, 1, n), rng.uniform(0.0, 0.2, n)
     given = PlattClassifier(offset=-0.05, extra_variance=0.01)
     truth = PlattClassifier(offset=-0.05, extra_variance=0.01, temperature=3.0)
     labels = np.where(rng.random(n) < truth.probability(mean, var), 1.0, -1.0)
+    return given, mean, var, labels
+
+
+def test_fitted_temperature_recovers_the_one_that_drew_the_labels():
+    # The maximum-likelihood temperature must be 3 to the sampling error of 40000 labels;
+    # (c, s) are kept as given.
+    given, mean, var, labels = _drawn_at_temperature_3()
     fitted = fit_temperature(given, mean, var, labels)
     assert fitted.temperature == pytest.approx(3.0, rel=0.05)
     assert (fitted.offset, fitted.extra_variance) == (given.offset, given.extra_variance)
@@ -218,3 +226,79 @@ def test_no_temperature_is_fitted_when_the_classifier_separates_the_points():
     assert held_out_log_probability(given.offset, given.extra_variance, mean, var, labels,
                                     fitted.temperature) >= best - 1e-6
     assert T_MIN < fitted.temperature < 1.0
+
+
+def test_platt_targets_count_each_label():
+    labels = np.array([1.0, -1.0, -1.0, 1.0, -1.0, -1.0, -1.0])
+    # 2 occupied points: (2 + 1) / (2 + 2); 5 free: (5 + 1) / (5 + 2), brute force.
+    expected = [3 / 4 if y > 0 else 6 / 7 for y in labels]
+    np.testing.assert_allclose(platt_targets(labels), expected, rtol=0, atol=0)
+
+
+def test_held_out_log_probability_under_targets_is_the_cross_entropy():
+    rng = np.random.default_rng(11)
+    mean, var = rng.normal(0, 1, 30), rng.uniform(0.01, 0.5, 30)
+    labels = np.where(rng.random(30) < 0.4, 1.0, -1.0)
+    t = platt_targets(labels)
+    # Brute force: the probability p of occupied, and each point's target of occupied.
+    p = ndtr((mean + 0.2) / (1.7 * np.sqrt(0.05 + var)))
+    occupied_target = np.where(labels > 0, t, 1.0 - t)
+    expected = np.sum(occupied_target * np.log(p) + (1 - occupied_target) * np.log(1 - p))
+    assert held_out_log_probability(0.2, 0.05, mean, var, labels, 1.7, t) == pytest.approx(
+        expected, rel=1e-12)
+
+
+def _separated(seed: int, n_occupied: int, n_free: int, margin: float, var: float):
+    """Held-out predictions every one of which lies ``margin`` on its label's side, all
+    with latent variance ``var``."""
+    labels = np.concatenate([np.ones(n_occupied), -np.ones(n_free)])
+    np.random.default_rng(seed).shuffle(labels)
+    return labels * margin, np.full(labels.size, var), labels
+
+
+@pytest.mark.parametrize("counts", [(50, 50), (40, 360)])
+def test_platt_targets_give_separated_points_the_temperature_that_meets_them(counts):
+    """Analytic case: every point at distance m of the decision, variance v, s fixed.
+    Under hard targets no temperature is best (the probability rises as T falls); under
+    Platt's, the optimum has Phi(m / (T sqrt(s + v))) equal to the mean target, so
+    T = m / (sqrt(s + v) Phi^-1(mean target))."""
+    mean, var, labels = _separated(2, *counts, margin=0.3, var=0.02)
+    given = PlattClassifier(offset=0.0, extra_variance=0.01)
+    assert separates(given, mean, labels)
+    assert fit_temperature(given, mean, var, labels, "hard") == given
+    fitted = fit_temperature(given, mean, var, labels, "platt")
+    target = platt_targets(labels).mean()
+    expected = 0.3 / (np.sqrt(0.01 + 0.02) * ndtri(target))
+    assert fitted.temperature == pytest.approx(expected, rel=1e-4)
+    assert T_MIN < fitted.temperature < T_MAX
+    # Offset and temperature together: the symmetric case keeps c at 0.
+    if counts[0] == counts[1]:
+        joint = fit_offset_and_temperature(mean, var, labels, 0.01, targets="platt")
+        assert joint.offset == pytest.approx(0.0, abs=1e-4)
+        assert joint.temperature == pytest.approx(expected, rel=1e-3)
+
+
+def test_platt_targets_find_the_grid_maximum_where_hard_ones_run_to_the_bound():
+    """The separated points of the hard-target test above: with Platt's targets the fit
+    is the maximum of the same objective on a fine grid of T (brute force)."""
+    rng = np.random.default_rng(6)
+    given = PlattClassifier(offset=0.05, extra_variance=1e-6)
+    labels = np.where(rng.random(300) < 0.1, 1.0, -1.0)
+    mean = labels * rng.uniform(0.2, 2.0, 300) - given.offset
+    var = rng.uniform(0.01, 0.1, 300)
+    t = platt_targets(labels)
+    fitted = fit_temperature(given, mean, var, labels, "platt")
+    grid = np.geomspace(T_MIN, T_MAX, 4000)
+    values = [held_out_log_probability(given.offset, given.extra_variance, mean, var, labels,
+                                       g, t) for g in grid]
+    assert fitted.temperature == pytest.approx(grid[int(np.argmax(values))], rel=0.01)
+    assert T_MIN * 1.5 < fitted.temperature < T_MAX
+
+
+def test_platt_targets_barely_move_a_temperature_the_labels_determine():
+    """40000 labels drawn at T = 3: Platt's targets move the fit by about 1 / N."""
+    given, mean, var, labels = _drawn_at_temperature_3()
+    hard = fit_temperature(given, mean, var, labels, "hard")
+    platt = fit_temperature(given, mean, var, labels, "platt")
+    assert platt.temperature == pytest.approx(hard.temperature, rel=1e-3)
+    assert platt.temperature >= hard.temperature  # softer targets, never a sharper map
