@@ -111,8 +111,9 @@ _THIN_N192 = {"samples.thin_cell_m": 0.1, "model.neighbours": 192}
 _THIN_N256 = {**_THIN_N192, "model.neighbours": 256}
 _THIN_N256_FIXED_SCALE = {**_THIN_N256, "model.training.learn_input_noise_scale": False}
 _ACCURATE_POSES = {**_THIN_N256_FIXED_SCALE, "samples.free_spacing_m": 0.3}
-#: The three settings whose defaults changed last, at their values before: every kept
-#: sample weighs the same, g is learned, the classifier's offset may run to +-100.
+#: The three settings whose defaults changed together before ``classifier_targets``, at
+#: their values before: every kept sample weighs the same, g is learned, the classifier's
+#: offset may run to +-100.
 _BEFORE_COUNT = {"samples.label_weights": "none",
                  "model.training.learn_input_noise_scale": True,
                  "model.training.classifier_offset_range": "wide"}

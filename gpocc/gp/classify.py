@@ -45,12 +45,19 @@ label minus the label noise). The fit of ``c`` and ``s`` uses the label's varian
 published, but a map cell has only the latent one: without ``T`` the map divides by a
 smaller variance than the fit did and comes out overconfident (p of 0 or 1 within a
 cell of walls). ``Phi(z / T)`` is increasing in ``z``, so the map's ranking, its AUC and
-FPR at any TPR, stay as they were; only the probabilities move. Where every held-out
-point lies on its label's side (:func:`separates`), no ``T`` is fitted: the log
-probability then rises without limit as ``T`` falls, so the data do not choose one, and a
-``T`` taken anywhere on that slope (0.03 on one simulated hall) makes the map's
-probabilities 0 or 1 everywhere but at the walls, which stored as float32 ties most cells
-and loses the ranking.
+FPR at any TPR, stay as they were; only the probabilities move, except where they reach
+0 or 1 in float32, whose cells then tie.
+
+The offset and temperature fits aim at ``model.training.classifier_targets``. With
+``hard`` targets (each label as 0 or 1), where every held-out point lies on its label's
+side (:func:`separates`) the log probability rises without limit as ``T`` falls, so the
+data do not choose one; no ``T`` is fitted then, but where all but a few points lie so,
+the fit still runs ``T`` to its lower bound, and the map's probabilities are 0 or 1
+everywhere but at the walls: stored as float32, most cells tie and the ranking is lost.
+``platt`` targets (default; Platt 1999) give a point of a label that N points carry the
+target ``(N + 1) / (N + 2)`` instead of 1 (:func:`platt_targets`): the log probability
+then has a maximum at a finite ``T`` on any points, and where the labels overlap the fit
+moves by about 1 / N.
 """
 
 from __future__ import annotations
