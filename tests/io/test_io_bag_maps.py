@@ -206,16 +206,17 @@ def assert_walls(layers: dict[str, np.ndarray]) -> None:
     assert wall_distance(occupied[inside]).max(initial=0.0) <= 0.26
     # A free cell beyond a wall (more than half a cell) would be a beam through it.
     assert (wall_distance(free[~in_free_space(free)]) <= 0.051).all()
-    # The walls are found: an occupied cell within 1.5 cells of 85% of the points of the
+    # The walls are found: an occupied cell within 1.5 cells of 80% of the points of the
     # walls the route sees (not the box's top and right sides). The class layer's walls
-    # are one or two cells thick with g = 1, so a few stretches seen by few beams end
-    # below the occupied threshold.
+    # are one or two cells thick with g = 1, and the classifier's temperature, fitted on
+    # Platt's targets, keeps a stretch seen by few beams below the occupied threshold
+    # (unsure) rather than sure.
     from scipy.spatial import cKDTree
 
     walls = np.concatenate([a + np.linspace(0, 1, 50)[:, None] * (b - a)
                             for a, b in SEGMENTS[[0, 1, 2, 3, 4, 7]]])
     near, _ = cKDTree(occupied).query(walls)
-    assert np.mean(near <= 0.15) > 0.85
+    assert np.mean(near <= 0.15) > 0.8
 
 
 @pytest.fixture(scope="module")
