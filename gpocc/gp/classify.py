@@ -436,16 +436,23 @@ def separates(classifier: PlattClassifier, mean: np.ndarray, labels: np.ndarray)
     return bool(np.all(labels * (mean + classifier.offset) > 0))
 
 
+def temperature_undetermined(classifier: PlattClassifier, mean: np.ndarray,
+                             labels: np.ndarray, targets: str) -> bool:
+    """Whether no temperature maximises :func:`held_out_log_probability` of held-out
+    predictions (N,) under ``targets``: with ``hard`` targets, where ``classifier``
+    :func:`separates` them (the probability rises as T falls); Platt's always have one."""
+    return targets == "hard" and separates(classifier, mean, labels)
+
+
 def fit_temperature(classifier: PlattClassifier, mean: np.ndarray, variance: np.ndarray,
                     labels: np.ndarray, targets: str = "hard") -> PlattClassifier:
     """``classifier`` with the temperature T maximising :func:`held_out_log_probability`
     of held-out predictions (N,; ``variance`` of the latent function, as a map cell's)
     under ``targets`` (:func:`target_probabilities`), its offset and extra variance kept
     (bounded Brent search on log T in [log T_MIN, log T_MAX]). ``classifier`` unchanged
-    when the points hold one label, or when it :func:`separates` them under ``hard``
-    targets: no T maximises the probability then (it rises as T falls)."""
-    if not has_both_labels(labels) or (targets == "hard"
-                                       and separates(classifier, mean, labels)):
+    when the points hold one label, or when :func:`temperature_undetermined`."""
+    if not has_both_labels(labels) or temperature_undetermined(classifier, mean, labels,
+                                                                targets):
         return classifier
     from scipy.optimize import minimize_scalar  # here: `gpocc map` never fits
 

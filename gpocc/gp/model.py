@@ -34,7 +34,7 @@ from gpocc.gp.classify import (
     fit_offset_and_temperature,
     fit_temperature,
     offset_bound,
-    separates,
+    temperature_undetermined,
 )
 from gpocc.gp.growth import Growth
 from gpocc.gp.inputscale import scale_input_noise
@@ -284,7 +284,7 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     offset, bound = "holdout", offset_bound(mean, training.classifier_offset_range)
     targets = training.classifier_targets
     if training.classifier_temperature == "beams":
-        if targets == "hard" and separates(classifier, mean, labels):
+        if temperature_undetermined(classifier, mean, labels, targets):
             log(f"note: the classifier puts all {labels.size} labelled points of held-out "
                 "scans on their label's side, which leaves its temperature undetermined "
                 "with hard targets; kept the held-out samples' fit (temperature 1)")
