@@ -19,7 +19,7 @@ from gpocc.evaluation.report import (
     unique_names,
     write_outputs,
 )
-from gpocc.evaluation.truth import load_truth_kinds
+from gpocc.evaluation.truth import labels_at, load_truth_kinds
 from gpocc.io.atomic import prepare_output
 from gpocc.progress import log
 
@@ -35,6 +35,12 @@ def evaluate(
         None, "--out",
         help="Folder for roc.png, reliability.png, roc.csv, results.json and results.md.",
     ),
+    labels_from: Path | None = typer.Option(
+        None, "--labels-from",
+        help="Truth raster (GeoTIFF 1/0/no-data, or map_server YAML) that labels each "
+        "ground-truth point instead of the file: points on its unknown cells or outside "
+        "it are left out.",
+    ),
     force: Force = False,
 ) -> None:
     """Score maps against a ground truth: AUC, FPR at TPR 0.97, Brier, log-loss, ECE.
@@ -44,12 +50,21 @@ def evaluate(
     map covered. A point file with a kind column (gpocc split's heldout.csv: hit, free,
     near-wall) is scored per protocol: the hits with each kind of free point, and all
     points together (union).
+
+    ``--labels-from`` scores the same points with the labels of a truth raster at their
+    positions: the held-out points of a simulated log are measured with its sensors'
+    noise (a noisy hit can land in free space), the simulator's truth raster is exact.
     """
     if out is not None:
-        prepare_output(out, force, inputs=[*maps, ground_truth])
+        prepare_output(out, force, inputs=[*maps, ground_truth,
+                                           *([labels_from] if labels_from else [])])
     located = [probability_raster(p) for p in maps]
     names = unique_names([n for n, _ in located], list(maps))
     points, labels, kinds = load_truth_kinds(ground_truth)
+    stated = None
+    if labels_from is not None:
+        points, labels, kinds, stated = _relabelled(points, labels, kinds, labels_from,
+                                                    ground_truth)
     n_occupied = int(np.count_nonzero(labels == 1))
     n_free = int(labels.size - n_occupied)
     if n_occupied == 0 or n_free == 0:
@@ -64,7 +79,7 @@ def evaluate(
         scores, inside = sampled[-1]
         if not np.any(inside & np.isfinite(scores)):
             warn_uncovered(raster, points)
-    scored = score_protocols(names, sampled, labels, kinds)
+    scored = score_protocols(names, sampled, labels, kinds, stated)
     results = scored[-1].results  # every point: "all" or "union"
     if all(r.coverage == 0.0 for r in results):
         # Every score would be that of p = 0.5 at every point (AUC 0.5): not a result.
@@ -80,6 +95,26 @@ def evaluate(
         write_outputs(out, force, results, list(maps), ground_truth, labels, scored,
                       kind_summary(names, sampled, labels, kinds))
         log(f"wrote {out}/roc.png, reliability.png, roc.csv, results.json, results.md")
+
+
+def _relabelled(points: np.ndarray, labels: np.ndarray, kinds: np.ndarray | None,
+                raster: Path, ground_truth: Path
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """The (N, 2) points that ``raster`` labels, with its labels, their kinds and the
+    labels ``ground_truth`` gave them."""
+    truth, known = labels_at(points, raster)
+    if not known.any():
+        raise GpoccError(
+            f"{raster}: none of the {len(points)} points of {ground_truth} "
+            f"({_points_extent(points)}) lies on a labelled cell of it; the truth raster "
+            "and the points must share one frame"
+        )
+    changed = int(np.count_nonzero(truth[known] != labels[known]))
+    log(f"labels from {raster}: {changed} of {int(known.sum())} points relabelled"
+        + (f", {int((~known).sum())} on unknown cells or outside it left out"
+           if not known.all() else ""))
+    return (points[known], truth[known], None if kinds is None else kinds[known],
+            labels[known])
 
 
 def warn_uncovered(raster: Path, points: np.ndarray) -> None:

@@ -25,6 +25,7 @@ from gpocc.io.atomic import atomic_directory
 from gpocc.io.rasters import read_raster, sample_raster
 from gpocc.io.rosmap import read_map_mcap
 from gpocc.mapping.render import render_reliability, render_roc
+from gpocc.progress import log
 
 # A folder's rasters first (full float precision); map.mcap holds p in steps of 0.01.
 _MAP_FILES = ("probability.tif", "probability.vrt", "map.mcap")
@@ -141,13 +142,20 @@ class ProtocolResults:
 
 
 def score_protocols(names: list[str], sampled: list[tuple[np.ndarray, np.ndarray]],
-                    labels: np.ndarray, kinds: np.ndarray | None) -> list[ProtocolResults]:
+                    labels: np.ndarray, kinds: np.ndarray | None,
+                    stated: np.ndarray | None = None) -> list[ProtocolResults]:
     """Score every map's sampled ``(scores, inside)`` (:func:`sample_map`) under every
-    protocol of ``labels`` and ``kinds`` (:func:`protocols`)."""
+    protocol (:func:`protocols`) of ``kinds`` and the labels the points were drawn with,
+    ``stated`` (N,; None: ``labels``). Points relabelled by a truth raster keep the
+    protocols of their kinds: a held-out hit in ``hits+free`` whatever its label."""
     out = []
-    for protocol in protocols(labels, kinds):
+    for protocol in protocols(labels if stated is None else stated, kinds):
         m = protocol.mask
         y = labels[m]
+        if not (np.any(y == 1) and np.any(y == 0)):  # relabelled: a kind may hold one label
+            log(f"note: protocol {protocol.name} holds {y.size} points of one label; "
+                "not scored")
+            continue
         results = [evaluate_scores(name, y, scores[m], inside[m])
                    for name, (scores, inside) in zip(names, sampled, strict=True)]
         n_occupied = int(np.count_nonzero(y == 1))

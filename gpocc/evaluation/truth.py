@@ -92,6 +92,15 @@ def labelled_cell_centres(
     since a probability map passed as truth would otherwise be silently misread.
     """
     a = np.asarray(values)
+    rows, cols = np.nonzero(_known_cells(a, nodata, source))
+    x = spec.x0 + (cols + 0.5) * spec.resolution
+    y = spec.y0 + (spec.height - rows - 0.5) * spec.resolution
+    return np.column_stack([x, y]), a[rows, cols].astype(np.int8)
+
+
+def _known_cells(a: np.ndarray, nodata: float | int | None, source: str) -> np.ndarray:
+    """(H, W) bool: the cells of a truth raster holding a label (0 or 1); an error if any
+    other cell holds something but ``nodata`` or NaN."""
     unknown = np.zeros(a.shape, dtype=bool)
     if np.issubdtype(a.dtype, np.floating):
         unknown |= np.isnan(a)
@@ -106,10 +115,47 @@ def labelled_cell_centres(
             f"value (unknown), found {examples}; threshold it into classes first or set its "
             f"no-data value"
         )
-    rows, cols = np.nonzero(known)
-    x = spec.x0 + (cols + 0.5) * spec.resolution
-    y = spec.y0 + (spec.height - rows - 0.5) * spec.resolution
-    return np.column_stack([x, y]), a[rows, cols].astype(np.int8)
+    return known
+
+
+def labels_at(points: np.ndarray, path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The label a truth raster gives each point: the value of the cell holding it.
+
+    Args:
+        points: (N, 2) metres in the map frame.
+        path: a GeoTIFF or .vrt (1 occupied, 0 free, no-data unknown) or a map_server
+            YAML with its image.
+
+    Returns:
+        ``(labels (N,) int8, known (N,) bool)``: 1 occupied, 0 free where ``known``; a
+        point outside the raster or on an unknown cell is not known (its label 0).
+        A point on an edge shared by two cells takes the cell east of it or north of it
+        (:func:`gpocc.io.rasters.sample_raster`).
+
+    Raises:
+        GpoccError: the file is missing, not a raster or map_server map, or holds values
+            other than 0, 1 and its no-data value.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise GpoccError(f"{p}: truth raster not found; check the path")
+    if p.suffix.lower() in _YAML_SUFFIXES:
+        values, spec = read_map_server(p)
+        nodata: float | int | None = 2  # map_server's unknown
+    elif p.suffix.lower() in _POINT_SUFFIXES:
+        raise GpoccError(f"{p}: a point file has no label between its points; pass a truth "
+                         "raster (GeoTIFF or .vrt) or a map_server .yaml")
+    else:
+        values, spec, nodata = read_raster(p)
+    a = np.asarray(values)
+    known_cells = _known_cells(a, nodata, str(p))
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    row, col, inside = spec.index_of(pts)
+    known = np.zeros(len(pts), dtype=bool)
+    known[inside] = known_cells[row[inside], col[inside]]
+    labels = np.zeros(len(pts), dtype=np.int8)
+    labels[known] = a[row[known], col[known]]
+    return labels, known
 
 
 def _truth_from_raster(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -652,3 +652,34 @@ def test_a_stored_splits_defaults_do_not_pin_the_gps_settings(tmp_path):
     plain = experiment.with_overrides(split, {}, tmp_path / "plain.yaml")
     assert yaml.safe_load(plain.read_text())["model"] == {
         "training": {"classifier_offset": "holdout"}}
+
+
+def test_the_page_states_how_many_held_out_labels_the_truth_contradicts():
+    run = _run(("grid", "gp-no-input-noise", "gp-input-noise"))
+    rng = np.random.default_rng(3)
+    for share, case in zip((0.12, 0.31, 0.2), run["cases"][:3], strict=True):
+        case["contradicted"] = share
+        case["scores"]["union-truth"] = {m: _scores(rng) for m in case["scores"]["union"]}
+    text = experiment.page(run)
+    assert "contradicts the label of 12-31% of a world's held-out points (median 20%" in text
+    assert "## Protocol `union-truth`" in text
+    assert "| union-truth | gp-input-noise vs gp-no-input-noise | " in text
+
+
+def test_contradicted_share_counts_labels_the_truth_raster_contradicts(tmp_path):
+    from gpocc.gridspec import GridSpec
+    from gpocc.io.rasters import write_geotiff
+
+    spec = GridSpec(x0=0.0, y0=0.0, resolution=1.0, width=4, height=2)
+    # Row 0 is north (y in [1, 2)): occupied at x in [0, 1), unknown at [3, 4).
+    truth = np.array([[1, 0, 0, 255], [0, 0, 1, 0]], dtype=np.uint8)
+    write_geotiff(tmp_path / "truth.tif", truth, spec, nodata=255)
+    # (x, y, stated label) -> truth: 1 agrees, 0 contradicts, 255 or outside: not counted.
+    rows = [(0.5, 1.5, 1), (1.5, 1.5, 1), (2.5, 0.5, 1), (2.5, 0.5, 0), (3.5, 1.5, 1),
+            (9.0, 9.0, 0), (0.5, 0.5, 0)]
+    (tmp_path / "heldout.csv").write_text(
+        "x,y,label\n" + "".join(f"{x},{y},{label}\n" for x, y, label in rows))
+    share = experiment.contradicted_share(tmp_path / "heldout.csv", tmp_path / "truth.tif")
+    # Counted by hand: 5 points on labelled cells, 2 contradicted ((1.5, 1.5) stated 1 on
+    # a free cell, (2.5, 0.5) stated 0 on an occupied one).
+    assert share == pytest.approx(2 / 5)
