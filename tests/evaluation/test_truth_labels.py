@@ -162,3 +162,24 @@ def test_a_protocol_the_truth_leaves_one_label_is_not_scored():
     assert scored[0].results[0].auc == pytest.approx(roc_auc_score(truth[free_mask],
                                                                    scores[free_mask]))
     assert scored[1].results[0].auc == pytest.approx(roc_auc_score(truth, scores))
+
+
+def test_labels_at_reads_a_map_server_map_by_its_image_rows(tmp_path):
+    from test_evaluate import _write_map_server
+
+    spec = GridSpec(x0=-1.5, y0=2.1, resolution=0.25, width=18, height=13)
+    rng = np.random.default_rng(7)
+    pgm = rng.choice(np.array([0, 254, 205], dtype=np.uint8), size=spec.shape)
+    yaml_path = _write_map_server(tmp_path, pgm, spec)
+    points = np.column_stack([rng.uniform(spec.x0 - 0.5, spec.x1 + 0.5, 400),
+                              rng.uniform(spec.y0 - 0.5, spec.y1 + 0.5, 400)])
+    labels, known = labels_at(points, yaml_path)
+    # By hand: image row 0 is the top; the origin is the lower-left corner; a black pixel
+    # (0) is occupied, white (254) free, 205 unknown.
+    cols = np.floor((points[:, 0] - spec.x0) / spec.resolution).astype(int)
+    rows = spec.height - 1 - np.floor((points[:, 1] - spec.y0) / spec.resolution).astype(int)
+    inside = (cols >= 0) & (cols < spec.width) & (rows >= 0) & (rows < spec.height)
+    pixel = np.full(len(points), 205)
+    pixel[inside] = pgm[rows[inside], cols[inside]]
+    np.testing.assert_array_equal(known, pixel != 205)
+    np.testing.assert_array_equal(labels[known], (pixel[known] == 0).astype(int))
