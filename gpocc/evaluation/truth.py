@@ -27,7 +27,7 @@ from gpocc.errors import GpoccError
 from gpocc.gridspec import GridSpec
 from gpocc.io.carmen import is_number
 from gpocc.io.mapserver import read_map_server
-from gpocc.io.rasters import read_raster
+from gpocc.io.rasters import read_raster, sample_raster
 
 ACCEPTED = (
     "accepted ground truth: a GeoTIFF or .vrt (1 occupied, 0 free, no-data unknown), "
@@ -139,22 +139,16 @@ def labels_at(points: np.ndarray, path: str | Path) -> tuple[np.ndarray, np.ndar
     p = Path(path)
     if not p.exists():
         raise GpoccError(f"{p}: truth raster not found; check the path")
-    if p.suffix.lower() in _YAML_SUFFIXES:
-        values, spec = read_map_server(p)
-        nodata: float | int | None = 2  # map_server's unknown
-    elif p.suffix.lower() in _POINT_SUFFIXES:
+    if p.suffix.lower() in _POINT_SUFFIXES:
         raise GpoccError(f"{p}: a point file has no label between its points; pass a truth "
                          "raster (GeoTIFF or .vrt) or a map_server .yaml")
-    else:
-        values, spec, nodata = read_raster(p)
-    a = np.asarray(values)
-    known_cells = _known_cells(a, nodata, str(p))
-    pts = np.asarray(points, dtype=float).reshape(-1, 2)
-    row, col, inside = spec.index_of(pts)
-    known = np.zeros(len(pts), dtype=bool)
-    known[inside] = known_cells[row[inside], col[inside]]
-    labels = np.zeros(len(pts), dtype=np.int8)
-    labels[known] = a[row[known], col[known]]
+    values, spec, nodata = (_read_map_server_labels(p) if p.suffix.lower() in _YAML_SUFFIXES
+                            else read_raster(p))
+    _known_cells(np.asarray(values), nodata, str(p))  # refuses a raster of other values
+    found, _ = sample_raster(values, spec, nodata, points)
+    known = np.isfinite(found)
+    labels = np.zeros(len(found), dtype=np.int8)
+    labels[known] = found[known]
     return labels, known
 
 
@@ -164,9 +158,14 @@ def _truth_from_raster(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _truth_from_map_server(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    return labelled_cell_centres(*_read_map_server_labels(path), str(path))
+
+
+def _read_map_server_labels(path: Path) -> tuple[np.ndarray, GridSpec, int]:
+    """A map_server map as a truth raster: its classes, grid and no-data value."""
     classes, spec = read_map_server(path)
     # map_server classes: 0 free, 1 occupied, 2 unknown; unknown is our no-data.
-    return labelled_cell_centres(classes, spec, 2, str(path))
+    return classes, spec, 2
 
 
 def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

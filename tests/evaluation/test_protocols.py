@@ -139,6 +139,14 @@ def _ece(labels: np.ndarray, p: np.ndarray) -> float:
     return total / len(p)
 
 
+def protocol_subsets(kinds: np.ndarray) -> dict[str, np.ndarray]:
+    """Each protocol's points, by the kinds `gpocc split` writes (written out here, apart
+    from gpocc.evaluation.report.protocols)."""
+    return {"hits+free": (kinds == "hit") | (kinds == "free"),
+            "hits+near-wall": (kinds == "hit") | (kinds == "near-wall"),
+            "union": np.ones(len(kinds), bool)}
+
+
 def test_evaluate_scores_every_protocol_like_sklearn(tmp_path):
     bag, cfg = _write_input(tmp_path, [room_batch(n_scans=40, n_beams=120, seed=7)])
     split = tmp_path / "split"
@@ -157,9 +165,7 @@ def test_evaluate_scores_every_protocol_like_sklearn(tmp_path):
     points, labels, kinds = load_truth_kinds(split / "heldout.csv")
     # The map's p at each point, sampled by rasterio (0.5 on no data).
     p, _ = _sampled_with_rasterio(folder / "probability.tif", points)
-    subsets = {"hits+free": (kinds == "hit") | (kinds == "free"),
-               "hits+near-wall": (kinds == "hit") | (kinds == "near-wall"),
-               "union": np.ones(len(labels), bool)}
+    subsets = protocol_subsets(kinds)
     got = {g["name"]: g["maps"][0] for g in summary["protocols"]}
     assert list(got) == list(subsets)
     for name, m in subsets.items():

@@ -11,6 +11,7 @@ import pytest
 import rasterio
 from sklearn.metrics import brier_score_loss, roc_auc_score
 from test_evaluate import _sampled_with_rasterio
+from test_protocols import protocol_subsets
 from typer.testing import CliRunner
 
 from gpocc.cli import app
@@ -114,9 +115,7 @@ def test_evaluate_labels_from_scores_the_truths_labels_like_sklearn(tmp_path):
     # Protocols keep their kinds whatever the truth says of a point: a hit the truth
     # calls free stays in hits+free and hits+near-wall.
     y, p, k = labels[known], p[known], kinds[known]
-    subsets = {"hits+free": (k == "hit") | (k == "free"),
-               "hits+near-wall": (k == "hit") | (k == "near-wall"),
-               "union": np.ones(len(y), bool)}
+    subsets = protocol_subsets(k)
     got = {g["name"]: g["maps"][0] for g in summary["protocols"]}
     assert list(got) == list(subsets)
     for name, m in subsets.items():
