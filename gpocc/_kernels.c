@@ -1101,6 +1101,61 @@ EXPORT void gpocc_mark_segments(const double *restrict start, const double *rest
     }
 }
 
+/* ------------------------------------------------------------------ text */
+
+/* A character a number token may hold: digits, sign, point, exponent and the letters of
+ * inf, infinity and nan, all Python's float() reads; so strtod's hex floats and nan(...)
+ * never parse here. */
+static inline int number_char(unsigned char c)
+{
+    return (c >= '0' && c <= '9') || c == '+' || c == '-' || c == '.' || c == 'e'
+        || c == 'E' || c == 'i' || c == 'I' || c == 'n' || c == 'N' || c == 'f' || c == 'F'
+        || c == 'a' || c == 'A' || c == 't' || c == 'T' || c == 'y' || c == 'Y';
+}
+
+static inline int blank(unsigned char c)
+{
+    return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f';
+}
+
+/* The numbers of `lines` lines of text (NUL-terminated, lines ending at '\n'), each of
+ * exactly per_line whitespace-separated tokens, into out (lines, per_line): strtod's
+ * correctly rounded doubles, the ones float() reads. Returns -1, or the first line that
+ * is not such a line (a token strtod does not read whole, another count, or no line). */
+EXPORT i64 gpocc_parse_rows(const unsigned char *restrict text, i64 per_line, i64 lines,
+                            double *restrict out)
+{
+    const unsigned char *p = text;
+    for (i64 k = 0; k < lines; k++) {
+        i64 m = 0;
+        for (;;) {
+            while (blank(*p))
+                p++;
+            if (*p == '\n' || *p == '\0')
+                break;
+            const unsigned char *start = p;
+            while (*p != '\0' && *p != '\n' && !blank(*p)) {
+                if (!number_char(*p))
+                    return k;
+                p++;
+            }
+            if (m == per_line)
+                return k;
+            char *stop;
+            out[k * per_line + m++] = strtod((const char *)start, &stop);
+            if ((const unsigned char *)stop != p)
+                return k;
+        }
+        if (m != per_line)
+            return k;
+        if (*p == '\n')
+            p++;
+        else if (k + 1 < lines)
+            return k + 1;
+    }
+    return -1;
+}
+
 /* ------------------------------------------------------------------ module */
 
 /* An importable module, so that a missing or stale build shows as an ImportError; the

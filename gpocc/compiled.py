@@ -68,6 +68,7 @@ void gpocc_mark_segments(const double *start, const double *end, i64 n,
                          unsigned char *covered, i64 height, i64 width);
 i64 gpocc_thin_groups(const i64 *keys, const float *trace, i64 n, i64 *group_keys,
                       i64 *group_counts, i64 *kept);
+i64 gpocc_parse_rows(const unsigned char *text, i64 per_line, i64 lines, double *out);
 """
 
 #: Pointer arguments the C code accepts as NULL (count-only mode).
@@ -551,3 +552,20 @@ def mark_segments(start: np.ndarray, end: np.ndarray, covered: np.ndarray) -> No
         return
     _c.mark_segments(start=start, end=end, n=start.shape[0], covered=covered, height=height,
                      width=width)
+
+
+def parse_rows(text: bytes, per_line: int, lines: int) -> np.ndarray | None:
+    """The numbers of ASCII ``text`` as (lines, per_line) float64, or None.
+
+    ``text`` holds ``lines`` lines (split by newlines), each of exactly ``per_line``
+    whitespace-separated numbers; each becomes the double Python's ``float`` reads from
+    its token (correctly rounded, as C's ``strtod``). None if a line holds another count
+    or a token that is not a plain decimal, inf or nan (hex floats, ``1e``, ``1,5``):
+    the caller then reads it token by token, which names the culprit.
+    """
+    if per_line <= 0 or lines < 0:
+        raise ValueError("per_line must be positive and lines at least 0")
+    buffer = np.frombuffer(text + b"\0", dtype=np.uint8)
+    out = np.empty((lines, per_line))
+    bad = _c.parse_rows(text=buffer, per_line=per_line, lines=lines, out=out)
+    return out if bad < 0 else None

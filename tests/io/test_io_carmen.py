@@ -210,3 +210,91 @@ def test_describe_counts_first_tokens_and_stamps_as_whole_line_splitting_does(tm
     contents = describe_carmen(path)
     assert contents.counts == counts
     assert (contents.start_s, contents.end_s) == (min(stamps), max(stamps))
+
+
+# Tokens float() reads, in the spellings logs use: what the compiled reader must turn into
+# the very same doubles.
+_TOKENS = ["0", "-0.0", "1", "+2.5", ".5", "5.", "1e3", "1E-3", "-7.25e+02", "81.83",
+           "3.141592653589793238462643", "1e-310", "1.7976931348623157e308", "inf", "-inf",
+           "Infinity", "nan", "0.1000000000000000055511151231257827"]
+
+
+def test_parse_rows_reads_what_float_reads() -> None:
+    from gpocc.compiled import parse_rows
+
+    rng = np.random.default_rng(7)
+    values = np.concatenate([rng.normal(size=3000) * 10.0 ** rng.integers(-300, 300, 3000),
+                             rng.uniform(0, 82, 3000)])
+    tokens = [repr(float(v)) for v in values] + [f"{v:.3f}" for v in values] + _TOKENS * 10
+    tokens = [tokens[i] for i in rng.permutation(len(tokens))][: len(tokens) // 6 * 6]
+    rows = [tokens[i:i + 6] for i in range(0, len(tokens), 6)]
+    blanks = [" ", "  ", "\t", " \t "]
+    text = "\n".join(rng.choice(blanks) + rng.choice(blanks).join(r) + rng.choice(blanks)
+                     for r in rows)
+    got = parse_rows(text.encode(), 6, len(rows))
+    want = np.array([[float(t) for t in r] for r in rows])
+    assert got is not None
+    assert np.array_equal(got.view(np.int64)[~np.isnan(want)], want.view(np.int64)[~np.isnan(want)])
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+
+
+@pytest.mark.parametrize("text", [
+    "1 2 3\n4 5",          # a line short
+    "1 2 3\n4 5 6 7",      # a line long
+    "1 2 3",               # a line missing
+    "1 2 0x10", "1 2 1e", "1 2 1,5", "1 2 nan(1)", "1 2 .", "1 2 1-2", "1 2 -", "1 2 infx",
+])
+def test_parse_rows_refuses_what_it_cannot_read_as_float_does(text: str) -> None:
+    from gpocc.compiled import parse_rows
+
+    lines = 2 if "\n" in text or text == "1 2 3" else 1
+    assert parse_rows(text.encode(), 3, lines) is None
+
+
+def _line_by_line(path: Path):
+    """The reader's token-by-token path (float of each token), the oracle of its
+    compiled one."""
+    from gpocc.io import carmen
+
+    return carmen._scan_table(path, carmen._lines(path))
+
+
+def _compiled_path_taken(path: Path) -> bool:
+    from gpocc.io import carmen
+
+    return carmen._flaser_table(carmen._lines(path)) is not None
+
+
+def test_the_compiled_reader_gives_the_token_readers_scans(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    lines = ["# a comment", "PARAM robot_name pippo", ""]
+    for k in range(50):
+        ranges = [float(v) for v in rng.uniform(0.1, 90.0, 7)]
+        lines.append(_flaser(ranges, tuple(rng.normal(size=3)), 0.1 * k + 1))
+        lines.append(f"ODOM {k} 0 0 0 0 0 {k} pippo {k}")
+    lines[10] = lines[10].replace(" ", "\t", 5).replace(" ", "   ", 3)  # other blanks
+    path = _write(tmp_path, lines)
+    table = _line_by_line(path)
+    assert _compiled_path_taken(path)
+    batch = read_carmen(path, SENSOR)
+    ranges = table.ranges.copy()
+    ranges[ranges >= table.no_return_m] = np.inf
+    assert np.array_equal(batch.ranges, ranges)
+    assert np.array_equal(batch.poses, table.poses)
+    assert np.array_equal(batch.stamps, table.logger_stamps)
+    assert np.array_equal(batch.angles, table.angles)
+
+
+@pytest.mark.parametrize("name", ["intel.gfs.log", "freiburg-079-corrected.log"])
+def test_the_compiled_reader_gives_the_token_readers_scans_of_real_logs(name: str) -> None:
+    path = DATA / name
+    if not path.is_file():
+        pytest.skip(f"real data absent: {path}")
+    table = _line_by_line(path)
+    assert _compiled_path_taken(path)
+    batch = read_carmen(path, SensorConfig(name="real"))
+    ranges = table.ranges.copy()
+    ranges[ranges >= table.no_return_m] = np.inf
+    assert np.array_equal(batch.ranges, ranges)
+    assert np.array_equal(batch.poses, table.poses)
+    assert table.linenos[0] > 0 and len(table.linenos) == batch.n_scans
