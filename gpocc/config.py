@@ -125,9 +125,8 @@ class SamplesConfig:
     short of the hit by ``hit_gap_m`` or ``hit_gap_sigmas`` range standard deviations,
     whichever is larger (the true surface may be that much nearer than the reading).
     The band this leaves empty before each hit is what blurs walls (the GP carries the
-    hits' +1 into it); 0.15 m is the default (0.25 before: ``make experiment``'s variant
-    ``hit-gap-0.25`` measures it); shorter gaps raise the learned label noise and smooth
-    the whole map (docs/walls.md).
+    hits' +1 into it); ``make experiment``'s variant ``hit-gap-0.25`` measures a wider gap;
+    shorter gaps raise the learned label noise and smooth the whole map (docs/walls.md).
     ``thin_cell_m`` keeps at most one sample of each label
     per square cell of that side (the most certain one), which bounds the training set by
     the mapped area instead of the log length; 0 disables thinning.
@@ -227,9 +226,8 @@ class TrainingConfig:
     over all of them rather than from ten at its edges, where the hyperparameters of
     the buildings at the edges are learned for all (docs/benchmarks.md, "City").
     ``patch_centres``: ``hits`` (default) draws the centres from the occupied samples, so
-    every patch holds a boundary; ``samples`` (as before) from all samples, where a draw
-    of mostly open space can learn a kernel far too smooth for the walls (Freiburg held-out
-    AUC 0.937-0.942 in 2 of 6 runs; commit 3198d15). The classifier is fitted
+    every patch holds a boundary; ``samples`` from all samples, where a draw of mostly open
+    space can learn a kernel far too smooth for the walls. The classifier is fitted
     on the same patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
     (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations;
