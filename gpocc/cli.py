@@ -146,6 +146,11 @@ def main() -> None:
         # the command's own handler: nothing was written yet.
         print(INTERRUPTED, file=sys.stderr)
         _exit_without_teardown(130)
+    except GpoccError as exc:
+        # A command's modules failed to load for a reason it states (gpocc.compiled: the
+        # compiled loops are not built or are stale): one line, as a command's errors.
+        print(f"gpocc: error: {exc}", file=sys.stderr)
+        _exit_without_teardown(2)
     except typer.Abort:
         # An EOFError (or typer.Abort) in a command: typer's standalone mode printed this
         # line; without it the Abort would end in a traceback.

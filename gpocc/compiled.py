@@ -21,6 +21,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from gpocc.errors import CompiledLoopsUnavailable
+
 #: Every exported loop of ``gpocc/_kernels.c``, as C prototypes: the one declaration the
 #: ctypes signatures and the argument checks are made from (tests/gp/test_compiled.py checks
 #: it against the C source's definitions). A ``const`` pointer is an input (C order, its
@@ -205,8 +207,9 @@ def built_library() -> Path:
     """The built extension ``gpocc._kernels`` (a shared library)."""
     spec = importlib.util.find_spec("gpocc._kernels")
     if spec is None or not spec.origin:
-        raise ImportError("gpocc's compiled loops (gpocc/_kernels.c) are not built: run "
-                          "'make install' (or 'pip install -e .') with a C compiler")
+        raise CompiledLoopsUnavailable(
+            "gpocc's compiled loops (gpocc/_kernels.c) are not built: run 'make install' (or "
+            "'pip install -e .') with a C compiler")
     return Path(spec.origin)
 
 
@@ -216,8 +219,8 @@ def load(library: Path, source: Path | None = None) -> ctypes.CDLL:
     loops: ImportError."""
     if source is not None and source.exists() \
             and source.stat().st_mtime > library.stat().st_mtime:
-        raise ImportError(f"{library.name} is older than {source.name}: rebuild it with "
-                          "'make install'")
+        raise CompiledLoopsUnavailable(f"{library} is older than {source.name}: rebuild it "
+                                       "with 'make install'")
     lib = ctypes.CDLL(str(library))
     for prototype in parse_prototypes(DECLARATIONS).values():
         function = getattr(lib, prototype.name)

@@ -576,6 +576,8 @@ _MAX_MOUNT_M = 1e3
 #: An input transform moving farther than this is a unit mistake (as for poses,
 #: gpocc.io.scans.MAX_POSITION_M).
 _MAX_TRANSLATION_M = 1e7
+#: A map border wider than this around the data is a unit mistake.
+_MAX_MARGIN_M = 1e4
 #: The largest integer a config key may hold (2^32 - 1: seeds and counts fit in int64).
 _MAX_INT = 2**32 - 1
 
@@ -830,6 +832,9 @@ def _validate(config: Config, source: str) -> Config:
     if not 0.0 < config.model.blend_overlap <= 1.0:
         raise GpoccError(f"{source}: key 'model.blend_overlap' must be above 0 and at most 1 "
                          f"(1: bilinear across whole blocks), got {config.model.blend_overlap}")
+    if config.map.margin_m > _MAX_MARGIN_M:
+        raise GpoccError(f"{source}: key 'map.margin_m' must be at most {_MAX_MARGIN_M:g} m (the "
+                         f"border around the data), got {config.map.margin_m:g}")
     return config
 
 

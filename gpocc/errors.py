@@ -17,3 +17,9 @@ class SchedulerUnreachable(GpoccError):
                          "the address and that the scheduler is running")
         self.address = address
         self.cause = cause
+
+
+class CompiledLoopsUnavailable(GpoccError, ImportError):
+    """gpocc's compiled loops (``gpocc/_kernels.c``) are not built, or older than their
+    source: an install problem, said in one line like any other (an ImportError too, for
+    code that imports gpocc and checks for it)."""

@@ -107,7 +107,18 @@ def split(
             f"({result.train.n_beams} beams), {result.n_heldout} held out"
         )
 
+    if n_heldout == 0:
+        counts = ", ".join(f"'{b.sensor}' {b.n_scans}" for b in batches)
+        raise GpoccError(
+            f"{input_path}: --every {every} holds out no scan (scans per sensor: {counts}); "
+            "choose an --every no larger than a sensor's scan count"
+        )
     all_points = np.concatenate(points)
+    if len(all_points) == 0:
+        raise GpoccError(
+            f"{input_path}: the {n_heldout} held-out scans have no valid beam, so no labelled "
+            "point; choose another --every"
+        )
     all_labels = np.concatenate(labels)
     all_kinds = np.concatenate(kinds)
     new_config = train_config(config, sensors)

@@ -157,7 +157,8 @@ def _parse_flaser(path: Path, lineno: int, tokens: list[str]) -> _Scan:
     if len(tokens) != n + 11:
         raise GpoccError(
             f"{path}: line {lineno}: FLASER with {n} beams needs {n + 11} tokens, got "
-            f"{len(tokens)} (truncated line?); fix or delete that line"
+            f"{len(tokens)} ({'truncated line' if len(tokens) < n + 11 else 'extra tokens'}?); "
+            "fix or delete that line"
         )
     values = _parse_numbers(path, lineno, tokens[2 : n + 8] + [tokens[-1]], "FLASER")
     return _Scan(lineno, values[:n], _flaser_bearings(n), values[n : n + 3], float(values[-1]))

@@ -256,6 +256,9 @@ def read_map_server(yaml_path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid
 
     # Transparency matters to map_server only between the thresholds, which are
     # unknown here in either mode, so only the colour channels are used.
+    if not image_path.is_file():
+        raise GpoccError(f"{yaml_path}: its image {image_path} is not found; fix the yaml's "
+                         "'image' (relative to the yaml's folder) or restore the file")
     grey = _read_image(image_path)
     height, width = grey.shape
     classes = map_server_classes(grey, occupied_thresh, free_thresh, negate)

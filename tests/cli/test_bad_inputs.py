@@ -64,6 +64,7 @@ def corpus(tmp_path_factory) -> Path:
     write_bag(root / "ok.mcap", [_batch(3.0, 30.0)], [("/scan", "/pose")], "mcap")
     (root / "binary.yaml").write_bytes(bytes(range(256)) * 4)
     (root / "seed_float.yaml").write_text("seed: 1e23\n")
+    (root / "huge_margin.yaml").write_text("map:\n  margin_m: 1.0e+9\n")
     (root / "seed_huge.yaml").write_text("seed: 100000000000000000000000\n")
     np.save(root / "bare_array.npy", np.zeros(3))
     (root / "bare_array.npy").rename(root / "bare_array.npz")  # np.load gives an array
@@ -161,6 +162,10 @@ CASES = [
                        "--out", "{root}/out.npz"], "binary.yaml", "out.npz"),
     ("config-seed-1e23", ["train", "{root}/ok.mcap", "--config", "{root}/seed_float.yaml",
                           "--out", "{root}/out.npz"], "seed_float.yaml", "out.npz"),
+    # A margin of 1e9 m passed validation and failed only after training, naming the size.
+    ("config-huge-margin", ["build", "{root}/ok.mcap", "--config", "{root}/huge_margin.yaml",
+                            "--resolution", "0.3", "--out", "{root}/out"],
+     "huge_margin.yaml`map.margin_m", "out"),
     ("config-seed-huge", ["train", "{root}/ok.mcap", "--config", "{root}/seed_huge.yaml",
                           "--out", "{root}/out.npz"], "seed_huge.yaml", "out.npz"),
     ("train-negative-seed", ["train", "{root}/ok.mcap", "--seed", "-1",

@@ -266,3 +266,24 @@ def test_intel_split_holds_out_91_scans(tmp_path):
     points, labels = load_truth(out / "heldout.csv")
     assert 0 < (labels == 1).sum() <= 91 * 180
     assert len(points) == len(labels)
+
+
+def test_cli_split_that_holds_out_no_scan_is_an_error_and_writes_nothing(tmp_path):
+    from gpocc.cli import app
+
+    batch = room_batch()
+    bag, cfg = _write_input(tmp_path, [batch])
+    out = tmp_path / "none"
+    result = CliRunner().invoke(app, ["split", str(bag), "--every", str(batch.n_scans + 1),
+                                      "--config", str(cfg), "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    errors = [x for x in result.stderr.splitlines() if "error" in x]
+    assert len(errors) == 1
+    line = errors[0]
+    assert "holds out no scan" in line and str(bag) in line
+    assert f"{batch.n_scans}" in line and "Traceback" not in result.output
+    assert not out.exists() and list(tmp_path.glob(".none*")) == []
+    # The largest --every that holds a scan out still works.
+    ok = CliRunner().invoke(app, ["split", str(bag), "--every", str(batch.n_scans),
+                                  "--config", str(cfg), "--out", str(out)])
+    assert ok.exit_code == 0, ok.output

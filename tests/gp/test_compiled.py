@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -176,3 +178,22 @@ def test_no_nan_reaches_the_loops_compiled_with_finite_math_only(value):
             with pytest.raises(ValueError, match="finite"):
                 ex.expected_kernel_cross(kernel, args["queries"], args["means"],
                                          args["covs"], 2, backend="compiled")
+
+
+def test_a_stale_library_is_one_error_line_at_the_command_line(tmp_path):
+    # A copy of the package whose C source is newer than its built library: every command
+    # says so in one line (status 2) instead of an ImportError traceback.
+    package = Path(compiled.__file__).parent
+    copy = tmp_path / "gpocc"
+    shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    library = next(copy.glob("_kernels*.so"))
+    os.utime(library, (1_000_000, 1_000_000))
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    for argv in (["info", str(tmp_path / "missing.log")],
+                 ["map", str(tmp_path / "m.npz"), "--resolution", "1", "--out", "m"]):
+        result = subprocess.run([sys.executable, "-m", "gpocc", *argv], env=env, cwd=tmp_path,
+                                capture_output=True, text=True, timeout=120)
+        assert result.returncode == 2, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and "older than _kernels.c" in lines[0], result.stderr
+        assert "make install" in lines[0] and "Traceback" not in result.stderr

@@ -89,7 +89,8 @@ def test_robotlaser1(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("bad", "why"),
     [
-        ("FLASER 4 1 2 3 0 0 0 0 0 0 1.0 pippo 1.0", "needs 15 tokens"),  # a beam missing
+        ("FLASER 4 1 2 3 0 0 0 0 0 0 1.0 pippo 1.0", "needs 15 tokens, got 14 .truncated"),
+        ("FLASER 4 1 2 3 4 5 0 0 0 0 0 0 1.0 pippo 1.0", "needs 15 tokens, got 16 .extra"),
         ("FLASER 4 1 2 3 x 0 0 0 0 0 0 1.0 pippo 1.0", "non-numeric value 'x'"),
         ("FLASER four 1 2 3 4 0 0 0 0 0 0 1.0 pippo 1.0", "beam count"),
         # 11 tokens, as many as 0 beams need: said "needs 11 tokens, got 11" before
