@@ -12,6 +12,7 @@ the same way (AUC of the nearest cell, hits with every free point, as `gpocc eva
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 from dataclasses import dataclass
@@ -259,7 +260,19 @@ def city(ctx: Context) -> Result:
         f"building more than {AUC_TOLERANCE} AUC below its map alone "
         f"({'met' if met[2] else 'missed'}: largest loss {loss:.4f}; largest difference "
         f"either way {diffs[worst]:+.4f}, at {scored[worst][0].name}).")
+    result.notes.append(cpu_bound([b for b, _ in builds]))
     return result
+
+
+def cpu_bound(builds: list[Measurement]) -> str:
+    """What bounds a build's wall time from below: its CPU time spread over the usable
+    cores (the median of ``builds``), the wall time no scheduling of the same work can
+    beat."""
+    cores = len(os.sched_getaffinity(0))
+    cpu = float(np.median([b.cpu_s for b in builds]))
+    return (f"Bound: CPU {cpu:.0f} s over {cores} usable cores is {cpu / cores:.0f} s of "
+            "wall time even if every stage kept every core busy; below that only less "
+            "computation goes.")
 
 
 #: Buildings a side of the growth table's rows (1, 4, 16 and 64 buildings).
@@ -308,4 +321,5 @@ def city_1km(ctx: Context) -> Result:
     result = Result()
     result.add(Table(MEASURED, [_row(site, _load())]),
                f"{len(site.layout)} CARMEN logs, {site.scans} scans.")
+    result.notes.append(cpu_bound([site.built]))
     return result
