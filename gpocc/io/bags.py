@@ -148,6 +148,56 @@ def _corrupt(path: Path, exc: BaseException) -> GpoccError:
     )
 
 
+#: The first bytes of an MCAP file.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def mcap_corruption(path: Path) -> str | None:
+    """How an MCAP file, or an MCAP file of a ROS 2 bag folder, is corrupt, read record
+    by record with the mcap library: a chunk or the data section failing its stored CRC,
+    or records that do not parse (a length past the file, a cut-off end), as
+    ``"FILE: what failed"``; None if every file reads whole (CRCs are checked where the
+    writer stored them) or is not MCAP. It reads every file whole: a check for after a
+    read has failed, to tell corruption from bad data."""
+    from mcap.exceptions import EndOfFile, InvalidMagic, RecordLengthLimitExceeded
+    from mcap.stream_reader import CRCValidationError, StreamReader
+
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap"))
+    for file in files:
+        try:
+            with open(file, "rb") as stream:
+                if stream.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                    continue
+                stream.seek(0)
+                for _ in StreamReader(stream, validate_crcs=True).records:
+                    pass
+        except CRCValidationError as exc:
+            return f"{file.name}: {exc}"
+        except (EndOfFile, InvalidMagic, RecordLengthLimitExceeded) as exc:
+            return f"{file.name}: its records do not parse ({_one_line(exc) or 'cut off'})"
+        except Exception:  # noqa: BLE001 - another defect: the reader's own error says it
+            continue
+    return None
+
+
+@contextlib.contextmanager
+def _corruption_named(path: Path) -> Iterator[None]:
+    """An error while reading a bag's messages is the bag's corruption when its MCAP
+    records say so (:func:`mcap_corruption`): a flipped byte otherwise shows as whatever
+    field it lands in (an angle that disagrees with its count, a NaN pose), with that
+    field's fix."""
+    try:
+        yield
+    except Exception:
+        failure = mcap_corruption(path)
+        if failure is None:
+            raise
+        raise GpoccError(
+            f"{path}: the file is corrupt ({failure}); re-record or re-export it "
+            "(`mcap recover` can often save an MCAP file)"
+        ) from None
+
+
 class _DefaultTypestore:
     """The ROS 2 Humble typestore for bags that carry no message definitions (rosbag2
     sqlite3 bags before Iron), built on first use: building it takes 0.15 s, and ROS 1
@@ -406,16 +456,17 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
         tf_acc = {t: TfCollector(path) for names in tf_for.values() for t in names}
         wanted = [c for c in reader.connections
                   if c.topic in scan_acc or c.topic in pose_acc or c.topic in tf_acc]
-        for conn, record_ns, raw in reader.messages(connections=wanted):
-            msg = reader.deserialize(raw, conn.msgtype)
-            if conn.topic in scan_acc:
-                _add_scan(path, conn.topic, scan_acc[conn.topic], msg, record_ns)
-            if conn.topic in pose_acc:
-                pose_acc[conn.topic].add(msg, record_ns)
-            if conn.topic in tf_acc:
-                tf_acc[conn.topic].add(msg, conn.topic, record_ns)
-        series = {topic: acc.build() for topic, acc in pose_acc.items()}
-        built = {topic: acc.build() for topic, acc in tf_acc.items()}
+        with _corruption_named(path):
+            for conn, record_ns, raw in reader.messages(connections=wanted):
+                msg = reader.deserialize(raw, conn.msgtype)
+                if conn.topic in scan_acc:
+                    _add_scan(path, conn.topic, scan_acc[conn.topic], msg, record_ns)
+                if conn.topic in pose_acc:
+                    pose_acc[conn.topic].add(msg, record_ns)
+                if conn.topic in tf_acc:
+                    tf_acc[conn.topic].add(msg, conn.topic, record_ns)
+            series = {topic: acc.build() for topic, acc in pose_acc.items()}
+            built = {topic: acc.build() for topic, acc in tf_acc.items()}
         tfs = {s.name: merge_buffers([built[t] for t in tf_for[s.name]]) or None
                for s in sensors}
         # Clouds are projected as read, in a second pass once TF is known: a bag's clouds
@@ -423,25 +474,32 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
         cloud_acc = {s.scan_topic: CloudCollector(path, s, tfs[s.name]) for s in sensors
                      if s.scan_topic in clouds}
         wanted = [c for c in reader.connections if c.topic in cloud_acc]
-        for conn, record_ns, raw in (reader.messages(connections=wanted) if wanted else ()):
-            msg = reader.deserialize(raw, conn.msgtype)
-            # The header stamp, else the log time: a cloud is projected with the TF at
-            # its time as it is read, before the topic's clock could be judged whole.
-            cloud_acc[conn.topic].add(msg, _stamp(msg) or record_ns * 1e-9)
-    batches = []
-    for s in sensors:
-        tf: TfBuffer | None = tfs[s.name]
-        odom = series.get(odom_for[s.name]) if odom_for[s.name] else None
-        if s.scan_topic in cloud_acc:
-            scans, tf, resolved, lines = cloud_acc[s.scan_topic].resolved(
-                series.get(s.pose_topic))
-            batch = laserpose.assemble(path, resolved, scans, tf, series.get(s.pose_topic), odom)
-            batches.append(replace(batch, sensor_config=resolved, provenance=replace(
-                batch.provenance, sensor_lines=lines)))
-            continue
-        batches.append(laserpose.assemble(path, s, scan_acc[s.scan_topic], tf,
-                                          series.get(s.pose_topic), odom))
-    return batches
+        with _corruption_named(path):
+            for conn, record_ns, raw in (reader.messages(connections=wanted) if wanted
+                                         else ()):
+                msg = reader.deserialize(raw, conn.msgtype)
+                # The header stamp, else the log time: a cloud is projected with the TF at
+                # its time as it is read, before the topic's clock could be judged whole.
+                cloud_acc[conn.topic].add(msg, _stamp(msg) or record_ns * 1e-9)
+    with _corruption_named(path):
+        return [_assemble(path, s, scan_acc, cloud_acc, tfs[s.name], series,
+                          series.get(odom_for[s.name]) if odom_for[s.name] else None)
+                for s in sensors]
+
+
+def _assemble(path: Path, sensor: SensorConfig, scan_acc: dict[str, _ScanTopic],
+              cloud_acc: dict[str, CloudCollector], tf: TfBuffer | None,
+              series: dict[str, Any], odom: Any) -> ScanBatch:
+    """One sensor's batch from what :func:`read_bag` collected."""
+    if sensor.scan_topic in cloud_acc:
+        scans, tf, resolved, lines = cloud_acc[sensor.scan_topic].resolved(
+            series.get(sensor.pose_topic))
+        batch = laserpose.assemble(path, resolved, scans, tf, series.get(sensor.pose_topic),
+                                   odom)
+        return replace(batch, sensor_config=resolved,
+                       provenance=replace(batch.provenance, sensor_lines=lines))
+    return laserpose.assemble(path, sensor, scan_acc[sensor.scan_topic], tf,
+                              series.get(sensor.pose_topic), odom)
 
 
 # --------------------------------------------------------------------------- writing

@@ -360,3 +360,56 @@ def test_random_or_empty_bytes(tmp_path: Path, name: str) -> None:
     with pytest.raises(GpoccError, match=name.replace(".", r"\.")) as info:
         read_inputs([path], Config())
     assert "\n" not in str(info.value)
+
+
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "sample"
+
+
+def _flip_every(data: bytes, start: int, stop: int, step: int) -> bytes:
+    out = bytearray(data)
+    for k in range(start, stop, step):
+        out[k] ^= 0xFF
+    return bytes(out)
+
+
+def test_a_corrupt_mcap_is_called_corrupt_not_blamed_on_a_field(tmp_path):
+    # Every 97th byte of the data section flipped (header, summary and footer intact, so
+    # the file opens): the scans' fields read as nonsense (an angle_max that disagrees
+    # with its count), and the records no longer parse; the error says the file is
+    # corrupt, not that the driver's angles are wrong.
+    from gpocc.config import load_config
+
+    config = load_config(SAMPLE / "sample.yaml")
+    good = SAMPLE / "intel_sample.mcap"
+    assert read_inputs([good], config)  # the intact file reads
+    bad = tmp_path / "intel_sample.mcap"
+    data = good.read_bytes()
+    bad.write_bytes(_flip_every(data, 2000, len(data) - 2000, 97))
+    with pytest.raises(GpoccError, match=r"intel_sample\.mcap: the file is corrupt "
+                                         r"\(intel_sample\.mcap: its records do not parse"):
+        read_inputs([bad], config)
+
+
+def test_mcap_corruption_checks_the_crcs_a_writer_stored(tmp_path):
+    from mcap.writer import CompressionType, Writer
+
+    from gpocc.io.bags import mcap_corruption
+
+    path = tmp_path / "crc.mcap"
+    with open(path, "wb") as stream:
+        # The mcap library's writer stores chunk and data-section CRCs.
+        writer = Writer(stream, compression=CompressionType.NONE)
+        writer.start()
+        schema = writer.register_schema("raw", "none", b"")
+        channel = writer.register_channel("/raw", "none", schema)
+        for k in range(50):
+            writer.add_message(channel, k, b"payload %03d" % k, k)
+        writer.finish()
+    data = path.read_bytes()
+    assert mcap_corruption(path) is None
+    at = data.index(b"payload 025")  # a byte inside the chunk's records
+    path.write_bytes(data[:at] + b"q" + data[at + 1:])
+    failure = mcap_corruption(path)
+    assert failure is not None and failure.startswith("crc.mcap: crc validation failed")
+    (tmp_path / "not.mcap").write_text("not an mcap file\n")
+    assert mcap_corruption(tmp_path / "not.mcap") is None
