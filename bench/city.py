@@ -12,13 +12,14 @@ the same way (AUC of the nearest cell, hits with every free point, as `gpocc eva
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from gpocc.parallel import default_workers
 
 from .campus import Building, flaser_lines, grid_layout, write_site
 from .harness import Measurement, gpocc
@@ -268,7 +269,7 @@ def cpu_bound(builds: list[Measurement]) -> str:
     """What bounds a build's wall time from below: its CPU time spread over the usable
     cores (the median of ``builds``), the wall time no scheduling of the same work can
     beat."""
-    cores = len(os.sched_getaffinity(0))
+    cores = default_workers()
     cpu = float(np.median([b.cpu_s for b in builds]))
     return (f"Bound: CPU {cpu:.0f} s over {cores} usable cores is {cpu / cores:.0f} s of "
             "wall time even if every stage kept every core busy; below that only less "

@@ -1118,10 +1118,11 @@ static inline int blank(unsigned char c)
     return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f';
 }
 
-/* The numbers of `lines` lines of text (NUL-terminated, lines ending at '\n'), each of
- * exactly per_line whitespace-separated tokens, into out (lines, per_line): strtod's
- * correctly rounded doubles, the ones float() reads. Returns -1, or the first line that
- * is not such a line (a token strtod does not read whole, another count, or no line). */
+/* The numbers of `lines` lines of text (NUL-terminated, with no other NUL; lines ending
+ * at '\n'), each of exactly per_line whitespace-separated tokens, into out (lines,
+ * per_line): strtod's correctly rounded doubles, the ones float() reads. Returns -1, or
+ * the first line that is not such a line (a token strtod does not read whole, another
+ * count, no line), or `lines` when text follows the last line. */
 EXPORT i64 gpocc_parse_rows(const unsigned char *restrict text, i64 per_line, i64 lines,
                             double *restrict out)
 {
@@ -1153,7 +1154,9 @@ EXPORT i64 gpocc_parse_rows(const unsigned char *restrict text, i64 per_line, i6
         else if (k + 1 < lines)
             return k + 1;
     }
-    return -1;
+    while (blank(*p) || *p == '\n')
+        p++;
+    return *p == '\0' ? -1 : lines;
 }
 
 /* ------------------------------------------------------------------ module */

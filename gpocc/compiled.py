@@ -223,7 +223,12 @@ def load(library: Path, source: Path | None = None) -> ctypes.CDLL:
                                        "with 'make install'")
     lib = ctypes.CDLL(str(library))
     for prototype in parse_prototypes(DECLARATIONS).values():
-        function = getattr(lib, prototype.name)
+        try:
+            function = getattr(lib, prototype.name)
+        except AttributeError:  # built from an older source (copied keeping its mtime)
+            raise CompiledLoopsUnavailable(f"{library} lacks {prototype.name}, so it was "
+                                           "built from older source: rebuild it with "
+                                           "'make install'") from None
         function.argtypes = [ctypes.c_void_p if p.pointer else _SCALARS[p.ctype]
                              for p in prototype.parameters]
         function.restype = _restype(prototype.returns)
@@ -563,11 +568,16 @@ def parse_rows(text: bytes, per_line: int, lines: int) -> np.ndarray | None:
     ``text`` holds ``lines`` lines (split by newlines), each of exactly ``per_line``
     whitespace-separated numbers; each becomes the double Python's ``float`` reads from
     its token (correctly rounded, as C's ``strtod``). None if a line holds another count
-    or a token that is not a plain decimal, inf or nan (hex floats, ``1e``, ``1,5``):
-    the caller then reads it token by token, which names the culprit.
+    or a token that is not a plain decimal, inf or nan (hex floats, ``1e``, ``1,5``),
+    text after the last line, or a NUL: the caller then reads it token by token, which
+    names the culprit.
     """
     if per_line <= 0 or lines < 0:
         raise ValueError("per_line must be positive and lines at least 0")
+    # A token is at least one character and a blank: more numbers than that cannot be in
+    # the text (and would ask for a vast array); C stops at a NUL, so none may be inside.
+    if per_line * lines > len(text) // 2 + 1 or b"\0" in text:
+        return None
     buffer = np.frombuffer(text + b"\0", dtype=np.uint8)
     out = np.empty((lines, per_line))
     bad = _c.parse_rows(text=buffer, per_line=per_line, lines=lines, out=out)

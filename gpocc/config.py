@@ -834,7 +834,8 @@ def _validate(config: Config, source: str) -> Config:
                          f"(1: bilinear across whole blocks), got {config.model.blend_overlap}")
     if config.map.margin_m > _MAX_MARGIN_M:
         raise GpoccError(f"{source}: key 'map.margin_m' must be at most {_MAX_MARGIN_M:g} m (the "
-                         f"border around the data), got {config.map.margin_m:g}")
+                         f"border around the data), got {config.map.margin_m:g}; check its "
+                         "units (metres)")
     return config
 
 

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-from gpocc import compiled
 from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
 from gpocc.io.scans import MAX_POSITION_M, ScanBatch, position_in_range
@@ -210,8 +209,8 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
     """
     path = Path(path)
     lines = _lines(path)
-    # The usual log (FLASER lines of one beam count) in one pass of numpy's number
-    # parser; anything else, a malformed line included, line by line, which names it.
+    # The usual log (FLASER lines of one beam count) in one compiled pass; anything else,
+    # a malformed line included, line by line, which names it.
     table = _flaser_table(lines) or _scan_table(path, lines)
     ranges, poses = table.ranges, table.poses
     ranges[ranges >= table.no_return_m] = np.inf
@@ -280,13 +279,17 @@ def _flaser_table(lines: list[str]) -> _ScanTable | None:
             body, _ipc, _host, stamp = head[2].rsplit(None, 3)
         except (IndexError, ValueError):
             return None
-        if n <= 0 or (beams and n != beams):
+        if n <= 0 or (beams and n != beams) or n + 6 > (len(body) + 1) // 2:
             return None
         beams = n
         linenos.append(lineno)
         bodies.append(body)
         stamps.append(stamp)
     if not bodies:
+        return None
+    try:
+        from gpocc import compiled  # here: reading logs must not need the compiled loops
+    except ImportError:
         return None
     values = compiled.parse_rows("\n".join(bodies).encode("ascii"), beams + 6, len(bodies))
     if values is None:

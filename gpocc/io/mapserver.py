@@ -254,11 +254,12 @@ def read_map_server(yaml_path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid
         raise GpoccError(f"{yaml_path}: missing key 'image' (the map image file); {fix}")
     image_path = Path(image) if os.path.isabs(image) else yaml_path.parent / image
 
+    if not image_path.is_file():
+        where = "" if os.path.isabs(image) else " (relative to the yaml's folder)"
+        raise GpoccError(f"{yaml_path}: its image {image_path} is not found; fix the yaml's "
+                         f"'image'{where} or restore the file")
     # Transparency matters to map_server only between the thresholds, which are
     # unknown here in either mode, so only the colour channels are used.
-    if not image_path.is_file():
-        raise GpoccError(f"{yaml_path}: its image {image_path} is not found; fix the yaml's "
-                         "'image' (relative to the yaml's folder) or restore the file")
     grey = _read_image(image_path)
     height, width = grey.shape
     classes = map_server_classes(grey, occupied_thresh, free_thresh, negate)
@@ -300,9 +301,8 @@ def _load_yaml(path: Path) -> dict[str, Any]:
 
 
 def _read_image(path: Path) -> np.ndarray:
-    """(H, W) colour-channel mean 0..255, an integer as map_server computes it."""
-    if not path.is_file():
-        raise GpoccError(f"{path}: map image not found; the yaml's 'image' must name it")
+    """(H, W) colour-channel mean 0..255, an integer as map_server computes it, of an
+    existing image file."""
     with open(path, "rb") as f:
         magic = f.read(2)
     if magic in (b"P5", b"P2"):

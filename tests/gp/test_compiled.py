@@ -197,3 +197,14 @@ def test_a_stale_library_is_one_error_line_at_the_command_line(tmp_path):
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and "older than _kernels.c" in lines[0], result.stderr
         assert "make install" in lines[0] and "Traceback" not in result.stderr
+
+
+def test_a_library_that_lacks_a_declared_loop_is_refused(monkeypatch):
+    # Built from older source but newer on disk (copied keeping its mtime): the missing
+    # symbol is an install problem in one line, not an AttributeError.
+    from gpocc.errors import CompiledLoopsUnavailable
+
+    monkeypatch.setattr(compiled, "DECLARATIONS",
+                        compiled.DECLARATIONS + "void gpocc_not_built(void);\n")
+    with pytest.raises(CompiledLoopsUnavailable, match="lacks gpocc_not_built.*make install"):
+        compiled.load(compiled.built_library())

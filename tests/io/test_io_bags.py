@@ -413,3 +413,28 @@ def test_mcap_corruption_checks_the_crcs_a_writer_stored(tmp_path):
     assert failure is not None and failure.startswith("crc.mcap: crc validation failed")
     (tmp_path / "not.mcap").write_text("not an mcap file\n")
     assert mcap_corruption(tmp_path / "not.mcap") is None
+
+
+def test_mcap_corruption_reports_bytes_no_record_holds(tmp_path):
+    # A flipped high bit inside a record's text (a schema or channel name) does not
+    # decode: records that do not parse, not an intact file.
+    from gpocc.io.bags import mcap_corruption
+
+    data = bytearray((SAMPLE / "intel_sample.mcap").read_bytes())
+    data[64660] ^= 0x80
+    path = tmp_path / "flipped.mcap"
+    path.write_bytes(bytes(data))
+    failure = mcap_corruption(path)
+    assert failure is not None and failure.startswith("flipped.mcap: its records do not parse")
+
+
+def test_the_corruption_check_never_hides_the_reads_own_error(tmp_path, monkeypatch):
+    from gpocc.io import bags
+
+    def broken(path):
+        raise RuntimeError("the check itself failed")
+
+    monkeypatch.setattr(bags, "mcap_corruption", broken)
+    with pytest.raises(GpoccError, match="the angles"):
+        with bags._corruption_named(tmp_path / "x.mcap"):
+            raise GpoccError("x.mcap: the angles disagree")

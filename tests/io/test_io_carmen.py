@@ -239,31 +239,35 @@ def test_parse_rows_reads_what_float_reads() -> None:
     assert np.array_equal(np.isnan(got), np.isnan(want))
 
 
-@pytest.mark.parametrize("text", [
-    "1 2 3\n4 5",          # a line short
-    "1 2 3\n4 5 6 7",      # a line long
-    "1 2 3",               # a line missing
-    "1 2 0x10", "1 2 1e", "1 2 1,5", "1 2 nan(1)", "1 2 .", "1 2 1-2", "1 2 -", "1 2 infx",
+@pytest.mark.parametrize(("text", "lines"), [
+    ("1 2 3\n4 5", 2),          # a line short
+    ("1 2 3\n4 5 6 7", 2),      # a line long
+    ("1 2 3", 2),               # a line missing
+    ("1 2 3\n4 5 6\n7", 2),     # text after the last line
+    ("1 2 3\x00", 1), ("1 2 3\x00 9", 1), ("1 2\x00 3", 1),  # a NUL
+    ("1 2 0x10", 1), ("1 2 1e", 1), ("1 2 1,5", 1), ("1 2 nan(1)", 1), ("1 2 .", 1),
+    ("1 2 1-2", 1), ("1 2 -", 1), ("1 2 infx", 1),
 ])
-def test_parse_rows_refuses_what_it_cannot_read_as_float_does(text: str) -> None:
+def test_parse_rows_refuses_what_it_cannot_read_as_float_does(text: str, lines: int) -> None:
     from gpocc.compiled import parse_rows
 
-    lines = 2 if "\n" in text or text == "1 2 3" else 1
     assert parse_rows(text.encode(), 3, lines) is None
+    assert parse_rows(b"1 2 3\n4 5 6\n \n", 3, 2) is not None  # trailing blank lines
 
 
-def _line_by_line(path: Path):
-    """The reader's token-by-token path (float of each token), the oracle of its
-    compiled one."""
+def _paths_agree(path: Path) -> None:
+    """The compiled path (which must be taken) and the token-by-token path (float of each
+    token, the oracle) read the same scans: line numbers, ranges, bearings, poses, logger
+    stamps and the no-return range, bit for bit."""
     from gpocc.io import carmen
 
-    return carmen._scan_table(path, carmen._lines(path))
-
-
-def _compiled_path_taken(path: Path) -> bool:
-    from gpocc.io import carmen
-
-    return carmen._flaser_table(carmen._lines(path)) is not None
+    lines = carmen._lines(path)
+    fast, slow = carmen._flaser_table(lines), carmen._scan_table(path, lines)
+    assert fast is not None
+    assert fast.linenos == slow.linenos and fast.no_return_m == slow.no_return_m
+    for name in ("ranges", "angles", "poses", "logger_stamps"):
+        a, b = getattr(fast, name), getattr(slow, name)
+        assert a.shape == b.shape and np.array_equal(a.view(np.int64), b.view(np.int64)), name
 
 
 def test_the_compiled_reader_gives_the_token_readers_scans(tmp_path: Path) -> None:
@@ -274,16 +278,11 @@ def test_the_compiled_reader_gives_the_token_readers_scans(tmp_path: Path) -> No
         lines.append(_flaser(ranges, tuple(rng.normal(size=3)), 0.1 * k + 1))
         lines.append(f"ODOM {k} 0 0 0 0 0 {k} pippo {k}")
     lines[10] = lines[10].replace(" ", "\t", 5).replace(" ", "   ", 3)  # other blanks
+    lines[12] = lines[12] + "  \r"
     path = _write(tmp_path, lines)
-    table = _line_by_line(path)
-    assert _compiled_path_taken(path)
+    _paths_agree(path)
     batch = read_carmen(path, SENSOR)
-    ranges = table.ranges.copy()
-    ranges[ranges >= table.no_return_m] = np.inf
-    assert np.array_equal(batch.ranges, ranges)
-    assert np.array_equal(batch.poses, table.poses)
-    assert np.array_equal(batch.stamps, table.logger_stamps)
-    assert np.array_equal(batch.angles, table.angles)
+    assert batch.n_scans == 50
 
 
 @pytest.mark.parametrize("name", ["intel.gfs.log", "freiburg-079-corrected.log"])
@@ -291,11 +290,32 @@ def test_the_compiled_reader_gives_the_token_readers_scans_of_real_logs(name: st
     path = DATA / name
     if not path.is_file():
         pytest.skip(f"real data absent: {path}")
-    table = _line_by_line(path)
-    assert _compiled_path_taken(path)
-    batch = read_carmen(path, SensorConfig(name="real"))
-    ranges = table.ranges.copy()
-    ranges[ranges >= table.no_return_m] = np.inf
-    assert np.array_equal(batch.ranges, ranges)
-    assert np.array_equal(batch.poses, table.poses)
-    assert table.linenos[0] > 0 and len(table.linenos) == batch.n_scans
+    _paths_agree(path)
+
+
+@pytest.mark.parametrize(("bad", "why"), [
+    # A NUL ended C's text: the rest of the line was dropped instead of refused.
+    ("FLASER 4 1 2 3 4 0 0 0 0 0 0.0\x00 7 8 9 1.0 pippo 1.0", "needs 15 tokens, got 18"),
+    ("FLASER 4 1 2 3 4 0 0 0 0 0 0.0\x00 1.0 pippo 1.0", "non-numeric value"),
+    # A vast beam count must not reach an allocation (the token path names the count).
+    ("FLASER 1000000000000 1 2 0 0 0 0 0 0 1 pippo 1", "needs 1000000000011 tokens"),
+    ("FLASER 99999999999999999999999 1 2 0 0 0 0 0 0 1 pippo 1", "needs"),
+])
+def test_lines_the_compiled_path_refuses_get_the_token_paths_error(tmp_path: Path, bad: str,
+                                                                   why: str) -> None:
+    from gpocc.io import carmen
+
+    path = _write(tmp_path, [_flaser([1.0] * 4, (0, 0, 0), 0.5), bad], "odd.log")
+    assert carmen._flaser_table(carmen._lines(path)) is None
+    with pytest.raises(GpoccError, match=rf"odd\.log: line 2: .*{why}"):
+        read_carmen(path, SENSOR)
+
+
+def test_logs_read_without_the_compiled_loops(tmp_path: Path, monkeypatch) -> None:
+    import sys
+
+    path = _write(tmp_path, [_flaser([1.0, 2.0, 3.0], (0, 0, 0), k + 1.0) for k in range(3)])
+    want = read_carmen(path, SENSOR)
+    monkeypatch.setitem(sys.modules, "gpocc.compiled", None)  # importing it fails
+    got = read_carmen(path, SENSOR)
+    assert np.array_equal(got.ranges, want.ranges) and np.array_equal(got.poses, want.poses)
