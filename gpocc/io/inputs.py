@@ -30,7 +30,6 @@ from gpocc.progress import debug, log
 
 FORMAT_NAMES = {**bags.FORMAT_NAMES, "carmen": "CARMEN log"}
 CARMEN_SUFFIXES = (".log", ".clf", ".gfs")
-_MCAP_MAGIC = b"\x89MCAP0\r\n"
 _ROS1_MAGIC = b"#ROSBAG V2.0"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -91,7 +90,8 @@ def detect_format(path: str | Path) -> str:
     head = _head(path)
     if path.suffix in CARMEN_SUFFIXES or carmen.is_carmen_text(head):
         return "carmen"
-    for magic, suffix in ((_MCAP_MAGIC, ".mcap"), (_ROS1_MAGIC, ".bag"), (_SQLITE_MAGIC, ".db3")):
+    for magic, suffix in ((bags.MCAP_MAGIC, ".mcap"), (_ROS1_MAGIC, ".bag"),
+                          (_SQLITE_MAGIC, ".db3")):
         if head.startswith(magic):
             raise GpoccError(f"{path}: looks like a {suffix} file; rename it to *{suffix}")
     raise GpoccError(
