@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 
 
 @dataclass(frozen=True)
@@ -879,8 +879,7 @@ def read_config_mapping(path: str | Path) -> Any:
     """The parsed YAML of a config file, before validation: the keys it states (what
     :func:`load_config` fills with defaults)."""
     p = Path(path)
-    if not p.is_file():
-        raise GpoccError(f"{p}: config file not found; check the path")
+    check_regular_file(p, "config file", "check the path")
     try:
         data = yaml.load(p.read_text(encoding="utf-8"), Loader=_Loader)  # noqa: S506 - safe
     except (UnicodeDecodeError, ValueError):
@@ -895,6 +894,11 @@ def read_config_mapping(path: str | Path) -> Any:
         problem = getattr(exc, "problem", None)
         what = f" ({problem})" if problem else ""
         raise GpoccError(f"{p}: not valid YAML{where}{what}; fix the syntax") from None
+    if data is None:  # an empty file, or only comments: legal, but likely the wrong file
+        from gpocc.progress import log
+
+        log(f"warning: {p}: the config sets nothing (empty, or only comments); "
+            "using the defaults")
     return data
 
 

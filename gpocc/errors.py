@@ -23,3 +23,25 @@ class CompiledLoopsUnavailable(GpoccError, ImportError):
     """gpocc's compiled loops (``gpocc/_kernels.c``) are not built, or older than their
     source: an install problem, said in one line like any other (an ImportError too, for
     code that imports gpocc and checks for it)."""
+
+
+def check_regular_file(path, what: str, fix: str) -> None:
+    """Refuse ``path`` unless it is a regular file (a symlink to one counts).
+
+    Missing paths and folders are refused with ``fix``; pipes, sockets and devices too,
+    since gpocc reads its files more than once (format detection, then the read) and a
+    pipe would block or give its bytes only once.
+
+    Args:
+        path: a :class:`pathlib.Path`.
+        what: what the file should be, e.g. ``"config file"``.
+        fix: what to do instead, e.g. ``"check the path"``.
+    """
+    if path.is_file():
+        return
+    if not path.exists():
+        raise GpoccError(f"{path}: {what} not found; {fix}")
+    if path.is_dir():
+        raise GpoccError(f"{path}: is a folder, not a {what}; {fix}")
+    raise GpoccError(f"{path}: not a regular file (a pipe, socket or device); save the "
+                     f"{what} to a file and pass that file")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 from gpocc.gridspec import GridSpec
 from gpocc.io.carmen import is_number
 from gpocc.io.mapserver import read_map_server
@@ -59,10 +59,7 @@ def load_truth_kinds(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
     """:func:`load_truth` plus each point's kind: (N,) str from a point file's ``kind``
     column, None for rasters, map_server maps and point files without one."""
     p = Path(path)
-    if not p.exists():
-        raise GpoccError(f"{p}: ground-truth file not found; check the path")
-    if p.is_dir():
-        raise GpoccError(f"{p}: is a folder, not a ground-truth file; {ACCEPTED}")
+    check_regular_file(p, "ground-truth file", ACCEPTED)
     suffix = p.suffix.lower()
     kinds = None
     if suffix in _RASTER_SUFFIXES:
@@ -137,8 +134,7 @@ def labels_at(points: np.ndarray, path: str | Path) -> tuple[np.ndarray, np.ndar
             other than 0, 1 and its no-data value.
     """
     p = Path(path)
-    if not p.exists():
-        raise GpoccError(f"{p}: truth raster not found; check the path")
+    check_regular_file(p, "truth raster", "check the path")
     if p.suffix.lower() in _POINT_SUFFIXES:
         raise GpoccError(f"{p}: a point file has no label between its points; pass a truth "
                          "raster (GeoTIFF or .vrt) or a map_server .yaml")

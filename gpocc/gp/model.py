@@ -22,7 +22,7 @@ import numpy as np
 
 from gpocc.blas import single_threaded_blas
 from gpocc.config import Config, config_to_dict
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 from gpocc.gp import backends
 from gpocc.gp.classify import (
     C_BOUND,
@@ -423,8 +423,7 @@ def _growth_record(growth: Growth) -> dict[str, Any]:
 def load_model(path: str | Path) -> GPModel:
     """Read a model file; a missing, corrupt or newer-format file is a GpoccError."""
     p = Path(path)
-    if not p.is_file():
-        raise GpoccError(f"{p}: model file not found; create one with `gpocc train`")
+    check_regular_file(p, "model file", "pass a model file (create one with `gpocc train`)")
     try:
         loaded = np.load(p, allow_pickle=False)
         if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array

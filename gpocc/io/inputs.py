@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from gpocc.config import Config, SensorConfig
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 from gpocc.io import autodetect, bags, carmen
 from gpocc.io.bags import BagContents, TopicSummary
 from gpocc.io.frames import input_transform, transform_batch
@@ -82,6 +82,7 @@ def detect_format(path: str | Path) -> str:
                 "folder itself (the one holding metadata.yaml)"
             )
         return fmt
+    check_regular_file(path, "recording", "check the input path")
     if path.stat().st_size == 0:
         raise GpoccError(f"{path}: the file is empty; pass a bag, an MCAP file or a CARMEN log")
     fmt = bags.bag_format(path)

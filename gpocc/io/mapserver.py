@@ -27,7 +27,7 @@ import yaml
 
 from gpocc.constants import FREE as CLASS_FREE
 from gpocc.constants import OCCUPIED as CLASS_OCCUPIED
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_path
 
@@ -288,8 +288,7 @@ def map_server_classes(
 
 
 def _load_yaml(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise GpoccError(f"{path}: map yaml not found; check the path")
+    check_regular_file(path, "map yaml", "check the path")
     try:
         meta = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as exc:

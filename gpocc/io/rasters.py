@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from gpocc.constants import FREE, NO_DATA, OCCUPIED, UNSURE
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 from gpocc.gridspec import GridSpec, geotransform
 from gpocc.io.atomic import atomic_path
 
@@ -335,8 +335,7 @@ def read_raster(path: str | os.PathLike[str]) -> tuple[np.ndarray, GridSpec, Nod
 
 
 def _read(path: Path, depth: int) -> tuple[np.ndarray, GridSpec, Nodata]:
-    if not path.is_file():
-        raise GpoccError(f"{path}: raster not found; check the path")
+    check_regular_file(path, "raster", "check the path")
     if path.suffix.lower() == ".vrt":
         if depth >= _MAX_VRT_DEPTH:
             raise GpoccError(f"{path}: VRTs nest too deeply (a VRT referring to itself?)")

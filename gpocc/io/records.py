@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from gpocc.config import Config
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 from gpocc.io.frames import input_transform
 from gpocc.io.scans import ScanBatch
 
@@ -52,6 +52,8 @@ class InputRecord:
 def content_hash(path: str | Path) -> str:
     """SHA-256 of a file, or of a folder's files (relative names and contents, sorted)."""
     path = Path(path)
+    if not path.is_dir():
+        check_regular_file(path, "recording", "check the input path")
     digest = hashlib.sha256()
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
     for file in files:

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_regular_file
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_path
 
@@ -287,8 +287,7 @@ def read_map_mcap(path: str | os.PathLike[str], topic: str = MAP_TOPIC
             -1..100, a rotated origin, or tiles of differing resolutions.
     """
     path = Path(path)
-    if not path.is_file():
-        raise GpoccError(f"{path}: map not found; check the path")
+    check_regular_file(path, "map", "check the path")
     prefix = f"{topic}/tile_"
     last: dict[str, bytes] = {}
     for name, _, schema, data in _messages(path):

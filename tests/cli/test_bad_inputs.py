@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -70,6 +71,7 @@ def corpus(tmp_path_factory) -> Path:
     (root / "bare_array.npy").rename(root / "bare_array.npz")  # np.load gives an array
     (root / "a_file").write_text("not a folder\n")
     (root / "user_dir").mkdir()
+    os.mkfifo(root / "fifo")  # no writer: reading it would block for ever
     (root / "user_dir" / "notes.txt").write_text("mine\n")
     for name, edit in TAMPERING.items():
         _tamper(root / "good.npz", root / f"{name}.npz", edit)
@@ -176,6 +178,18 @@ CASES = [
      None),
     ("config-is-a-folder", ["train", "{root}/ok.mcap", "--config", "{root}/user_dir",
                             "--out", "{root}/out.npz"], "user_dir", "out.npz"),
+    # Paths that are not regular files: a pipe blocks a read, and is read only once
+    ("train-input-pipe", ["train", "{root}/fifo", "--out", "{root}/out.npz"],
+     "fifo`not a regular file", "out.npz"),
+    ("update-input-pipe", ["update", "{root}/good.npz", "{root}/fifo", "--out",
+                           "{root}/out.npz"], "fifo`not a regular file", "out.npz"),
+    ("info-input-pipe", ["info", "{root}/fifo"], "fifo`not a regular file", None),
+    ("map-model-pipe", ["map", "{root}/fifo", "--resolution", "0.3", "--out", "{root}/out"],
+     "fifo`not a regular file", "out"),
+    ("map-model-folder", ["map", "{root}/user_dir", "--resolution", "0.3", "--out",
+                          "{root}/out"], "user_dir`is a folder", "out"),
+    ("config-pipe", ["train", "{root}/ok.mcap", "--config", "{root}/fifo",
+                     "--out", "{root}/out.npz"], "fifo`not a regular file", "out.npz"),
 ] + [
     # Tampered model files ("huge_extent" is valid data: the size guard handles it above)
     (f"model-{name}", ["map", f"{{root}}/{name}.npz", "--resolution", "0.3",

@@ -172,6 +172,22 @@ def test_missing_config_file(tmp_path):
         load_config(tmp_path / "nope.yaml")
 
 
+@pytest.mark.parametrize("text", ["", "# seed: 3\n\n"])
+def test_a_config_that_sets_nothing_warns_and_gives_the_defaults(tmp_path, capfd, text):
+    path = tmp_path / "empty.yaml"
+    path.write_text(text)
+    assert load_config(path) == Config()
+    err = capfd.readouterr().err
+    assert f"warning: {path}: the config sets nothing" in err.replace("\n", "")
+
+
+def test_a_config_that_sets_something_does_not_warn(tmp_path, capfd):
+    path = tmp_path / "seed.yaml"
+    path.write_text("seed: 3\n")
+    assert load_config(path).seed == 3
+    assert "sets nothing" not in capfd.readouterr().err
+
+
 def test_map_epsg_alone_is_retired_and_georef_is_validated():
     with pytest.raises(GpoccError, match=r"c.yaml: key 'map.epsg' is retired.*map.georef"):
         config_from_dict({"map": {"epsg": 32633}}, "c.yaml")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -311,6 +312,10 @@ def test_missing_inputs_and_non_probability_maps(tmp_path, maps):
     truth = _write_csv(tmp_path / "truth.csv", *_truth_points(8))
     missing = _invoke(str(folder), "--ground-truth", str(tmp_path / "nope.csv"))
     assert missing.exit_code == 2 and "not found" in missing.stderr
+    # A pipe (say, a shell's <(...)) with no writer would block the read for ever.
+    os.mkfifo(tmp_path / "pipe.csv")
+    pipe = _invoke(str(folder), "--ground-truth", str(tmp_path / "pipe.csv"))
+    assert pipe.exit_code == 2 and "pipe.csv: not a regular file" in pipe.stderr
     no_map = _invoke(str(tmp_path / "absent_map"), "--ground-truth", str(truth))
     assert no_map.exit_code == 2 and "absent_map" in no_map.stderr
     empty = tmp_path / "empty_folder"
