@@ -58,6 +58,21 @@ class NeighbourIndex:
         self.samples = samples
         self._tree = cKDTree(samples.means)
 
+    def over(self, samples: SampleSet) -> NeighbourIndex:
+        """This index for ``samples`` with the same means (the same samples with other
+        covariances, say scaled by the input-noise scale g), sharing its tree: a city's
+        1.7 M samples take 0.5 s to index.
+
+        Raises:
+            ValueError: ``samples`` has other means.
+        """
+        if samples.means is not self.samples.means and not np.array_equal(
+                samples.means, self.samples.means):
+            raise ValueError("samples with other means need an index of their own")
+        twin = NeighbourIndex.__new__(NeighbourIndex)
+        twin.samples, twin._tree = samples, self._tree
+        return twin
+
     def problem(self, centre: np.ndarray, neighbours: int) -> LocalProblem:
         """The ``neighbours`` samples nearest ``centre`` (2,), centred at it."""
         return self.problems(np.asarray(centre, dtype=float)[None, :], neighbours)[0]

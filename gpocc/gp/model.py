@@ -39,6 +39,7 @@ from gpocc.gp.classify import (
 from gpocc.gp.growth import Growth
 from gpocc.gp.inputscale import scale_input_noise
 from gpocc.gp.kernels import Kernel, make_kernel
+from gpocc.gp.local import NeighbourIndex
 from gpocc.gp.modelfile import (
     ARRAY_LAYOUT,
     GROWTH_ARRAYS,
@@ -175,6 +176,8 @@ def build_model(
         samples = samples.without_input_noise()
     kernel = make_kernel(model_cfg.kernel, model_cfg.hyperparameters)
     backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
+    # One tree of the sample means for the likelihood's patches and the classifier's.
+    index = NeighbourIndex(samples)
     start = None if warm_start is None else TrainingResult(
         warm_start.kernel, warm_start.noise_variance, math.nan, math.nan, 0, (0, 0),
         warm_start.input_noise_scale)
@@ -183,14 +186,14 @@ def build_model(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
             model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
             backend=backend, client=client, warm_start=start,
-            refine_iterations=refine_iterations,
+            refine_iterations=refine_iterations, index=index,
         )
         # The model predicts from the samples as the likelihood saw them: scaled by g.
         samples = scale_input_noise(samples, result.input_noise_scale,
                                     model_cfg.training.input_noise_scale_part)
         map_fn = map if client is None else cluster_map(client)
         classifier, offset, points, bound = _fit_classifier(result, samples, config,
-                                                            calibration, map_fn)
+                                                            calibration, map_fn, index)
     training = {
         "log_marginal_likelihood": result.log_marginal_likelihood,
         "initial_log_marginal_likelihood": result.initial_log_marginal_likelihood,
@@ -246,16 +249,18 @@ def refit_model(
 
 def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
                     calibration: CalibrationPoints | None, map_fn: MapFunction = map,
+                    index: NeighbourIndex | None = None,
                     ) -> tuple[PlattClassifier, str, int, float]:
     """The Platt classifier of the learned GP, where its offset came from (``holdout`` or
     ``beams``), the number of held-out beam points it was fitted on (0 for holdout) and
-    the largest |offset| its fit allowed (:func:`gpocc.gp.classify.offset_bound`)."""
+    the largest |offset| its fit allowed (:func:`gpocc.gp.classify.offset_bound`).
+    ``index``: a neighbour index of samples with the same means, for its patches."""
     model_cfg = config.model
     training = model_cfg.training
     backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
     # Fresh patches (another seed) for the classifier: a and b fitted on the very
     # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
-    patches = make_patches(samples, training, config.seed + 1)
+    patches = make_patches(samples, training, config.seed + 1, index)
     classifier = fit_classifier(result.kernel, result.noise_variance, patches,
                                 model_cfg.quadrature_level, training.classifier_holdout,
                                 backend, map_fn, training.classifier_variance == "latent",

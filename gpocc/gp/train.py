@@ -104,9 +104,11 @@ def patch_count(samples: SampleSet, config: TrainingConfig) -> int:
     return max(config.patches, config.patches_per_sensor * sensors)
 
 
-def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[LocalProblem]:
+def make_patches(samples: SampleSet, config: TrainingConfig, seed: int,
+                 index: NeighbourIndex | None = None) -> list[LocalProblem]:
     """Training patches: :func:`patch_count` neighbourhoods of ``config.patch_size``
-    samples.
+    samples. ``index``: a :class:`NeighbourIndex` of samples with the same means, whose
+    tree is used instead of building one.
 
     ``config.patch_centres``: ``hits`` spreads the centres over the occupied samples, so
     that every patch holds a boundary (over all samples when there are fewer hits than
@@ -119,7 +121,7 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int) -> list[
             "check the inputs' ranges or lower samples.free_spacing_m"
         )
     rng = np.random.default_rng(seed)
-    index = NeighbourIndex(samples)
+    index = NeighbourIndex(samples) if index is None else index.over(samples)
     hits = samples.labels > 0
     centre_pool = samples.means
     count = patch_count(samples, config)
@@ -384,6 +386,7 @@ def learn_hyperparameters(
     seed: int, on_evaluation: Callable[[int], None] | None = None,
     workers: int | None = None, backend: str = "auto", client: Any = None,
     warm_start: TrainingResult | None = None, refine_iterations: int | None = None,
+    index: NeighbourIndex | None = None,
 ) -> TrainingResult:
     """Maximise the patch log marginal likelihood; see the module docstring.
 
@@ -395,7 +398,7 @@ def learn_hyperparameters(
     then gives the result of learning without a start. ``refine_iterations``: at most
     this many steps from a ``warm_start`` it refines (Fisher scoring steps, one
     evaluation each; L-BFGS-B iterations for loops without dK/dlog g; default
-    ``config.lbfgs_maxiter``).
+    ``config.lbfgs_maxiter``). ``index``: for :func:`make_patches`.
 
     ``on_evaluation(1)`` is called after every likelihood evaluation (progress display).
     ``workers`` processes (default: every usable core; 1: none) evaluate the patches
@@ -404,7 +407,7 @@ def learn_hyperparameters(
     depend on which, nor on their number. ``backend``: ``model.backend``
     (:mod:`gpocc.gp.backends`).
     """
-    patches = make_patches(samples, config, seed)
+    patches = make_patches(samples, config, seed, index)
     # g only matters (and is only learned) when some input has a covariance.
     learn_scale = config.learn_input_noise_scale and bool(samples.covariances.any())
     objective = (functools.partial(negative_log_likelihood_with_scale,

@@ -286,3 +286,25 @@ def test_a_backend_gets_a_whole_batch_of_local_problems():
         np.testing.assert_allclose(pred.mean, reference.mean, rtol=0, atol=1e-9)
         np.testing.assert_allclose(pred.variance, reference.variance, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(got[-1].variance, kernel.diag(centres[:1] - centres[0]))
+
+
+def test_an_index_over_samples_of_the_same_means_gives_their_own_problems():
+    # Oracle: a fresh index of the scaled samples. Sharing the tree must give the same
+    # neighbourhoods, filled from the samples it is over (not the ones it was built on).
+    rng = np.random.default_rng(8)
+    samples = room_samples(rng)
+    scaled = SampleSet(means=samples.means.copy(), covariances=4.0 * samples.covariances,
+                       labels=samples.labels, scan_ids=samples.scan_ids,
+                       pose_factors=samples.pose_factors, sensor_ids=samples.sensor_ids)
+    centres = rng.uniform(-3, 3, size=(6, 2))
+    shared = NeighbourIndex(samples).over(scaled).problems(centres, 50)
+    fresh = NeighbourIndex(scaled).problems(centres, 50)
+    for a, b in zip(shared, fresh, strict=True):
+        np.testing.assert_array_equal(a.index, b.index)
+        np.testing.assert_array_equal(a.samples.covariances, b.samples.covariances)
+        np.testing.assert_array_equal(a.samples.means, b.samples.means)
+    moved = SampleSet(means=samples.means + 0.01, covariances=samples.covariances,
+                      labels=samples.labels, scan_ids=samples.scan_ids,
+                      pose_factors=samples.pose_factors, sensor_ids=samples.sensor_ids)
+    with pytest.raises(ValueError, match="other means"):
+        NeighbourIndex(samples).over(moved)
