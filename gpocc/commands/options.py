@@ -46,7 +46,8 @@ Workers = Annotated[int | None, typer.Option(
     "cores this process may use).")]
 Scheduler = Annotated[str | None, typer.Option(
     "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute the "
-    "local problems (output identical to a local run).")]
+    "map's local problems, and in training the likelihood patches and the classifier's "
+    "predictions (output identical to a local run).")]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
 

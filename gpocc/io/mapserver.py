@@ -16,6 +16,7 @@ a large map is assembled tile by tile, never coarsened (an optional size limit e
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 from collections.abc import Iterable
@@ -164,8 +165,17 @@ def write_map_server_tiles(
 def _write_pixels(path: Path, offset: int, spec: GridSpec,
                   tiles: Iterable[tuple[GridSpec, np.ndarray]]) -> None:
     """Fill the image body after the header, one tile at a time, via a memory map."""
+    size = offset + spec.width * spec.height
     with open(path, "r+b") as f:
-        f.truncate(offset + spec.width * spec.height)
+        f.truncate(size)
+        # Reserve the blocks now: a memory map over a file the disk cannot hold dies of
+        # SIGBUS at the first page it cannot store, where a write would raise ENOSPC.
+        if hasattr(os, "posix_fallocate"):
+            try:
+                os.posix_fallocate(f.fileno(), 0, size)
+            except OSError as exc:
+                if exc.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOSYS):
+                    raise OSError(exc.errno, exc.strerror, str(path)) from None
     body = np.memmap(path, dtype=np.uint8, mode="r+", offset=offset, shape=spec.shape)
     try:
         body[...] = UNKNOWN_PIXEL

@@ -27,6 +27,7 @@ reads (any compression, predictor, striped or tiled) for ground truth and evalua
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import warnings
@@ -170,15 +171,29 @@ def write_geotiff(
     )
     with rasterio.Env(GDAL_PAM_ENABLED="NO"), atomic_path(path) as tmp:
         # GDAL builds the COG from a finished dataset: stage it in memory (uncompressed,
-        # one copy of the array), then let the COG driver lay out IFDs, overviews and tiles.
+        # one copy of the array), then let the COG driver lay out IFDs, overviews and
+        # tiles, in memory too. The file is written here: a full disk is an OSError
+        # (ENOSPC, one line from the CLI), where libtiff printed its own lines and GDAL
+        # raised a seek error that named no cause.
         with MemoryFile() as staged:
             with staged.open(**profile) as ds:
                 ds.write(a, 1)
                 ds.update_tags(**{MAP_GRID_TAG: _map_grid_text(spec, georef)})
                 if band is not None:
                     _describe(ds, band)
-            with staged.open() as src:
-                gdal_copy(src, str(tmp), driver="COG", **options)
+            with staged.open() as src, MemoryFile(ext=".tif") as cog:
+                try:
+                    gdal_copy(src, cog.name, driver="COG", **options)
+                except Exception as exc:  # GDAL's errors (CPLE_*) share no public base
+                    raise OSError(errno.EIO, "GDAL could not make the GeoTIFF "
+                                  f"({_first_line(exc)})", str(path)) from None
+                with open(tmp, "wb") as f:
+                    f.write(cog.getbuffer())
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _describe(ds: Any, band: Band) -> None:

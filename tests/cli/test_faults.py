@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -225,6 +226,42 @@ def test_a_write_failure_is_one_line_and_leaves_nothing(model_path, tmp_path, mo
     line = _one_error_line(result.stderr, str(out))
     assert os.strerror(err).lower() in line.lower()
     assert not out.exists() and _leftovers(tmp_path) == []
+
+
+def _small_file_system(folder: Path, size: str) -> bool:
+    """Mount a tmpfs of ``size`` at ``folder``: False where mounting is not allowed."""
+    folder.mkdir(exist_ok=True)
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs",
+                           str(folder)], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="mounts a tmpfs (Linux)")
+def test_a_really_full_disk_is_one_line_at_every_stage(model_path, tmp_path):
+    # A real full disk, at several sizes so that it fills up in different writers
+    # (GeoTIFFs, the memory-mapped map_server image, PNGs, map.mcap): each must end in one
+    # line and a non-zero status (not a traceback from GDAL, not SIGBUS) and leave nothing.
+    disk = tmp_path / "disk"
+    if not _small_file_system(disk, "16k"):
+        pytest.skip("cannot mount a tmpfs here (needs root or CAP_SYS_ADMIN)")
+    failed = 0
+    try:
+        for size in ("16k", "64k", "128k", "256k", "512k", "2m"):
+            subprocess.run(["mount", "-o", f"remount,size={size}", str(disk)], check=True)
+            out = disk / "map"
+            run = subprocess.run([*GPOCC, "map", str(model_path), "--resolution", "0.01",
+                                  "--out", str(out)], capture_output=True, text=True,
+                                 timeout=300)
+            if run.returncode == 0:
+                shutil.rmtree(out)
+                continue
+            failed += 1
+            assert run.returncode == 2, (size, run.returncode, run.stderr)
+            line = _one_error_line(run.stderr, str(out))
+            assert "no space left on device" in line, line
+            assert list(disk.iterdir()) == [], size
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)
+    assert failed >= 2  # the smallest sizes cannot hold the map
 
 
 def test_an_unwritable_folder_is_one_line(model_path, tmp_path, monkeypatch):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import math
+import os
 import shutil
 import warnings
 
@@ -312,3 +314,34 @@ def test_bad_rasters_give_clear_errors(tmp_path):
         "</VRTRasterBand></VRTDataset>")
     with pytest.raises(GpoccError, match="gone.tif: raster not found"):
         read_raster(tmp_path / "orphan.vrt")
+
+
+def test_a_full_disk_is_an_os_error_and_leaves_nothing(tmp_path, monkeypatch):
+    # GDAL wrote the file itself: on a full disk libtiff printed its own lines and GDAL
+    # raised a seek error naming no cause. The COG is now made in memory and written
+    # here, so the disk's error is an OSError (ENOSPC) the CLI prints as one line.
+    import builtins
+
+    import gpocc.io.rasters as rasters
+
+    spec = GridSpec(0.0, 0.0, 0.1, 64, 48)
+
+    class FullDisk:
+        def __init__(self, *args, **kwargs):
+            self.file = builtins.open(*args, **kwargs)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.file.close()
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(rasters, "open", FullDisk, raising=False)
+    with pytest.raises(OSError) as raised:
+        write_geotiff(tmp_path / "p.tif", np.zeros(spec.shape, np.float32), spec,
+                      nodata=math.nan)
+    assert raised.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []
