@@ -578,6 +578,15 @@ _MAX_MOUNT_M = 1e3
 _MAX_TRANSLATION_M = 1e7
 #: A map border wider than this around the data is a unit mistake.
 _MAX_MARGIN_M = 1e4
+#: The widest learning box: e^20 (5e8) times each initial value either way; wider boxes
+#: put bounds at 0 or infinity in floating point.
+_MAX_LOG_BOUNDS_WIDTH = 20.0
+#: Unscented-transform settings beyond these overflow its weights (alpha^2 (n + kappa)).
+_MAX_UT_ALPHA = 10.0
+_MAX_UT_WEIGHT = 1e6
+#: Initial kernel values above this (with the learning box, 5e20) are unit mistakes and
+#: overflow the map's float32 variance.
+_MAX_HYPERPARAMETER = 1e12
 #: The largest integer a config key may hold (2^32 - 1: seeds and counts fit in int64).
 _MAX_INT = 2**32 - 1
 
@@ -685,6 +694,12 @@ def _check_fixed(config: Config, source: str) -> None:
                 f"{source}: key 'model.training.fixed' names {name!r}, which the "
                 f"'{config.model.kernel}' kernel does not learn; use some of "
                 f"{', '.join(learnable)}")
+    if (set(learnable) <= set(config.model.training.fixed)
+            and not config.model.training.learn_input_noise_scale):
+        raise GpoccError(
+            f"{source}: key 'model.training.fixed' holds every value learning would change "
+            f"({', '.join(learnable)}); set model.training.learn: false to keep the initial "
+            "values instead")
     training = config.model.training
     if training.isotropic:
         for x, y in axis_pairs(kernel):
@@ -714,7 +729,11 @@ def _validate(config: Config, source: str) -> Config:
         raise GpoccError(f"{source}: sensor names must be unique, got {names}")
     for i, sensor in enumerate(config.sensors):
         key = f"sensors[{i}].pose_covariance"
-        cov = np.asarray(sensor.pose_covariance, dtype=float)
+        rows = sensor.pose_covariance
+        if len(rows) != 3 or any(len(row) != 3 for row in rows):
+            raise GpoccError(f"{source}: key '{key}' must be a 3x3 matrix of (x, y, yaw): "
+                             "three rows of three numbers")
+        cov = np.asarray(rows, dtype=float)
         if cov.shape != (3, 3):
             raise GpoccError(f"{source}: key '{key}' must be a 3x3 matrix of (x, y, yaw)")
         if not np.allclose(cov, cov.T, atol=1e-12):
@@ -832,6 +851,24 @@ def _validate(config: Config, source: str) -> Config:
     if not 0.0 < config.model.blend_overlap <= 1.0:
         raise GpoccError(f"{source}: key 'model.blend_overlap' must be above 0 and at most 1 "
                          f"(1: bilinear across whole blocks), got {config.model.blend_overlap}")
+    if not 0.0 < t.log_bounds_width <= _MAX_LOG_BOUNDS_WIDTH:
+        raise GpoccError(f"{source}: key 'model.training.log_bounds_width' must be above 0 and "
+                         f"at most {_MAX_LOG_BOUNDS_WIDTH:g} (the search box spans e^-w to "
+                         f"e^w times each initial value), got {t.log_bounds_width:g}")
+    ut = config.samples.unscented
+    for name, limit in (("alpha", _MAX_UT_ALPHA), ("beta", _MAX_UT_WEIGHT),
+                        ("kappa", _MAX_UT_WEIGHT)):
+        if getattr(ut, name) > limit:
+            raise GpoccError(f"{source}: key 'samples.unscented.{name}' must be at most "
+                             f"{limit:g}, got {getattr(ut, name):g}")
+    hyper = config.model.hyperparameters
+    for name in ("signal_variance", "noise_variance", "bias_variance", "weight_variance",
+                 "lengthscale_m"):
+        values = np.atleast_1d(np.asarray(getattr(hyper, name, 1.0), dtype=float))
+        if (values > _MAX_HYPERPARAMETER).any():
+            raise GpoccError(f"{source}: key 'model.hyperparameters.{name}' must be at most "
+                             f"{_MAX_HYPERPARAMETER:g}, got {getattr(hyper, name)}; check "
+                             "its units")
     if config.map.margin_m > _MAX_MARGIN_M:
         raise GpoccError(f"{source}: key 'map.margin_m' must be at most {_MAX_MARGIN_M:g} m (the "
                          f"border around the data), got {config.map.margin_m:g}; check its "

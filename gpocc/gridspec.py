@@ -116,10 +116,18 @@ class GridSpec:
                         self.resolution * stride, cols, rows)
 
     def index_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Row and column of each (N, 2) point, and a mask of points inside the grid."""
+        """Row and column of each (N, 2) point, and a mask of points inside the grid (a
+        point too far for a cell index, or not finite, is outside: row and column -1)."""
         pts = np.asarray(points, dtype=float)
-        col = np.floor((pts[:, 0] - self.x0) / self.resolution).astype(np.int64)
-        row = self.height - 1 - np.floor((pts[:, 1] - self.y0) / self.resolution).astype(np.int64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            fcol = np.floor((pts[:, 0] - self.x0) / self.resolution)
+            frow = np.floor((pts[:, 1] - self.y0) / self.resolution)
+            far = ~((np.abs(fcol) < 2.0**62) & (np.abs(frow) < 2.0**62))  # NaN too
+        if far.any():
+            fcol[far] = -1.0
+            frow[far] = self.height
+        col = fcol.astype(np.int64)
+        row = self.height - 1 - frow.astype(np.int64)
         inside = (col >= 0) & (col < self.width) & (row >= 0) & (row < self.height)
         return row, col, inside
 

@@ -112,6 +112,42 @@ class RayCells:
     is_end: np.ndarray
 
 
+def _clip_long_segments(spec: GridSpec, starts: np.ndarray, ends: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """``starts`` and ``ends`` with every segment longer than the grid's width plus height
+    (in cells) cut to the grid and a one-cell border (Liang-Barsky); one that misses it
+    becomes a point outside it. The traversal steps through every cell of a segment's
+    major axis, inside the grid or not: a small grid at a fine resolution (``--bounds``
+    around part of the data) made beams of millions of steps each. Shorter segments are
+    left as they are, so a map over its data's bounds traverses exactly as before."""
+    res = spec.resolution
+    d = ends - starts
+    long = np.abs(d).max(axis=1) / res > spec.width + spec.height + 4
+    if not long.any():
+        return starts, ends
+    lo = np.array([spec.x0 - res, spec.y0 - res])
+    hi = np.array([spec.x0 + (spec.width + 1) * res, spec.y0 + (spec.height + 1) * res])
+    p, q = starts[long], d[long]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_lo = (lo - p) / q
+        t_hi = (hi - p) / q
+    # Along an axis the segment does not move on, it is inside the slab or never.
+    inside_slab = (p >= lo) & (p <= hi)
+    t_in = np.where(q != 0, np.minimum(t_lo, t_hi), np.where(inside_slab, -np.inf, np.inf))
+    t_out = np.where(q != 0, np.maximum(t_lo, t_hi), np.where(inside_slab, np.inf, -np.inf))
+    enter = np.clip(t_in.max(axis=1), 0.0, 1.0)
+    leave = np.clip(t_out.min(axis=1), 0.0, 1.0)
+    misses = t_in.max(axis=1) > t_out.min(axis=1)
+    new_start = np.where((enter > 0)[:, None], p + enter[:, None] * q, p)
+    new_end = np.where((leave < 1)[:, None], p + leave[:, None] * q, ends[long])
+    outside = lo - 2 * res
+    new_start[misses] = outside
+    new_end[misses] = outside
+    starts, ends = starts.copy(), ends.copy()
+    starts[long], ends[long] = new_start, new_end
+    return starts, ends
+
+
 def ray_cells(spec: GridSpec, starts: np.ndarray, ends: np.ndarray) -> RayCells:
     """Every grid cell each segment ``starts[i] -> ends[i]`` crosses, vectorised.
 
@@ -136,6 +172,7 @@ def ray_cells(spec: GridSpec, starts: np.ndarray, ends: np.ndarray) -> RayCells:
     """
     starts = np.asarray(starts, dtype=float).reshape(-1, 2)
     ends = np.asarray(ends, dtype=float).reshape(-1, 2)
+    starts, ends = _clip_long_segments(spec, starts, ends)
     res = spec.resolution
     u0 = (starts[:, 0] - spec.x0) / res
     v0 = (starts[:, 1] - spec.y0) / res

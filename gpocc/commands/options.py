@@ -64,10 +64,19 @@ def scheduler_errors() -> Iterator[None]:
             "is running, or leave --scheduler out to work on this machine") from None
 
 
+#: The coarsest --resolution: a 1000 km cell is a unit mistake (and beyond float32, the
+#: map's own number type, from 3.4e38 on).
+MAX_RESOLUTION_M = 1e6
+
+
 def check_resolution(resolution: float) -> float:
-    """``resolution`` if it is a positive, finite number of metres (--resolution)."""
+    """``resolution`` if it is a positive, finite number of metres (--resolution), at most
+    :data:`MAX_RESOLUTION_M`."""
     if not (resolution > 0 and math.isfinite(resolution)):
         raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
+    if resolution > MAX_RESOLUTION_M:
+        raise GpoccError(f"--resolution must be at most {MAX_RESOLUTION_M:g} m, got "
+                         f"{resolution:g}; check its units (metres)")
     return resolution
 
 

@@ -33,7 +33,7 @@ from gpocc.gp.model import (
 from gpocc.gp.train import load_optimiser
 from gpocc.io.atomic import prepare_output
 from gpocc.io.inputs import read_inputs
-from gpocc.io.records import input_records
+from gpocc.io.records import content_hash, input_records, warn_repeated_content
 from gpocc.io.scans import scan_stamps
 from gpocc.limits import check_seed
 from gpocc.parallel import dask_client
@@ -81,6 +81,10 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
     model is the same as without it)."""
     started = time.perf_counter()
     batches = read_inputs(inputs, cfg)
+    # The model records each input's content hash; computed here, before learning, it
+    # also tells of a log given twice under two names.
+    hashes = [content_hash(p) for p in inputs]
+    warn_repeated_content(inputs, hashes)
     read_s = time.perf_counter() - started
     log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
     # The coverage raster is built beside the samples (both mostly numpy and compiled
@@ -115,7 +119,7 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
         log(f"note: what each warning above means and what widening it does: {GUIDE_SECTION}")
     timings = {"read": round(read_s, 3), "samples": round(samples_s, 3),
                "learn": round(learn_s, 3)}
-    growth = Growth(pool, input_records(inputs, batches, cfg), calibration)
+    growth = Growth(pool, input_records(inputs, batches, cfg, hashes), calibration)
     # The scans' time span: a map of this model is stamped with the last scan's time.
     return dataclasses.replace(model, training={**model.training, "timings_s": timings,
                                                 "scan_stamps_s": list(scan_stamps(batches))},

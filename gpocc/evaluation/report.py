@@ -22,7 +22,14 @@ from gpocc.evaluation.calibration import CALIBRATION_BINS, LOG_LOSS_CLIP
 from gpocc.evaluation.roc import RocResult, evaluate_scores
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory
-from gpocc.io.rasters import read_raster, sample_raster
+from gpocc.io.rasters import (
+    BERNOULLI_VARIANCE_BAND,
+    CLASS_BAND,
+    VARIANCE_BAND,
+    band_description,
+    read_raster,
+    sample_raster,
+)
 from gpocc.io.rosmap import read_map_mcap
 from gpocc.mapping.render import render_reliability, render_roc
 from gpocc.progress import log
@@ -66,10 +73,19 @@ def unique_names(names: list[str], paths: list[Path]) -> list[str]:
     return [str(p) if names.count(n) > 1 else n for n, p in zip(names, paths, strict=True)]
 
 
+#: Band descriptions of gpocc's layers that hold no probability, and their names.
+_NOT_PROBABILITY = {VARIANCE_BAND.description: "variance",
+                    BERNOULLI_VARIANCE_BAND.description: "variance",
+                    CLASS_BAND.description: "class"}
+
+
 def sample_map(raster: Path, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One map's probability at the (N, 2) truth points (nearest cell): (N,) scores (NaN
     on no-data) and (N,) inside the map."""
     values, spec, nodata = read_probability(raster)
+    if raster.suffix.lower() != ".mcap" and band_description(raster) in _NOT_PROBABILITY:
+        raise GpoccError(f"{raster}: a gpocc {_NOT_PROBABILITY[band_description(raster)]} "
+                         "layer, not a probability; pass probability.tif (or its map folder)")
     scores, inside = sample_raster(values, spec, nodata, points)
     finite = scores[np.isfinite(scores) & inside]
     if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):

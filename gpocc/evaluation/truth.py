@@ -166,7 +166,7 @@ def _read_map_server_labels(path: Path) -> tuple[np.ndarray, GridSpec, int]:
 
 def _truth_from_points(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a leading BOM (spreadsheets) is no text
     except UnicodeDecodeError:
         raise GpoccError(f"{path}: not a text point file nor a TIFF; {ACCEPTED}") from None
     rows: list[tuple[int, str]] = []

@@ -442,7 +442,8 @@ def load_model(path: str | Path) -> GPModel:
             factors = data["noise_factors"] if "noise_factors" in data.files else None
             growth_arrays = {name: data[name] for name in GROWTH_ARRAYS if name in data.files}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, zlib.error,
-            json.JSONDecodeError, EOFError, UnicodeDecodeError):
+            json.JSONDecodeError, EOFError, UnicodeDecodeError, RecursionError):
+        # RecursionError: metadata nested deeper than JSON's decoder recurses.
         raise GpoccError(f"{p}: not a gpocc model file or corrupt; re-create it with "
                          "`gpocc train`") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:

@@ -181,6 +181,11 @@ def _parse_robotlaser(path: Path, lineno: int, tokens: list[str]) -> _Scan:
             f"{24 + n + m} tokens, got {len(tokens)}; fix or delete that line"
         )
     start, _fov, res, max_range = _parse_numbers(path, lineno, tokens[2:6], "ROBOTLASER1")
+    if not (np.isfinite(start) and np.isfinite(res) and 0.0 < abs(res) <= np.pi):
+        raise GpoccError(
+            f"{path}: line {lineno}: ROBOTLASER1 start angle {start} and angular resolution "
+            f"{res} must be finite, with the resolution in (0, pi] radians; fix or delete "
+            "that line")
     ranges = _parse_numbers(path, lineno, tokens[9 : 9 + n], "ROBOTLASER1")
     tail = tokens[10 + n + m :]
     pose = _parse_numbers(path, lineno, tail[0:3] + [tail[-1]], "ROBOTLASER1")

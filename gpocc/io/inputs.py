@@ -16,6 +16,7 @@ file stem. An entry without ``pose_topic`` gets one the same way.
 from __future__ import annotations
 
 import fnmatch
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -245,6 +246,25 @@ def read_input(path: str | Path, config: Config,
             for b, s in zip(batches, sensors, strict=True)]
 
 
+def check_distinct(paths: Sequence[str | Path]) -> None:
+    """Refuse a file or folder given twice (by any name: a link, ``./``, a shell glob that
+    also matches a named input); its scans would count twice.
+
+    Raises:
+        GpoccError: naming both names.
+    """
+    seen: dict[tuple[int, int], str | Path] = {}
+    for p in paths:
+        try:
+            st = os.stat(p)
+        except OSError:
+            continue  # read_input says what is wrong with it
+        first = seen.setdefault((st.st_dev, st.st_ino), p)
+        if first is not p:
+            raise GpoccError(f"{p}: given twice (also as {first}); pass each input once, or "
+                             "its scans count twice")
+
+
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:
     """Read every input into scan batches, one per (input, sensor).
 
@@ -255,6 +275,7 @@ def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:
     """
     if not paths:
         raise GpoccError("no inputs given; pass one or more bags, MCAP files or CARMEN logs")
+    check_distinct(paths)
     batches: list[ScanBatch] = []
     for p in paths:
         batches.extend(read_input(p, config))

@@ -336,6 +336,18 @@ def _offset_in(spec: GridSpec, full: GridSpec, name: Any) -> tuple[int, int]:
 # --------------------------------------------------------------------------- reading
 
 
+def band_description(path: str | os.PathLike[str]) -> str | None:
+    """The first band's description of a raster GDAL reads (what gpocc writes as each
+    layer's :class:`Band`), or None when it has none or cannot be read."""
+    import rasterio
+
+    try:
+        with rasterio.Env(GDAL_PAM_ENABLED="NO"), rasterio.open(path) as ds:
+            return ds.descriptions[0] if ds.count else None
+    except Exception:  # rasterio's and GDAL's errors: read_raster reports them
+        return None
+
+
 def read_raster(path: str | os.PathLike[str]) -> tuple[np.ndarray, GridSpec, Nodata]:
     """Read a north-up single-band GeoTIFF or a VRT mosaic of them.
 

@@ -15,6 +15,7 @@ from gpocc.config import Config
 from gpocc.errors import GpoccError, check_regular_file
 from gpocc.io.frames import input_transform
 from gpocc.io.scans import ScanBatch
+from gpocc.progress import log
 
 _BLOCK = 1 << 20
 
@@ -101,6 +102,16 @@ def check_new_inputs(known: Sequence[InputRecord], paths: Sequence[str | Path],
                 f"{path}: this log is already in the model (same content as {seen[digest]}); "
                 "pass only logs the model does not hold yet")
         seen[digest] = f"'{path}', given twice"
+
+
+def warn_repeated_content(paths: Sequence[str | Path], hashes: Sequence[str]) -> None:
+    """A warning for each input whose content (``hashes``) an earlier one already has:
+    two names of one log, whose scans then count twice."""
+    first: dict[str, str | Path] = {}
+    for path, digest in zip(paths, hashes, strict=True):
+        if first.setdefault(digest, path) is not path:
+            log(f"warning: {path} has the same content as {first[digest]}: its scans count "
+                "twice; pass each log once")
 
 
 def record_from_dict(data: Any) -> InputRecord:

@@ -38,7 +38,9 @@ def heldout_mask(n_scans: int, every: int) -> np.ndarray:
     if every < 2:
         raise GpoccError(f"the hold-out period must be at least 2 (every scan would be held "
                          f"out), got {every}")
-    return np.arange(n_scans) % every == every - 1
+    # A period beyond the scans holds none out, as n_scans + 1 does (and fits an int64).
+    period = min(every, n_scans + 1)
+    return np.arange(n_scans) % period == period - 1
 
 
 def subset_batch(batch: ScanBatch, scans: np.ndarray, beam_every: int = 1) -> ScanBatch:

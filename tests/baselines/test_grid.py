@@ -186,6 +186,39 @@ def test_ray_cells_equal_slab_clipping_brute_force():
         assert flagged.tolist() == expected
 
 
+def test_segments_far_longer_than_the_grid_cross_the_brute_force_cells():
+    # Segments of 50-5000 m through a 4 x 3 m grid (at 0.1 m: a --bounds around part of
+    # the data) are cut to the grid before the traversal; the cells inside must be the
+    # slab oracle's, and those that miss the grid must give none.
+    rng = np.random.default_rng(7)
+    spec = GridSpec(x0=-1.37, y0=0.42, resolution=0.1, width=40, height=30)
+    n = 200
+    centre = np.array([0.63, 1.92])
+    lengths = rng.uniform(50, 5000, n)
+    angles = rng.uniform(-np.pi, np.pi, n)
+    through = centre + rng.uniform(-3, 3, (n, 2))  # some lines miss the grid
+    t = rng.uniform(0.0, 1.0, n)  # where on the segment that point lies
+    direction = np.column_stack((np.cos(angles), np.sin(angles)))
+    starts = through - (t * lengths)[:, None] * direction
+    ends = starts + lengths[:, None] * direction
+    ends[:20] = through[:20]  # some end inside or near the grid
+    cells = ray_cells(spec, starts, ends)
+    missed = 0
+    for i in range(n):
+        mine = set(zip(cells.row[cells.ray == i].tolist(), cells.col[cells.ray == i].tolist(),
+                       strict=True))
+        expected = slab_cells(spec, starts[i], ends[i])
+        assert mine == expected, f"segment {i}"
+        missed += not expected
+        r, c, inside = spec.index_of(ends[i:i + 1])
+        flagged = {(rr, cc) for rr, cc, e in zip(cells.row[cells.ray == i].tolist(),
+                                                 cells.col[cells.ray == i].tolist(),
+                                                 cells.is_end[cells.ray == i].tolist(),
+                                                 strict=True) if e}
+        assert flagged == ({(int(r[0]), int(c[0]))} if inside[0] and expected else set())
+    assert 0 < missed < n
+
+
 def test_zero_length_ray_is_its_own_cell():
     spec = GridSpec(x0=0.0, y0=0.0, resolution=0.5, width=4, height=4)
     p = np.array([[1.2, 0.3]])

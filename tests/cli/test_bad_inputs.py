@@ -72,6 +72,26 @@ def corpus(tmp_path_factory) -> Path:
     (root / "a_file").write_text("not a folder\n")
     (root / "user_dir").mkdir()
     os.mkfifo(root / "fifo")  # no writer: reading it would block for ever
+    (root / "ragged_cov.yaml").write_text(
+        "sensors:\n  - name: a\n    pose_covariance: [[0.01, 0, 0], [0, 0.01], [0, 0, 0.001]]\n")
+    (root / "fixed_all.yaml").write_text(
+        "model:\n  training:\n    fixed: [signal_variance, bias_variance, weight_variance_x, "
+        "weight_variance_y, noise_variance]\n")
+    (root / "box_0.yaml").write_text("model:\n  training:\n    log_bounds_width: 0\n")
+    (root / "box_1000.yaml").write_text("model:\n  training:\n    log_bounds_width: 1000\n")
+    (root / "alpha_huge.yaml").write_text("samples:\n  unscented: {alpha: 1.0e+300}\n")
+    (root / "signal_huge.yaml").write_text(
+        "model:\n  hyperparameters:\n    signal_variance: 1.0e+300\n")
+    # ROBOTLASER1: type start fov res max_range accuracy mode n r.. m rem.. laser pose,
+    # robot pose, tv rv, safety x2, turn axis, ipc stamp, host, logger stamp.
+    line = ("ROBOTLASER1 0 -1.57 3.14 {res} 81.9 0.01 0 5 1 1 1 1 1 0 "
+            "0 0 0 0 0 0 0 0 0.1 0.1 0.1 {t} host {t}\n")
+    (root / "angles_nan.log").write_text(
+        "".join(line.format(res="nan", t=100 + i) for i in range(5)))
+    with np.load(root / "good.npz") as data:  # metadata nested deeper than json recurses
+        arrays = {k: data[k] for k in data.files}
+    arrays["metadata"] = np.frombuffer(b"[" * 100000 + b"]" * 100000, np.uint8)
+    np.savez(root / "deep_json.npz", **arrays)
     (root / "user_dir" / "notes.txt").write_text("mine\n")
     for name, edit in TAMPERING.items():
         _tamper(root / "good.npz", root / f"{name}.npz", edit)
@@ -178,6 +198,33 @@ CASES = [
      None),
     ("config-is-a-folder", ["train", "{root}/ok.mcap", "--config", "{root}/user_dir",
                             "--out", "{root}/out.npz"], "user_dir", "out.npz"),
+    # Config values that passed validation and failed later with a traceback
+    ("config-ragged-covariance", ["config", "{root}/ragged_cov.yaml"],
+     "ragged_cov.yaml`pose_covariance", None),
+    ("config-fixed-every-value", ["train", "{root}/ok.mcap", "--config", "{root}/fixed_all.yaml",
+                                  "--out", "{root}/out.npz"], "fixed_all.yaml`learn: false",
+     "out.npz"),
+    ("config-box-width-0", ["train", "{root}/ok.mcap", "--config", "{root}/box_0.yaml",
+                            "--out", "{root}/out.npz"], "box_0.yaml`log_bounds_width", "out.npz"),
+    # e^-1000 is 0: the error named signal_variance, which the file does not set.
+    ("config-box-width-1000", ["config", "{root}/box_1000.yaml"],
+     "box_1000.yaml`log_bounds_width", None),
+    ("config-unscented-alpha-1e300", ["train", "{root}/ok.mcap", "--config",
+                                      "{root}/alpha_huge.yaml", "--out", "{root}/out.npz"],
+     "alpha_huge.yaml`alpha", "out.npz"),
+    ("config-signal-variance-1e300", ["config", "{root}/signal_huge.yaml"],
+     "signal_huge.yaml`signal_variance", None),
+    ("map-resolution-1e39", ["map", "{root}/good.npz", "--resolution", "1e39",
+                             "--out", "{root}/out"], "--resolution", "out"),
+    ("split-every-2-to-the-63", ["split", "{root}/ok.mcap", "--every", str(2**63),
+                                 "--out", "{root}/out"], "ok.mcap`holds out no scan", "out"),
+    ("train-robotlaser-nan-resolution", ["train", "{root}/angles_nan.log",
+                                         "--out", "{root}/out.npz"], "angles_nan.log`line 1",
+     "out.npz"),
+    ("map-model-deep-json", ["map", "{root}/deep_json.npz", "--resolution", "0.3",
+                             "--out", "{root}/out"], "deep_json.npz`gpocc train", "out"),
+    ("train-same-input-twice", ["train", "{root}/ok.mcap", "{root}/./ok.mcap",
+                                "--out", "{root}/out.npz"], "ok.mcap`given twice", "out.npz"),
     # Paths that are not regular files: a pipe blocks a read, and is read only once
     ("train-input-pipe", ["train", "{root}/fifo", "--out", "{root}/out.npz"],
      "fifo`not a regular file", "out.npz"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ from typer.testing import CliRunner
 
 from gpocc.cli import app
 from gpocc.gp.model import load_model
+from gpocc.io.records import content_hash
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample" / "intel_sample.mcap"
@@ -183,3 +185,18 @@ def test_two_robot_simulation_end_to_end(tmp_path):
     rows = {r["name"]: r for r in json.loads((tmp_path / "eval" / "results.json").read_text())
             ["maps"]}
     assert rows["gp"]["auc"] > rows["grid"]["auc"]
+
+
+def test_a_log_given_twice_under_two_names_is_warned_about(tmp_path):
+    # Not refused (a site may place one log twice with config transforms), but its scans
+    # count twice: the warning names both. The model records the inputs' hashes as before.
+    copy = tmp_path / "copy.mcap"
+    shutil.copyfile(SAMPLE, copy)
+    out = tmp_path / "twice.npz"
+    result = invoke("train", SAMPLE, copy, "--config", SAMPLE_CONFIG, "--out", out)
+    assert result.exit_code == 0, result.output
+    assert f"warning: {copy} has the same content as {SAMPLE}" in result.stderr
+    model = load_model(out)
+    assert [r.sha256 for r in model.growth.records] == [content_hash(SAMPLE)] * 2
+    alone = invoke("train", SAMPLE, "--config", SAMPLE_CONFIG, "--out", tmp_path / "one.npz")
+    assert "same content" not in alone.stderr

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -415,3 +416,49 @@ def test_a_map_that_misses_the_truth_is_scored_with_a_warning(tmp_path, maps):
     scores, _ = _sampled_with_rasterio(gp_folder / "probability.tif", points)
     assert float(rows["gp_map"][1]) == pytest.approx(roc_auc_score(labels, scores), abs=1e-4)
     assert rows["elsewhere"][1] == "0.5000" and rows["elsewhere"][-1] == "0.0%"
+
+
+def test_a_bom_csv_scores_as_the_same_csv_without_it(tmp_path, maps):
+    # Spreadsheets save CSVs with a UTF-8 byte-order mark; its header was read as
+    # "\ufeffx" and refused as missing x.
+    folder, _ = maps
+    plain = _write_csv(tmp_path / "plain.csv", *_truth_points(5))
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    a = _invoke(str(folder), "--ground-truth", str(plain))
+    b = _invoke(str(folder), "--ground-truth", str(bom))
+    assert a.exit_code == 0 and b.exit_code == 0, b.output
+    assert a.stdout.splitlines()[-1] == b.stdout.splitlines()[-1]
+
+
+def test_points_too_far_for_a_cell_are_outside_without_warnings(tmp_path, maps):
+    folder, _ = maps
+    points, labels = _truth_points(6)
+    points[:3] = [[1e308, 1e308], [-1e308, 0.0], [1e19, -1e19]]
+    truth = _write_csv(tmp_path / "far.csv", points, labels)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's overflow warnings became errors
+        result = _invoke(str(folder), "--ground-truth", str(truth), "--out",
+                         str(tmp_path / "ev"))
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "ev" / "results.json").read_text())
+    _, covered = _sampled_with_rasterio(folder / "probability.tif", points[3:])
+    n = len(points)
+    assert summary["maps"][0]["coverage"] == pytest.approx(covered.sum() / n)
+
+
+@pytest.mark.parametrize("layer", ["variance", "class"])
+def test_another_layer_of_a_gpocc_map_is_refused(tmp_path, layer):
+    # A variance layer holds values in [0, 1] too: it was scored as if it were p.
+    from gpocc.io.rasters import CLASS_BAND, VARIANCE_BAND
+
+    path = tmp_path / f"{layer}.tif"
+    if layer == "variance":
+        write_geotiff(path, np.full(SPEC.shape, 0.3, np.float32), SPEC, nodata=NODATA,
+                      band=VARIANCE_BAND)
+    else:
+        write_geotiff(path, np.ones(SPEC.shape, np.uint8), SPEC, nodata=255, band=CLASS_BAND)
+    truth = _write_csv(tmp_path / "t.csv", *_truth_points(7))
+    result = _invoke(str(path), "--ground-truth", str(truth))
+    assert result.exit_code == 2
+    assert f"{layer}.tif: a gpocc {layer} layer, not a probability" in result.stderr
