@@ -587,6 +587,9 @@ _MAX_UT_WEIGHT = 1e6
 #: Initial kernel values above this (with the learning box, 5e20) are unit mistakes and
 #: overflow the map's float32 variance.
 _MAX_HYPERPARAMETER = 1e12
+#: Most samples in one local problem: its covariance is factored per map block (4096:
+#: 134 MB and seconds each).
+_MAX_LOCAL_SAMPLES = 4096
 #: The largest integer a config key may hold (2^32 - 1: seeds and counts fit in int64).
 _MAX_INT = 2**32 - 1
 
@@ -869,6 +872,12 @@ def _validate(config: Config, source: str) -> Config:
             raise GpoccError(f"{source}: key 'model.hyperparameters.{name}' must be at most "
                              f"{_MAX_HYPERPARAMETER:g}, got {getattr(hyper, name)}; check "
                              "its units")
+    for key, value in (("model.neighbours", config.model.neighbours),
+                       ("model.training.patch_size", t.patch_size)):
+        if value > _MAX_LOCAL_SAMPLES:
+            raise GpoccError(f"{source}: key '{key}' must be at most {_MAX_LOCAL_SAMPLES} "
+                             f"samples (each local problem factors a matrix of that side), "
+                             f"got {value}")
     if config.map.margin_m > _MAX_MARGIN_M:
         raise GpoccError(f"{source}: key 'map.margin_m' must be at most {_MAX_MARGIN_M:g} m (the "
                          f"border around the data), got {config.map.margin_m:g}; check its "

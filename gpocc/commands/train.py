@@ -105,6 +105,12 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
         if training_cfg.uses_beam_points else None)
     samples_s = time.perf_counter() - started - read_s
     log(f"built {len(samples)} samples; learning hyperparameters")
+    occupied = int((samples.labels > 0).sum())
+    if len(samples) and occupied in (0, len(samples)):
+        kind, why = (("free", "no beam hit anything within range") if occupied == 0 else
+                     ("occupied", "no beam crossed free space"))
+        log(f"warning: every sample is {kind} ({why}): the map can only say {kind}; check "
+            "the ranges and the sensors' range_min_m / range_max_m")
     budget = 2 + training_cfg.anneal_maxfun + 2 * training_cfg.lbfgs_maxiter
     with scheduler_errors(), (dask_client(scheduler) if scheduler else nullcontext()) as client, \
             progress_bar(budget, "likelihood evaluations (at most)") as advance:

@@ -88,6 +88,9 @@ def corpus(tmp_path_factory) -> Path:
             "0 0 0 0 0 0 0 0 0.1 0.1 0.1 {t} host {t}\n")
     (root / "angles_nan.log").write_text(
         "".join(line.format(res="nan", t=100 + i) for i in range(5)))
+    (root / "angles_change.log").write_text(
+        "".join(line.format(res=0.01 if i < 3 else 0.02, t=100 + i) for i in range(5)))
+    (root / "neighbours_huge.yaml").write_text("model:\n  neighbours: 100000\n")
     with np.load(root / "good.npz") as data:  # metadata nested deeper than json recurses
         arrays = {k: data[k] for k in data.files}
     arrays["metadata"] = np.frombuffer(b"[" * 100000 + b"]" * 100000, np.uint8)
@@ -221,6 +224,13 @@ CASES = [
     ("train-robotlaser-nan-resolution", ["train", "{root}/angles_nan.log",
                                          "--out", "{root}/out.npz"], "angles_nan.log`line 1",
      "out.npz"),
+    # Each line states its bearings: the first line's were used for every scan.
+    ("train-robotlaser-layout-changes", ["train", "{root}/angles_change.log",
+                                         "--out", "{root}/out.npz"],
+     "angles_change.log`line 4`beam layout", "out.npz"),
+    # Local problems of the whole model: minutes per block instead of an error.
+    ("config-neighbours-100000", ["config", "{root}/neighbours_huge.yaml"],
+     "neighbours_huge.yaml`model.neighbours", None),
     ("map-model-deep-json", ["map", "{root}/deep_json.npz", "--resolution", "0.3",
                              "--out", "{root}/out"], "deep_json.npz`gpocc train", "out"),
     ("train-same-input-twice", ["train", "{root}/ok.mcap", "{root}/./ok.mcap",

@@ -200,3 +200,20 @@ def test_a_log_given_twice_under_two_names_is_warned_about(tmp_path):
     assert [r.sha256 for r in model.growth.records] == [content_hash(SAMPLE)] * 2
     alone = invoke("train", SAMPLE, "--config", SAMPLE_CONFIG, "--out", tmp_path / "one.npz")
     assert "same content" not in alone.stderr
+
+
+
+def test_a_log_whose_beams_never_hit_is_trained_with_a_warning(tmp_path):
+    # Every reading at CARMEN's no-return value (81.8 m and more): free samples only, so
+    # the map can only say free; the user is told why, once.
+    log = tmp_path / "nohit.log"
+    lines = []
+    for i in range(30):
+        ranges = " ".join(["82.0"] * 180)
+        pose = f"{0.05 * i:.2f} 0.0 0.0"
+        lines.append(f"FLASER 180 {ranges} {pose} {pose} {100 + i} host {100 + i}\n")
+    log.write_text("".join(lines))
+    result = invoke("train", log, "--out", tmp_path / "m.npz")
+    assert result.stderr.count("warning: every sample is free") == 1, result.stderr
+    hits = invoke("train", SAMPLE, "--config", SAMPLE_CONFIG, "--out", tmp_path / "s.npz")
+    assert "every sample is" not in hits.stderr
