@@ -584,12 +584,15 @@ _MAX_LOG_BOUNDS_WIDTH = 20.0
 #: Unscented-transform settings beyond these overflow its weights (alpha^2 (n + kappa)).
 _MAX_UT_ALPHA = 10.0
 _MAX_UT_WEIGHT = 1e6
-#: Initial kernel values above this (with the learning box, 5e20) are unit mistakes and
-#: overflow the map's float32 variance.
+#: Initial kernel values above this are unit mistakes (a signal variance of 1e300 overflowed
+#: the map's float32 variance).
 _MAX_HYPERPARAMETER = 1e12
 #: Most samples in one local problem: its covariance is factored per map block (4096:
 #: 134 MB and seconds each).
 _MAX_LOCAL_SAMPLES = 4096
+#: The coarsest map cell (map.resolution_m, --resolution): 1000 km is a unit mistake
+#: (and beyond float32, the map's own number type, from 3.4e38 on).
+MAX_RESOLUTION_M = 1e6
 #: The largest integer a config key may hold (2^32 - 1: seeds and counts fit in int64).
 _MAX_INT = 2**32 - 1
 
@@ -697,12 +700,6 @@ def _check_fixed(config: Config, source: str) -> None:
                 f"{source}: key 'model.training.fixed' names {name!r}, which the "
                 f"'{config.model.kernel}' kernel does not learn; use some of "
                 f"{', '.join(learnable)}")
-    if (set(learnable) <= set(config.model.training.fixed)
-            and not config.model.training.learn_input_noise_scale):
-        raise GpoccError(
-            f"{source}: key 'model.training.fixed' holds every value learning would change "
-            f"({', '.join(learnable)}); set model.training.learn: false to keep the initial "
-            "values instead")
     training = config.model.training
     if training.isotropic:
         for x, y in axis_pairs(kernel):
@@ -854,6 +851,17 @@ def _validate(config: Config, source: str) -> Config:
     if not 0.0 < config.model.blend_overlap <= 1.0:
         raise GpoccError(f"{source}: key 'model.blend_overlap' must be above 0 and at most 1 "
                          f"(1: bilinear across whole blocks), got {config.model.blend_overlap}")
+    if config.map.margin_m > _MAX_MARGIN_M:
+        raise GpoccError(f"{source}: key 'map.margin_m' must be at most {_MAX_MARGIN_M:g} m (the "
+                         f"border around the data), got {config.map.margin_m:g}; check its "
+                         "units (metres)")
+    return config
+
+
+def _check_limits(config: Config, source: str) -> None:
+    """Limits on values a config states that a model file stored by an older gpocc may
+    hold beyond (its embedded config is not checked against them: it was valid then)."""
+    t = config.model.training
     if not 0.0 < t.log_bounds_width <= _MAX_LOG_BOUNDS_WIDTH:
         raise GpoccError(f"{source}: key 'model.training.log_bounds_width' must be above 0 and "
                          f"at most {_MAX_LOG_BOUNDS_WIDTH:g} (the search box spans e^-w to "
@@ -867,7 +875,7 @@ def _validate(config: Config, source: str) -> Config:
     hyper = config.model.hyperparameters
     for name in ("signal_variance", "noise_variance", "bias_variance", "weight_variance",
                  "lengthscale_m"):
-        values = np.atleast_1d(np.asarray(getattr(hyper, name, 1.0), dtype=float))
+        values = np.atleast_1d(np.asarray(getattr(hyper, name), dtype=float))
         if (values > _MAX_HYPERPARAMETER).any():
             raise GpoccError(f"{source}: key 'model.hyperparameters.{name}' must be at most "
                              f"{_MAX_HYPERPARAMETER:g}, got {getattr(hyper, name)}; check "
@@ -878,11 +886,10 @@ def _validate(config: Config, source: str) -> Config:
             raise GpoccError(f"{source}: key '{key}' must be at most {_MAX_LOCAL_SAMPLES} "
                              f"samples (each local problem factors a matrix of that side), "
                              f"got {value}")
-    if config.map.margin_m > _MAX_MARGIN_M:
-        raise GpoccError(f"{source}: key 'map.margin_m' must be at most {_MAX_MARGIN_M:g} m (the "
-                         f"border around the data), got {config.map.margin_m:g}; check its "
+    if config.map.resolution_m > MAX_RESOLUTION_M:
+        raise GpoccError(f"{source}: key 'map.resolution_m' must be at most "
+                         f"{MAX_RESOLUTION_M:g} m, got {config.map.resolution_m:g}; check its "
                          "units (metres)")
-    return config
 
 
 #: Most inducing points one training point or map cell may see (features are local).
@@ -905,13 +912,19 @@ def _validate_bhm(b: BHMConfig, source: str) -> None:
             f"{b.inducing_spacing_m:g} m apart; raise gamma or bhm.inducing_spacing_m")
 
 
-def config_from_dict(data: dict[str, Any] | None, source: str = "<config>") -> Config:
-    """Validate a parsed YAML mapping into a :class:`Config`."""
+def config_from_dict(data: dict[str, Any] | None, source: str = "<config>",
+                     limits: bool = True) -> Config:
+    """Validate a parsed YAML mapping into a :class:`Config`. ``limits=False`` skips the
+    limits a config's values must keep (:func:`_check_limits`), for a model file's
+    embedded config, which an older gpocc checked against its own."""
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise GpoccError(f"{source}: the config must be a YAML mapping of keys to values")
-    return _validate(_build(Config, data, "", source), source)
+    config = _validate(_build(Config, data, "", source), source)
+    if limits:
+        _check_limits(config, source)
+    return config
 
 
 def load_config(path: str | Path | None) -> Config:
@@ -941,10 +954,9 @@ def read_config_mapping(path: str | Path) -> Any:
         what = f" ({problem})" if problem else ""
         raise GpoccError(f"{p}: not valid YAML{where}{what}; fix the syntax") from None
     if data is None:  # an empty file, or only comments: legal, but likely the wrong file
-        from gpocc.progress import log
+        from gpocc.progress import log  # here: the config is read where rich is not needed
 
-        log(f"warning: {p}: the config sets nothing (empty, or only comments); "
-            "using the defaults")
+        log(f"warning: {p}: the config sets nothing (empty, or only comments)")
     return data
 
 

@@ -1,5 +1,10 @@
 """The exception types the CLI turns into a single error line."""
 
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
 
 class GpoccError(Exception):
     """A user-facing error: bad input, bad config, refused overwrite.
@@ -25,7 +30,8 @@ class CompiledLoopsUnavailable(GpoccError, ImportError):
     code that imports gpocc and checks for it)."""
 
 
-def check_regular_file(path, what: str, fix: str) -> None:
+def check_regular_file(path: str | os.PathLike[str], what: str, fix: str,
+                       missing_fix: str | None = None) -> None:
     """Refuse ``path`` unless it is a regular file (a symlink to one counts).
 
     Missing paths and folders are refused with ``fix``; pipes, sockets and devices too,
@@ -33,14 +39,16 @@ def check_regular_file(path, what: str, fix: str) -> None:
     pipe would block or give its bytes only once.
 
     Args:
-        path: a :class:`pathlib.Path`.
+        path: the file.
         what: what the file should be, e.g. ``"config file"``.
         fix: what to do instead, e.g. ``"check the path"``.
+        missing_fix: the fix for a missing path, if not ``fix``.
     """
+    path = Path(path)
     if path.is_file():
         return
     if not path.exists():
-        raise GpoccError(f"{path}: {what} not found; {fix}")
+        raise GpoccError(f"{path}: {what} not found; {missing_fix or fix}")
     if path.is_dir():
         raise GpoccError(f"{path}: is a folder, not a {what}; {fix}")
     raise GpoccError(f"{path}: not a regular file (a pipe, socket or device); save the "

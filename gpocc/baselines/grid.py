@@ -119,7 +119,16 @@ def _clip_long_segments(spec: GridSpec, starts: np.ndarray, ends: np.ndarray
     becomes a point outside it. The traversal steps through every cell of a segment's
     major axis, inside the grid or not: a small grid at a fine resolution (``--bounds``
     around part of the data) made beams of millions of steps each. Shorter segments are
-    left as they are, so a map over its data's bounds traverses exactly as before."""
+    left as they are, so a map over its data's bounds traverses exactly as before.
+
+    Args:
+        spec: the grid.
+        starts: (N, 2) segment starts, metres.
+        ends: (N, 2) segment ends, metres.
+
+    Returns:
+        ``(starts, ends)``, (N, 2) metres each, new arrays where a segment was cut.
+    """
     res = spec.resolution
     d = ends - starts
     long = np.abs(d).max(axis=1) / res > spec.width + spec.height + 4
@@ -128,7 +137,7 @@ def _clip_long_segments(spec: GridSpec, starts: np.ndarray, ends: np.ndarray
     lo = np.array([spec.x0 - res, spec.y0 - res])
     hi = np.array([spec.x0 + (spec.width + 1) * res, spec.y0 + (spec.height + 1) * res])
     p, q = starts[long], d[long]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t_lo = (lo - p) / q
         t_hi = (hi - p) / q
     # Along an axis the segment does not move on, it is inside the slab or never.

@@ -16,6 +16,7 @@ from typing import Annotated
 
 import typer
 
+from gpocc.config import MAX_RESOLUTION_M
 from gpocc.errors import GpoccError, SchedulerUnreachable
 
 
@@ -62,11 +63,6 @@ def scheduler_errors() -> Iterator[None]:
             f"--scheduler {exc.address}: cannot reach a Dask scheduler there "
             f"({exc.cause}); check the address (tcp://HOST:PORT) and that the scheduler "
             "is running, or leave --scheduler out to work on this machine") from None
-
-
-#: The coarsest --resolution: a 1000 km cell is a unit mistake (and beyond float32, the
-#: map's own number type, from 3.4e38 on).
-MAX_RESOLUTION_M = 1e6
 
 
 def check_resolution(resolution: float) -> float:

@@ -82,10 +82,12 @@ _NOT_PROBABILITY = {VARIANCE_BAND.description: "variance",
 def sample_map(raster: Path, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One map's probability at the (N, 2) truth points (nearest cell): (N,) scores (NaN
     on no-data) and (N,) inside the map."""
+    layer = (_NOT_PROBABILITY.get(band_description(raster) or "")
+             if raster.suffix.lower() != ".mcap" else None)
+    if layer is not None:  # before reading it whole
+        raise GpoccError(f"{raster}: a gpocc {layer} layer, not a probability; pass "
+                         "probability.tif (or its map folder)")
     values, spec, nodata = read_probability(raster)
-    if raster.suffix.lower() != ".mcap" and band_description(raster) in _NOT_PROBABILITY:
-        raise GpoccError(f"{raster}: a gpocc {_NOT_PROBABILITY[band_description(raster)]} "
-                         "layer, not a probability; pass probability.tif (or its map folder)")
     scores, inside = sample_raster(values, spec, nodata, points)
     finite = scores[np.isfinite(scores) & inside]
     if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):

@@ -59,7 +59,7 @@ def load_truth_kinds(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
     """:func:`load_truth` plus each point's kind: (N,) str from a point file's ``kind``
     column, None for rasters, map_server maps and point files without one."""
     p = Path(path)
-    check_regular_file(p, "ground-truth file", ACCEPTED)
+    check_regular_file(p, "ground-truth file", ACCEPTED, missing_fix="check the path")
     suffix = p.suffix.lower()
     kinds = None
     if suffix in _RASTER_SUFFIXES:

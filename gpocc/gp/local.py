@@ -54,9 +54,10 @@ class Prediction:
 class NeighbourIndex:
     """Nearest-neighbour look-up of training samples by their mean position."""
 
-    def __init__(self, samples: SampleSet) -> None:
+    def __init__(self, samples: SampleSet, tree: cKDTree | None = None) -> None:
+        """``tree``: a tree of ``samples.means`` already built (:meth:`over`)."""
         self.samples = samples
-        self._tree = cKDTree(samples.means)
+        self._tree = cKDTree(samples.means) if tree is None else tree
 
     def over(self, samples: SampleSet) -> NeighbourIndex:
         """This index for ``samples`` with the same means (the same samples with other
@@ -69,9 +70,7 @@ class NeighbourIndex:
         if samples.means is not self.samples.means and not np.array_equal(
                 samples.means, self.samples.means):
             raise ValueError("samples with other means need an index of their own")
-        twin = NeighbourIndex.__new__(NeighbourIndex)
-        twin.samples, twin._tree = samples, self._tree
-        return twin
+        return NeighbourIndex(samples, self._tree)
 
     def problem(self, centre: np.ndarray, neighbours: int) -> LocalProblem:
         """The ``neighbours`` samples nearest ``centre`` (2,), centred at it."""

@@ -242,7 +242,7 @@ def _contents(meta: Any, arrays: dict[str, np.ndarray], source: str,
     if not isinstance(meta.get("config"), dict):
         raise _Damaged("the embedded config is missing")
     config = config_from_dict(_with_settings_of_older_files(meta["config"]),
-                              f"{source} (embedded config)")
+                              f"{source} (embedded config)", limits=False)
     kernel = _kernel(meta)
     noise = _finite_number(meta.get("noise_variance"), "noise_variance", positive=True)
     platt = _classifier(meta.get("classifier"), meta.get("format_version"))

@@ -498,7 +498,9 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     initial, _ = negative_log_likelihood_counted(x0, kernel, patches, level,
                                                  with_gradient=False)
     evaluations = 1
-    if not config.learn:
+    # Every value held (model.training.fixed) leaves nothing to search: as learn: false.
+    nothing_free = set(learned_names(kernel)) <= set(config.fixed) and not learn_scale
+    if not config.learn or nothing_free:
         return TrainingResult(kernel, noise_variance, -initial, -initial, evaluations,
                               (len(patches), len(patches[0].samples)))
     bounds = search_bounds(kernel.theta, noise_variance, config, learn_scale)

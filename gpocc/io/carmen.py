@@ -334,15 +334,16 @@ def _scan_table(path: Path, lines: list[str]) -> _ScanTable:
             f"{path}: line {odd.lineno}: scan has {odd.ranges.shape[0]} beams but earlier ones "
             f"have {first}; split the log so that each part has one beam count"
         )
-    # ROBOTLASER1 lines state their own bearings (FLASER's are fixed): one table holds
-    # one layout, as a LaserScan topic must.
-    changed = next((s for s in scans if not np.allclose(s.angles, scans[0].angles,
-                                                        rtol=0.0, atol=1e-9)), None)
-    if changed is not None:
-        raise GpoccError(
-            f"{path}: line {changed.lineno}: ROBOTLASER1 bearings (start angle, angular "
-            f"resolution) differ from line {scans[0].lineno}'s; split the log so that each "
-            "part has one beam layout")
+    if not flaser:
+        # ROBOTLASER1 lines state their own bearings (FLASER's are fixed): one table
+        # holds one layout, as a LaserScan topic must.
+        angles = np.stack([s.angles for s in scans])
+        off = np.flatnonzero(np.abs(angles - angles[0]).max(axis=1) > 1e-9)
+        if off.size:
+            raise GpoccError(
+                f"{path}: line {scans[int(off[0])].lineno}: ROBOTLASER1 bearings (start "
+                f"angle, angular resolution) differ from line {scans[0].lineno}'s; split the "
+                "log so that each part has one beam layout")
     return _ScanTable([s.lineno for s in scans], np.stack([s.ranges for s in scans]),
                       scans[0].angles, np.stack([s.pose for s in scans]),
                       np.array([s.logger_stamp for s in scans]),

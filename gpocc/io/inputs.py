@@ -247,22 +247,21 @@ def read_input(path: str | Path, config: Config,
 
 
 def check_distinct(paths: Sequence[str | Path]) -> None:
-    """Refuse a file or folder given twice (by any name: a link, ``./``, a shell glob that
-    also matches a named input); its scans would count twice.
+    """Refuse a path given twice (``run.log ./run.log``, a shell glob that also matches a
+    named input): its scans would count twice, and the config's ``inputs`` entries, keyed
+    by path, cannot tell the two apart. Another name of the same log (a link, a copy) is
+    allowed: an ``inputs`` entry each can place it twice (training warns,
+    :func:`gpocc.io.records.warn_repeated_content`).
 
     Raises:
-        GpoccError: naming both names.
+        GpoccError: naming both spellings.
     """
-    seen: dict[tuple[int, int], str | Path] = {}
-    for p in paths:
-        try:
-            st = os.stat(p)
-        except OSError:
-            continue  # read_input says what is wrong with it
-        first = seen.setdefault((st.st_dev, st.st_ino), p)
-        if first is not p:
-            raise GpoccError(f"{p}: given twice (also as {first}); pass each input once, or "
-                             "its scans count twice")
+    seen: dict[str, int] = {}
+    for i, p in enumerate(paths):
+        first = seen.setdefault(os.path.abspath(p), i)
+        if first != i:
+            raise GpoccError(f"{p}: given twice (also as {paths[first]}); pass each input "
+                             "once, or its scans count twice")
 
 
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:

@@ -27,7 +27,6 @@ reads (any compression, predictor, striped or tiled) for ground truth and evalua
 
 from __future__ import annotations
 
-import errno
 import math
 import os
 import warnings
@@ -184,9 +183,11 @@ def write_geotiff(
             with staged.open() as src, MemoryFile(ext=".tif") as cog:
                 try:
                     gdal_copy(src, cog.name, driver="COG", **options)
+                except MemoryError:
+                    raise
                 except Exception as exc:  # GDAL's errors (CPLE_*) share no public base
-                    raise OSError(errno.EIO, "GDAL could not make the GeoTIFF "
-                                  f"({_first_line(exc)})", str(path)) from None
+                    raise GpoccError(f"{path}: GDAL could not make the GeoTIFF "
+                                     f"({_first_line(exc)})") from None
                 with open(tmp, "wb") as f:
                     f.write(cog.getbuffer())
 

@@ -107,11 +107,12 @@ def check_new_inputs(known: Sequence[InputRecord], paths: Sequence[str | Path],
 def warn_repeated_content(paths: Sequence[str | Path], hashes: Sequence[str]) -> None:
     """A warning for each input whose content (``hashes``) an earlier one already has:
     two names of one log, whose scans then count twice."""
-    first: dict[str, str | Path] = {}
-    for path, digest in zip(paths, hashes, strict=True):
-        if first.setdefault(digest, path) is not path:
-            log(f"warning: {path} has the same content as {first[digest]}: its scans count "
-                "twice; pass each log once")
+    first: dict[str, int] = {}
+    for i, (path, digest) in enumerate(zip(paths, hashes, strict=True)):
+        earlier = first.setdefault(digest, i)
+        if earlier != i:
+            log(f"warning: {path} has the same content as {paths[earlier]}: its scans count "
+                "twice, unless the config's inputs entries place them apart")
 
 
 def record_from_dict(data: Any) -> InputRecord:

@@ -202,6 +202,14 @@ def test_segments_far_longer_than_the_grid_cross_the_brute_force_cells():
     starts = through - (t * lengths)[:, None] * direction
     ends = starts + lengths[:, None] * direction
     ends[:20] = through[:20]  # some end inside or near the grid
+    # Axis-parallel ones (on a row of cells, outside the grid's rows, along its border),
+    # one starting inside the grid and one pointing away from it.
+    special = np.array([
+        [[-500.0, 1.0], [500.0, 1.0]], [[0.0, -400.0], [0.0, 400.0]],
+        [[-500.0, 9.0], [500.0, 9.0]], [[-500.0, 0.42], [500.0, 0.42]],
+        [[0.5, 1.5], [800.0, 700.0]], [[5.0, 5.0], [900.0, 900.0]],
+    ])
+    starts[20:26], ends[20:26] = special[:, 0], special[:, 1]
     cells = ray_cells(spec, starts, ends)
     missed = 0
     for i in range(n):

@@ -74,9 +74,6 @@ def corpus(tmp_path_factory) -> Path:
     os.mkfifo(root / "fifo")  # no writer: reading it would block for ever
     (root / "ragged_cov.yaml").write_text(
         "sensors:\n  - name: a\n    pose_covariance: [[0.01, 0, 0], [0, 0.01], [0, 0, 0.001]]\n")
-    (root / "fixed_all.yaml").write_text(
-        "model:\n  training:\n    fixed: [signal_variance, bias_variance, weight_variance_x, "
-        "weight_variance_y, noise_variance]\n")
     (root / "box_0.yaml").write_text("model:\n  training:\n    log_bounds_width: 0\n")
     (root / "box_1000.yaml").write_text("model:\n  training:\n    log_bounds_width: 1000\n")
     (root / "alpha_huge.yaml").write_text("samples:\n  unscented: {alpha: 1.0e+300}\n")
@@ -204,9 +201,6 @@ CASES = [
     # Config values that passed validation and failed later with a traceback
     ("config-ragged-covariance", ["config", "{root}/ragged_cov.yaml"],
      "ragged_cov.yaml`pose_covariance", None),
-    ("config-fixed-every-value", ["train", "{root}/ok.mcap", "--config", "{root}/fixed_all.yaml",
-                                  "--out", "{root}/out.npz"], "fixed_all.yaml`learn: false",
-     "out.npz"),
     ("config-box-width-0", ["train", "{root}/ok.mcap", "--config", "{root}/box_0.yaml",
                             "--out", "{root}/out.npz"], "box_0.yaml`log_bounds_width", "out.npz"),
     # e^-1000 is 0: the error named signal_variance, which the file does not set.

@@ -199,3 +199,28 @@ def test_map_epsg_alone_is_retired_and_georef_is_validated():
                                                "northing_m": 5800000.5, "yaw_deg": 12}}})
     assert cfg.map.georef.easting_m == 400000.0 and cfg.map.georef.yaw_deg == 12.0
     assert config_from_dict({"map": {"epsg": None}}).map.georef is None
+
+
+def test_limits_hold_for_configs_but_not_for_a_model_files_stored_config(tmp_path):
+    # A model trained with a value an older gpocc allowed keeps loading: only configs a
+    # user writes now are held to the limits.
+    import numpy as np
+
+    from gpocc.config import ModelConfig, TrainingConfig
+    from gpocc.gp.model import build_model, load_model, save_model
+    from gpocc.samples.sampleset import SampleSet
+
+    rng = np.random.default_rng(2)
+    means = rng.uniform(-2, 2, (60, 2))
+    labels = np.where(np.abs(means[:, 0]) > 1.6, 1.0, -1.0)
+    samples = SampleSet(means, np.zeros((60, 2, 2)), labels, np.arange(60),
+                        np.zeros((60, 2, 3)), np.zeros(60, dtype=np.int16))
+    beyond = Config(model=ModelConfig(
+        neighbours=5000, training=TrainingConfig(learn=False, patches=1, patch_size=40,
+                                                 log_bounds_width=25.0)))
+    save_model(build_model(samples, beyond), tmp_path / "old.npz")
+    assert load_model(tmp_path / "old.npz").config.model.neighbours == 5000
+    with pytest.raises(GpoccError, match="model.neighbours' must be at most 4096"):
+        config_from_dict({"model": {"neighbours": 5000}}, "c.yaml")
+    with pytest.raises(GpoccError, match="log_bounds_width' must be above 0 and at most 20"):
+        config_from_dict({"model": {"training": {"log_bounds_width": 25.0}}}, "c.yaml")

@@ -253,6 +253,23 @@ def test_fixed_values_stay_and_the_others_reach_a_stationary_point(fixed):
         assert abs(slope / (2 * step)) < 0.05, names[i]
 
 
+def test_holding_every_value_is_learning_nothing():
+    # fixed naming every learned value left the optimisers nothing to search (an
+    # IndexError); it must give what learn: false gives, the initial values.
+    samples = _se_draw(12, (0.7, 0.9))
+    start = SquaredExponentialKernel(1.0, (1.0, 1.0))
+    names = (*start.parameter_names, "noise_variance")
+    held = learn_hyperparameters(
+        start, 0.2, samples, 1, TrainingConfig(patches=2, patch_size=40, fixed=names),
+        seed=0, workers=1)
+    off = learn_hyperparameters(
+        start, 0.2, samples, 1, TrainingConfig(patches=2, patch_size=40, learn=False),
+        seed=0, workers=1)
+    np.testing.assert_array_equal(held.kernel.theta, start.theta)
+    assert held.noise_variance == 0.2 and held.evaluations == off.evaluations == 1
+    assert held.log_marginal_likelihood == off.log_marginal_likelihood
+
+
 def test_classifier_maximises_loo_log_probability():
     rng = np.random.default_rng(5)
     n = 200
