@@ -734,8 +734,6 @@ def _validate(config: Config, source: str) -> Config:
             raise GpoccError(f"{source}: key '{key}' must be a 3x3 matrix of (x, y, yaw): "
                              "three rows of three numbers")
         cov = np.asarray(rows, dtype=float)
-        if cov.shape != (3, 3):
-            raise GpoccError(f"{source}: key '{key}' must be a 3x3 matrix of (x, y, yaw)")
         if not np.allclose(cov, cov.T, atol=1e-12):
             raise GpoccError(f"{source}: key '{key}' must be symmetric")
         if np.abs(cov).max() > _MAX_VARIANCE:

@@ -30,6 +30,13 @@ class CompiledLoopsUnavailable(GpoccError, ImportError):
     code that imports gpocc and checks for it)."""
 
 
+def first_line(exc: BaseException) -> str:
+    """The first line of ``exc``'s message, or its type's name when it has none: the cause
+    a one-line error quotes from a library's (often multi-line) message."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def check_regular_file(path: str | os.PathLike[str], what: str, fix: str,
                        missing_fix: str | None = None) -> None:
     """Refuse ``path`` unless it is a regular file (a symlink to one counts).

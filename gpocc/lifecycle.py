@@ -18,7 +18,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, first_line
 from gpocc.io.atomic import release_all_claims
 
 
@@ -32,7 +32,7 @@ def _on_sigterm(signum: int, frame: object) -> None:
 
 def describe_os_error(exc: OSError) -> str:
     """One line naming the path (when known) and the cause of ``exc``."""
-    cause = exc.strerror or (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    cause = exc.strerror or first_line(exc)
     names = [str(n) for n in (exc.filename, exc.filename2) if n is not None]
     where = " -> ".join(names)
     return f"{where}: {cause}" if where else cause

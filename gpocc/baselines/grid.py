@@ -144,9 +144,9 @@ def _clip_long_segments(spec: GridSpec, starts: np.ndarray, ends: np.ndarray
     inside_slab = (p >= lo) & (p <= hi)
     t_in = np.where(q != 0, np.minimum(t_lo, t_hi), np.where(inside_slab, -np.inf, np.inf))
     t_out = np.where(q != 0, np.maximum(t_lo, t_hi), np.where(inside_slab, np.inf, -np.inf))
-    enter = np.clip(t_in.max(axis=1), 0.0, 1.0)
-    leave = np.clip(t_out.min(axis=1), 0.0, 1.0)
-    misses = t_in.max(axis=1) > t_out.min(axis=1)
+    t_enter, t_leave = t_in.max(axis=1), t_out.min(axis=1)
+    enter, leave = np.clip(t_enter, 0.0, 1.0), np.clip(t_leave, 0.0, 1.0)
+    misses = t_enter > t_leave
     new_start = np.where((enter > 0)[:, None], p + enter[:, None] * q, p)
     new_end = np.where((leave < 1)[:, None], p + leave[:, None] * q, ends[long])
     outside = lo - 2 * res

@@ -34,7 +34,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from gpocc.constants import FOLDER_MARKERS
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, first_line
 
 _CLAIM = ".gpocc-claim"
 _TMP = ".gpocc-tmp-"
@@ -62,10 +62,7 @@ def _umask() -> int:
 
 
 def _one_line(exc: OSError) -> str:
-    if exc.strerror:
-        return exc.strerror
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
+    return exc.strerror or first_line(exc)
 
 
 def _write_error(target: Path, exc: OSError) -> GpoccError:

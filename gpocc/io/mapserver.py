@@ -28,7 +28,7 @@ import yaml
 
 from gpocc.constants import FREE as CLASS_FREE
 from gpocc.constants import OCCUPIED as CLASS_OCCUPIED
-from gpocc.errors import GpoccError, check_regular_file
+from gpocc.errors import GpoccError, check_regular_file, first_line
 from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_path
 
@@ -302,8 +302,7 @@ def _load_yaml(path: Path) -> dict[str, Any]:
     try:
         meta = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise GpoccError(f"{path}: not valid YAML ({first}); fix the syntax") from None
+        raise GpoccError(f"{path}: not valid YAML ({first_line(exc)}); fix the syntax") from None
     if not isinstance(meta, dict):
         raise GpoccError(f"{path}: expected a map_server yaml mapping (image, resolution, ...)")
     return meta

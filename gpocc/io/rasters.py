@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from gpocc.constants import FREE, NO_DATA, OCCUPIED, UNSURE
-from gpocc.errors import GpoccError, check_regular_file
+from gpocc.errors import GpoccError, check_regular_file, first_line
 from gpocc.gridspec import GridSpec, geotransform
 from gpocc.io.atomic import atomic_path
 
@@ -187,14 +187,9 @@ def write_geotiff(
                     raise
                 except Exception as exc:  # GDAL's errors (CPLE_*) share no public base
                     raise GpoccError(f"{path}: GDAL could not make the GeoTIFF "
-                                     f"({_first_line(exc)})") from None
+                                     f"({first_line(exc)})") from None
                 with open(tmp, "wb") as f:
                     f.write(cog.getbuffer())
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _describe(ds: Any, band: Band) -> None:
@@ -390,10 +385,9 @@ def _read_geotiff(path: Path) -> tuple[np.ndarray, GridSpec, Nodata]:
     except GpoccError:
         raise
     except (RasterioError, OSError) as exc:
-        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise GpoccError(
-            f"{path}: GDAL cannot read it ({detail}); the file is corrupt, truncated or not "
-            f"a raster: write or copy it again"
+            f"{path}: GDAL cannot read it ({first_line(exc)}); the file is corrupt, truncated "
+            f"or not a raster: write or copy it again"
         ) from None
     spec = _map_grid(path, grid_text, transform.to_gdal(), array.shape)
     if spec is None:

@@ -303,32 +303,34 @@ def test_size_limit_errors_and_writes_nothing(tmp_path):
     assert parse_pgm(tmp_path / "map.pgm")[1:3] == (2001, 10)
 
 
-@pytest.mark.skipif(not hasattr(os, "posix_fallocate"), reason="no posix_fallocate here")
+_NO_FALLOCATE = pytest.mark.skipif(not hasattr(os, "posix_fallocate"),
+                                   reason="no posix_fallocate here")
+_IMAGE_SPEC = GridSpec(0.0, 0.0, 0.05, 40, 30)
+
+
+def _fallocate_failing_with(monkeypatch, err: int) -> None:
+    def fail(fd, offset, length):
+        raise OSError(err, os.strerror(err))
+
+    monkeypatch.setattr(os, "posix_fallocate", fail)
+
+
+@_NO_FALLOCATE
 def test_a_full_disk_is_an_os_error_on_the_image_and_leaves_nothing(tmp_path, monkeypatch):
     # The image is memory-mapped: without its blocks reserved first, a full disk killed
     # the process with SIGBUS. Reserving them must turn it into ENOSPC, naming the image.
-    spec = GridSpec(0.0, 0.0, 0.05, 40, 30)
-    p = np.zeros(spec.shape)
-
-    def full(fd, offset, length):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    monkeypatch.setattr(os, "posix_fallocate", full)
+    _fallocate_failing_with(monkeypatch, errno.ENOSPC)
     with pytest.raises(OSError) as raised:
-        write_map_server(tmp_path / "map.yaml", p, spec, 0.65, 0.35)
+        write_map_server(tmp_path / "map.yaml", np.zeros(_IMAGE_SPEC.shape), _IMAGE_SPEC,
+                         0.65, 0.35)
     assert raised.value.errno == errno.ENOSPC
     assert str(raised.value.filename).endswith(".pgm")  # the image (its temporary)
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.skipif(not hasattr(os, "posix_fallocate"), reason="no posix_fallocate here")
+@_NO_FALLOCATE
 def test_a_file_system_without_fallocate_still_gets_its_map(tmp_path, monkeypatch):
-    spec = GridSpec(0.0, 0.0, 0.05, 40, 30)
-    p = np.zeros(spec.shape)
-
-    def unsupported(fd, offset, length):
-        raise OSError(errno.EOPNOTSUPP, os.strerror(errno.EOPNOTSUPP))
-
-    monkeypatch.setattr(os, "posix_fallocate", unsupported)
-    write_map_server(tmp_path / "map.yaml", p, spec, 0.65, 0.35)
+    _fallocate_failing_with(monkeypatch, errno.EOPNOTSUPP)
+    write_map_server(tmp_path / "map.yaml", np.zeros(_IMAGE_SPEC.shape), _IMAGE_SPEC,
+                     0.65, 0.35)
     assert parse_pgm(tmp_path / "map.pgm")[1:3] == (40, 30)
