@@ -258,12 +258,25 @@ def prepare_output(path: str | os.PathLike[str], force: bool, folder: bool = Tru
     writing (creating folders here would leave them behind on a later error).
     """
     target = Path(path)
+    _refuse_current_folder(path, target)
     if target.parent.is_dir():
         claim_output(target)
     else:
         _check_ancestor(target)
     _refuse_existing(target, force, folder)
     _refuse_inputs_inside(target, inputs)
+
+
+def _refuse_current_folder(given: str | os.PathLike[str], target: Path) -> None:
+    """An output is written beside its final path and renamed onto it: the current
+    folder, or a folder holding it, cannot be that path (``--out .``, ``--out ""``,
+    ``--out ..``)."""
+    here = Path.cwd().resolve()
+    resolved = target.resolve()
+    if not os.fspath(given) or resolved == here or resolved in here.parents:
+        raise GpoccError(
+            f"{os.fspath(given)!r}: names the current folder or a folder holding it, which "
+            "an output cannot replace; give the output a new name (e.g. --out out/map)")
 
 
 def _refuse_inputs_inside(target: Path, inputs: Iterable[str | os.PathLike[str] | None]

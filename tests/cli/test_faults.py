@@ -209,6 +209,20 @@ def test_out_under_a_regular_file_is_one_line(model_path, tmp_path):
         assert "not a folder" in line
 
 
+
+
+def test_out_naming_the_current_folder_is_one_line(model_path, tmp_path):
+    """An empty folder counts as a previous output that --force may replace, but not when
+    it is the folder the command runs in (or holds it): the rename would have no name."""
+    here = tmp_path / "empty"
+    here.mkdir()
+    for out in (".", "", "..", str(tmp_path)):
+        for args in (["map", str(model_path), "--resolution", "0.3"], ["simulate"]):
+            run = subprocess.run([*GPOCC, *args, "--out", out, "--force"], cwd=here,
+                                 capture_output=True, text=True, timeout=120)
+            assert run.returncode == 2, run.stderr
+            assert "current folder" in _one_error_line(run.stderr, "error:")
+            assert list(here.iterdir()) == []
 @pytest.mark.parametrize("err", [errno.ENOSPC, errno.EACCES, errno.EROFS])
 def test_a_write_failure_is_one_line_and_leaves_nothing(model_path, tmp_path, monkeypatch, err):
     # A full disk or a read-only folder cannot be made portably as root in a container,
