@@ -57,6 +57,10 @@ class SensorConfig:
     override_pose_covariance: bool = False
     mount: MountConfig = field(default_factory=MountConfig)
     max_pose_gap_s: float = 0.25
+    # A planar laser (LaserScan) whose scan plane TF tilts more than this from level is
+    # not mapped: its beams climb or fall by range x sin(tilt) and meet floors, tables
+    # and ceilings that flattening would draw as walls (gpocc.io.laserpose).
+    max_tilt_deg: float = 5.0
     # A scan within this of a pose sample takes it when it cannot be interpolated
     # (header stamps of one driver vs. another's, or log times: never exact equality).
     stamp_tolerance_s: float = 0.02
@@ -754,6 +758,9 @@ def _validate(config: Config, source: str) -> Config:
         if not low < high:
             raise GpoccError(f"{source}: key 'sensors[{i}].height_band_m' must be [min, max] "
                              f"heights above the floor with min < max, got {[low, high]}")
+        if not 0.0 < sensor.max_tilt_deg <= 90.0:
+            raise GpoccError(f"{source}: key 'sensors[{i}].max_tilt_deg' must be in (0, 90] "
+                             f"degrees, got {sensor.max_tilt_deg}")
         res = sensor.horizontal_resolution_deg
         if res is not None and not 0.01 <= res <= 10.0:
             raise GpoccError(f"{source}: key 'sensors[{i}].horizontal_resolution_deg' must be "

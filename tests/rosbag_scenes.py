@@ -74,6 +74,7 @@ class Laser:
     frame: str
     mount: tuple[float, float, float] = (0.25, 0.05, 0.1)   # x, y, yaw on base_footprint
     upside_down: bool = False
+    pitch: float = 0.0      # rad, of the mount (the simulated scans stay level)
     n_beams: int = 90
     max_range: float = 15.0
 
@@ -258,7 +259,8 @@ def add_robot(bag: BagWriter, robot: Robot, *, tf_topic: str = "/tf",
     for laser in robot.lasers:
         mx, my, myaw = laser.mount
         static.append((f("base_link"), laser.frame, (mx, my, 0.2),
-                       quat(roll=math.pi if laser.upside_down else 0.0, yaw=myaw)))
+                       quat(roll=math.pi if laser.upside_down else 0.0, pitch=laser.pitch,
+                            yaw=myaw)))
     if static_tf:
         bag.tf(static_topic, T0, static)
     for laser in robot.lasers:

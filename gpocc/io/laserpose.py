@@ -140,6 +140,31 @@ def _skip_reasons(valid: np.ndarray, missing: np.ndarray) -> list[tuple[str, str
     return out
 
 
+def _level_scans(path: str | Path, sensor: SensorConfig, frame: str, via: str,
+                 valid: np.ndarray, tilt_rad: np.ndarray
+                 ) -> tuple[np.ndarray, list[tuple[str, str, int]]]:
+    """``valid`` (S,) without the scans whose laser plane TF tilts (``tilt_rad`` (S,))
+    more than ``sensors[].max_tilt_deg`` from level, and their skip reason.
+
+    Raises:
+        GpoccError: every scan with a pose is tilted (``via``: the TF chain, for the
+            message).
+    """
+    tilted = valid & (tilt_rad > math.radians(sensor.max_tilt_deg))
+    count = int(np.count_nonzero(tilted))
+    if count == 0:
+        return valid, []
+    if count == int(np.count_nonzero(valid)):
+        raise GpoccError(
+            f"{path}: sensor '{sensor.name}': TF ({via}) tilts the laser frame '{frame}' "
+            f"{math.degrees(float(np.median(tilt_rad[tilted]))):.1f} degrees from level, more "
+            f"than sensors[].max_tilt_deg ({sensor.max_tilt_deg:g}): its beams would meet "
+            "floors or ceilings that a planar map draws as walls; check the mount's "
+            "rotation in TF, give a 3-D lidar as a PointCloud2 topic, or raise max_tilt_deg")
+    return valid & ~tilted, [(f"the laser frame '{frame}' tilted more than "
+                              "max_tilt_deg from level", "sensors[].max_tilt_deg", count)]
+
+
 def _lever(tf: TfBuffer, chain: Chain, body: str, laser_frame: str, stamps: np.ndarray,
            laser_yaw: np.ndarray, max_gap_s: float) -> np.ndarray:
     """(S, 2) laser position minus body position in the map frame, metres (0 if unknown)."""
@@ -324,7 +349,8 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
             log(f"warning: {path}: sensor '{sensor.name}': {why}")
             notes.append(why)
         look = tf.lookup(chain, stamps, sensor.max_pose_gap_s)
-        valid = look.valid
+        valid, tilt_skips = _level_scans(path, sensor, scans.frame_id, chain.describe(),
+                                         look.valid, look.tilt_rad)
         poses = look.poses
         if valid.any():
             flipped = look.upside_down[valid]
@@ -335,7 +361,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                 raise GpoccError(
                     f"{path}: sensor '{sensor.name}': the laser frame '{scans.frame_id}' turns "
                     "upside down during the log; check the TF of its mount")
-        skipped = _skip_reasons(valid, look.missing)
+        skipped = _skip_reasons(look.valid, look.missing) + tilt_skips
         chain_text = chain.describe()
         pose_source = f"TF {chain.target} -> {chain.source}"
         body = (series.child_frame_id if series is not None and series.child_frame_id
@@ -394,6 +420,9 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                     f"({mount_tf.describe()}), and the config sets sensors[].mount too; "
                     "remove mount from that entry (or set position_from_tf: false)")
             rel = tf.lookup(mount_tf, stamps, sensor.max_pose_gap_s)
+            valid, tilt_skips = _level_scans(path, sensor, scans.frame_id,
+                                             mount_tf.describe(), valid, rel.tilt_rad)
+            skipped += tilt_skips
             laser = _compose(poses, rel.poses)
             # The base's covariance carried to the laser through the mount's lever arm.
             covariances = move_covariances(covariances, laser[:, :2] - poses[:, :2])

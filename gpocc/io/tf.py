@@ -198,13 +198,16 @@ class Lookup:
     """A chain evaluated at stamps: SE(2) poses (S, 3), served (S,), and the failing edge.
 
     ``missing`` (S,) holds, for unserved stamps, the label of the first dynamic edge
-    without data there (empty string where served).
+    without data there (empty string where served). ``upside_down`` (S,): the source's
+    z axis points down. ``tilt_rad`` (S,): the angle between the source's x-y plane and
+    the target's, 0..pi/2 (0 for a level frame, upside down or not).
     """
 
     poses: np.ndarray
     valid: np.ndarray
     missing: np.ndarray
     upside_down: np.ndarray
+    tilt_rad: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -263,7 +266,7 @@ class TfBuffer:
         poses = np.column_stack([trans[:, 0], trans[:, 1], yaw_of(quat)])
         # The rotated z axis pointing down: the scan turns clockwise in the map.
         up_z = 1.0 - 2.0 * (quat[:, 0] ** 2 + quat[:, 1] ** 2)
-        return Lookup(poses, valid, missing, up_z < 0)
+        return Lookup(poses, valid, missing, up_z < 0, np.arccos(np.clip(np.abs(up_z), 0, 1)))
 
     def transforms(self, chain: Chain, stamps: np.ndarray, max_gap_s: float,
                    start: int = 0, stop: int | None = None

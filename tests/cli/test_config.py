@@ -73,6 +73,8 @@ def test_changed_settings_keep_what_differs_and_drop_what_does_not():
         ("model:\n  neighbours: many\n", "'model.neighbours' must be an integer"),
         ("model:\n  input_noise: 1\n", "'model.input_noise' must be true or false"),
         ("sensors:\n  - range_variance_m2: -0.1\n", "'sensors[0].range_variance_m2' must not"),
+        ("sensors:\n  - max_tilt_deg: 0\n", "'sensors[0].max_tilt_deg' must be in (0, 90]"),
+        ("sensors:\n  - max_tilt_deg: 95\n", "'sensors[0].max_tilt_deg' must be in (0, 90]"),
         ("sensors:\n  - bearing_variance_deg2: -1\n", "'sensors[0].bearing_variance_deg2'"),
         ("sensors:\n  - pose_covariance: [[1, 2, 0], [2, 1, 0], [0, 0, 1]]\n",
          "not positive semi-definite"),

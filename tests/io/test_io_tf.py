@@ -444,3 +444,59 @@ def test_ambiguous_bag_prints_a_config_that_works(tmp_path: Path) -> None:
     config = config_from_dict(yaml.safe_load(text))
     [batch] = read_inputs([path], config)
     assert batch.n_scans == 5
+
+
+@pytest.mark.parametrize("pitch_deg, upside_down", [(3.0, False), (3.0, True)])
+def test_a_slightly_pitched_laser_is_mapped_flat(tmp_path: Path, pitch_deg: float,
+                                                 upside_down: bool) -> None:
+    robot = one_robot(lasers=[Laser("/scan", "laser", pitch=math.radians(pitch_deg),
+                                    upside_down=upside_down)])
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    [batch] = read_inputs([bag.write(tmp_path / "b")], Config())
+    assert batch.n_scans == robot.scans["/scan"][0].size
+    assert_poses(batch, robot.laser_pose(robot.lasers[0], batch.stamps - T0))
+
+
+def _pitched_robot_bag(path: Path, pitch_deg: float, amcl: bool) -> Path:
+    robot = one_robot(lasers=[Laser("/scan", "laser", pitch=math.radians(pitch_deg))])
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot, map_to_odom=not amcl)
+    if amcl:
+        for t in amcl_stamps(robot):
+            p = robot.route.base(np.array([t]))[0]
+            bag.pose_cov("/amcl_pose", T0 + t, "map", (p[0], p[1], 0), quat(yaw=p[2]),
+                         cov6(0.01, 0.01, 0.002))
+    return bag.write(path)
+
+
+@pytest.mark.parametrize("amcl", [False, True])
+def test_a_tilted_laser_is_refused_unless_max_tilt_allows_it(tmp_path: Path, amcl: bool) -> None:
+    """Through the TF chain map -> laser, and (``amcl``) through a map-frame pose topic
+    with the base -> laser mount from TF. Allowed, it keeps the scans a level one keeps."""
+    from gpocc.errors import GpoccError
+
+    path = _pitched_robot_bag(tmp_path / "b", 30.0, amcl)
+    with pytest.raises(GpoccError, match=r"b: sensor .*tilts the laser frame 'laser' 30.0 "
+                                         r"degrees from level.*max_tilt_deg \(5\)"):
+        read_inputs([path], Config())
+    config = Config(sensors=(SensorConfig(name="r", scan_topic="/scan", max_tilt_deg=45.0),))
+    [batch] = read_inputs([path], config)
+    [level] = read_inputs([_pitched_robot_bag(tmp_path / "level", 0.0, amcl)], config)
+    assert batch.n_scans == level.n_scans > 0
+    np.testing.assert_allclose(batch.poses, level.poses, atol=1e-9)
+    assert batch.provenance.frame_chain.startswith("base_footprint" if amcl else "map")
+
+
+def test_level_scans_skips_only_the_tilted_scans_with_a_pose() -> None:
+    from gpocc.io.laserpose import _level_scans
+
+    sensor = SensorConfig(name="r", max_tilt_deg=5.0)
+    valid = np.array([True, True, False, True, True])
+    tilt = np.radians([0.0, 6.0, 40.0, 4.9, 90.0])
+    kept, skips = _level_scans("b", sensor, "laser", "map -> laser", valid, tilt)
+    np.testing.assert_array_equal(kept, [True, False, False, True, False])
+    assert [(key, count) for _, key, count in skips] == [("sensors[].max_tilt_deg", 2)]
+    kept, skips = _level_scans("b", sensor, "laser", "map -> laser", valid, np.zeros(5))
+    np.testing.assert_array_equal(kept, valid)
+    assert skips == []
