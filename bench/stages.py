@@ -89,12 +89,24 @@ def anchor_cost(ctx: Context) -> Result:
     footprint's queries (`predict_anchor`), in this process with one BLAS thread, on
     the Intel model at 0.1 m. The anchors are laid out as `gpocc map` does (support
     mask included); every k-th of them is predicted (200; 50 in a quick run) after one
-    warm-up call. Times the number of anchors, this estimates the predict stage's CPU."""
+    warm-up call. Times the number of anchors, this estimates the predict stage's CPU.
+    A second table splits one anchor's CPU into its parts, each timed alone on the same
+    anchors: the neighbour look-up, the expected training covariance K (independent
+    pairs by the product rule, and what the 4-D rule of same-scan pairs adds), the
+    expected cross covariance to the footprint's cells, the Cholesky factor and the
+    triangular solve for the variances; `other` is the whole anchor minus the parts."""
+    import dataclasses
+
+    import numpy as np
+    from scipy.linalg.blas import dtrsm
+
     from gpocc.blas import single_threaded_blas
-    from gpocc.gp.local import NeighbourIndex
+    from gpocc.constants import JITTER
+    from gpocc.gp import backends
+    from gpocc.gp.local import NeighbourIndex, cholesky_solve, try_cholesky
     from gpocc.gp.model import load_model
     from gpocc.mapping.blend import supported_anchors
-    from gpocc.mapping.blocks import Anchor, AnchorLattice, predict_anchor
+    from gpocc.mapping.blocks import Anchor, AnchorLattice, anchor_problems, predict_anchor
     from gpocc.mapping.mapper import default_spec
     from gpocc.mapping.support import model_support
 
@@ -109,17 +121,74 @@ def anchor_cost(ctx: Context) -> Result:
     count = 50 if ctx.quick else 200
     chosen = anchors[:: max(1, len(anchors) // count)][:count]
     index = NeighbourIndex(model.samples)
+    loops = backends.get(model.backend).loops(model.kernel)
+    diagonal = model.noise_variance + JITTER
+
+    def cpu_per_anchor(work) -> float:
+        start = time.process_time()
+        for item in work:
+            item()
+        return (time.process_time() - start) / len(work)
+
     with single_threaded_blas():
         predict_anchor(model, index, lattice, chosen[0])  # compiled loops and caches warm
-        start = time.process_time()
-        for anchor in chosen:
-            predict_anchor(model, index, lattice, anchor)
-        per_anchor = (time.process_time() - start) / len(chosen)
+        per_anchor = cpu_per_anchor([lambda a=a: predict_anchor(model, index, lattice, a)
+                                     for a in chosen])
+        problems = anchor_problems(model, index, lattice, chosen)
+        lookup = cpu_per_anchor([lambda a=a: anchor_problems(model, index, lattice, [a])
+                                 for a in chosen])
+        queries = []
+        for anchor, problem in zip(chosen, problems, strict=True):
+            block, _ = lattice.footprint(anchor)
+            window = spec.window(block.row0, block.col0, block.rows, block.cols)
+            wanted = (np.ones((block.rows, block.cols), dtype=bool) if anchor.inside is None
+                      else anchor.inside)
+            queries.append(np.column_stack(window.cell_centres_at(*np.nonzero(wanted)))
+                           - problem.centre)
+        none = np.zeros((0, 2))
+        independent = [dataclasses.replace(p.samples, pose_factors=None) for p in problems]
+
+        def system(samples, q):
+            return lambda: loops.local_systems(model.kernel, [(samples, q)], model.level,
+                                               diagonal)
+
+        k_independent = cpu_per_anchor([system(s, none) for s in independent])
+        k_full = cpu_per_anchor([system(p.samples, none) for p in problems])
+        with_cross = cpu_per_anchor([system(p.samples, q)
+                                     for p, q in zip(problems, queries, strict=True)])
+        systems = [loops.local_systems(model.kernel, [(p.samples, q)], model.level,
+                                       diagonal)[0]
+                   for p, q in zip(problems, queries, strict=True)]
+        factor = cpu_per_anchor([lambda k=k: try_cholesky(k.copy()) for k, _, _ in systems])
+        factors = [try_cholesky(k.copy()) for k, _, _ in systems]
+
+        def solve(chol, cross, prior, labels):
+            def run():
+                cholesky_solve(chol, labels)
+                v = dtrsm(1.0, chol, cross, side=1, lower=1, trans_a=1)
+                return prior - np.einsum("ij,ij->i", v, v)
+            return run
+
+        solves = cpu_per_anchor([solve(c, cross, prior, p.samples.labels)
+                                 for c, (_, cross, prior), p in zip(factors, systems, problems,
+                                                                    strict=True)])
     result = Result()
     result.add(Table(("anchors with support", "timed", "CPU ms per anchor",
                       "x anchors: CPU s"),
                      [[str(len(anchors)), str(len(chosen)), f"{1e3 * per_anchor:.2f}",
                        f"{per_anchor * len(anchors):.1f}"]]))
+    n = np.mean([len(p.samples) for p in problems])
+    nq = np.mean([len(q) for q in queries])
+    parts = [("neighbour look-up", lookup),
+             (f"K, independent pairs ({n:.0f} samples)", k_independent),
+             ("K, same-scan pairs (4-D rule)", k_full - k_independent),
+             (f"cross covariance ({nq:.0f} cells)", with_cross - k_full),
+             ("Cholesky factor", factor),
+             ("solves: mean and variances", solves)]
+    other = per_anchor - sum(t for _, t in parts)
+    result.add(Table(("part", "CPU ms per anchor", "share"),
+                     [[name, f"{1e3 * t:.3f}", f"{100 * t / per_anchor:.0f}%"]
+                      for name, t in [*parts, ("other", other)]]))
     return result
 
 
