@@ -73,12 +73,14 @@ def evaluate(
             f"points; a ROC needs both"
         )
     log(f"ground truth {ground_truth}: {n_occupied} occupied, {n_free} free points")
-    sampled = []
-    for _, raster in located:
-        sampled.append(sample_map(raster, points))
-        scores, inside = sampled[-1]
-        if not np.any(inside & np.isfinite(scores)):
-            warn_uncovered(raster, points)
+    sampled = [sample_map(raster, points) for _, raster in located]
+    uncovered = [not np.any(inside & np.isfinite(scores)) for scores, inside in sampled]
+    # One map that covers no point: the error below gives both extents. Of several, each
+    # uncovered map's warning gives its own.
+    if len(located) > 1 or not all(uncovered):
+        for (_, raster), missed in zip(located, uncovered, strict=True):
+            if missed:
+                warn_uncovered(raster, points)
     scored = score_protocols(names, sampled, labels, kinds, stated)
     results = scored[-1].results  # every point: "all" or "union"
     if all(r.coverage == 0.0 for r in results):

@@ -391,7 +391,11 @@ def test_truth_that_misses_every_map_is_an_error_and_writes_nothing(tmp_path, ma
     x0, y0, x1, y1 = SPEC.bounds
     assert f"the map spans x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m" in warnings[0]
     assert f"the points x {points[:, 0].min() + 100:.1f} .. " in warnings[0]
-    # Quiet: no warnings, and the error alone still gives both extents of one map.
+    # One map: the error alone gives both extents, without a warning saying it first.
+    for flags in ([], ["--quiet"]):
+        one = _invoke(str(bare), "--ground-truth", str(truth), *flags)
+        assert one.exit_code == 2 and "warning" not in one.stderr
+        assert len(_error_lines(one)) == 1
     quiet = _invoke(str(bare), "--ground-truth", str(truth), "--quiet")
     assert quiet.exit_code == 2 and quiet.stderr.count("\n") == 1
     assert (f"(x {points[:, 0].min() + 100:.1f} .. " in quiet.stderr
