@@ -15,7 +15,14 @@ from gpocc.errors import GpoccError
 from gpocc.gp.bounds import GUIDE_SECTION, values_on_bounds
 from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters, load_model, patch_summary
-from gpocc.io.inputs import InputSummary, describe_input, read_input, sensors_for_input
+from gpocc.io.inputs import (
+    InputSummary,
+    check_distinct,
+    describe_input,
+    read_input,
+    sensors_for_input,
+)
+from gpocc.io.records import content_hash, warn_repeated_content
 from gpocc.io.scans import ScanBatch
 from gpocc.samples.sampleset import SampleSet
 
@@ -206,6 +213,9 @@ def info(
         typer.echo("\n".join(line for p in models for line in format_model(p, load_model(p))))
         return
     cfg = load_config(config)
+    # As training would: a path given twice is refused, a log under two names warned of.
+    check_distinct(inputs)
+    warn_repeated_content(inputs, [content_hash(p) for p in inputs])
     batches: list[ScanBatch] = []
     for path in inputs:
         summary = describe_input(path)

@@ -260,8 +260,9 @@ def check_distinct(paths: Sequence[str | Path]) -> None:
     for i, p in enumerate(paths):
         first = seen.setdefault(os.path.abspath(p), i)
         if first != i:
-            raise GpoccError(f"{p}: given twice (also as {paths[first]}); pass each input "
-                             "once, or its scans count twice")
+            also = "" if str(p) == str(paths[first]) else f" (also as {paths[first]})"
+            raise GpoccError(f"{p}: given twice{also}; pass each input once, or its scans "
+                             "count twice")
 
 
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:

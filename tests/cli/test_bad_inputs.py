@@ -229,6 +229,8 @@ CASES = [
                              "--out", "{root}/out"], "deep_json.npz`gpocc train", "out"),
     ("train-same-input-twice", ["train", "{root}/ok.mcap", "{root}/./ok.mcap",
                                 "--out", "{root}/out.npz"], "ok.mcap`given twice", "out.npz"),
+    ("info-same-input-twice", ["info", "{root}/ok.mcap", "{root}/./ok.mcap"],
+     "ok.mcap`given twice", None),
     # Paths that are not regular files: a pipe blocks a read, and is read only once
     ("train-input-pipe", ["train", "{root}/fifo", "--out", "{root}/out.npz"],
      "fifo`not a regular file", "out.npz"),

@@ -200,6 +200,13 @@ def test_a_log_given_twice_under_two_names_is_warned_about(tmp_path):
     assert [r.sha256 for r in model.growth.records] == [content_hash(SAMPLE)] * 2
     alone = invoke("train", SAMPLE, "--config", SAMPLE_CONFIG, "--out", tmp_path / "one.npz")
     assert "same content" not in alone.stderr
+    # gpocc info says what train would do: the same warning, and scans counted twice.
+    info = invoke("info", SAMPLE, copy, "--config", SAMPLE_CONFIG)
+    assert info.exit_code == 0, info.output
+    assert f"warning: {copy} has the same content as {SAMPLE}" in info.stderr
+    twice = runner.invoke(app, ["info", str(SAMPLE), str(SAMPLE), "--config",
+                                str(SAMPLE_CONFIG)])
+    assert twice.exit_code == 2 and "given twice; pass each input once" in twice.stderr
 
 
 
