@@ -38,9 +38,27 @@ class MountConfig:
 class SensorConfig:
     """One robot's laser and pose source, with its noise model.
 
+    ``inputs``: globs on the input's file name (or path) this entry applies to ([]: every
+    input). ``scan_topic``: a LaserScan or PointCloud2 topic; ``pose_topic``: the pose
+    (and covariance) source (null: found in the scan's namespace).
+    ``range_variance_m2``, ``bearing_variance_deg2``: the laser's noise.
     ``pose_covariance`` is the 3x3 covariance of (x, y, yaw) in (m^2, m^2, rad^2, with
     m*rad off-diagonals). It is used for inputs that carry no covariance (CARMEN logs,
     PoseStamped-like sources) or for every scan when ``override_pose_covariance`` is set.
+    ``mount``: the laser on the pose's frame, only where TF does not give it.
+    A scan takes the pose interpolated between two poses at most ``max_pose_gap_s``
+    apart, or one within ``stamp_tolerance_s``. ``max_tilt_deg``: scans whose laser
+    plane TF tilts more than this from level are skipped. Beams without a return clear
+    ``no_return_free_m``; ``range_min_m`` / ``range_max_m`` override the message's
+    limits. With TF, the pose is the chain ``map_frame`` -> the scan's frame unless
+    ``position_from_tf`` is false (then the pose topic gives it, with ``mount``);
+    covariance entries at or above ``covariance_sentinel`` (or NaN) are unknown, a pose
+    topic's covariance is held up to ``max_covariance_age_s``, and
+    ``repair_pose_covariance`` sets a non-PSD one's negative eigenvalues to zero instead
+    of refusing it.
+    PointCloud2 only: ``height_band_m`` above the floor (``base_height_m`` below the
+    ``base_frame``'s origin) are obstacles, bearings binned at
+    ``horizontal_resolution_deg`` (null: from the cloud's layout).
     """
 
     name: str = "robot"
@@ -442,7 +460,13 @@ class MapConfig:
 
 @dataclass(frozen=True)
 class GridConfig:
-    """Log-odds occupancy grid baseline (inverse sensor model, clamped log-odds)."""
+    """Log-odds occupancy grid baseline (inverse sensor model, clamped log-odds).
+
+    Each hit adds ``log_odds_occupied`` to its cell, each beam ``log_odds_free`` to the
+    cells it crosses, clamped to [``clamp_min``, ``clamp_max``]. ``spread_hits``: share
+    each hit's update among nearby cells by its position's Gaussian (the same sensor and
+    pose noise as the GP's samples) instead of its endpoint cell alone.
+    """
 
     log_odds_occupied: float = 0.85
     log_odds_free: float = -0.4
@@ -893,7 +917,7 @@ def _check_limits(config: Config, source: str) -> None:
                              f"got {value}")
     if config.map.resolution_m > MAX_RESOLUTION_M:
         raise GpoccError(f"{source}: key 'map.resolution_m' must be at most "
-                         f"{MAX_RESOLUTION_M:g} m, got {config.map.resolution_m:g}; check its "
+                         f"{MAX_RESOLUTION_M:g} m, got {config.map.resolution_m:.10g}; check its "
                          "units (metres)")
 
 

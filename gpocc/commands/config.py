@@ -45,7 +45,7 @@ def _section(cls: type, data: dict[str, Any], indent: str) -> list[str]:
             else:
                 lines.append(f"{indent}sensors:")
                 lines += [f"{indent}{line}" for line in _entries(value, "").splitlines()]
-        elif f.name == "inputs":
+        elif f.name == "inputs" and cls is Config:
             lines += ["", *_comment(InputConfig, indent),
                       f"{indent}# e.g. inputs: [{{path: day2.mcap, transform: {{x_m: 12.0, "
                       "y_m: -3.5, yaw_deg: 90.0}}]",

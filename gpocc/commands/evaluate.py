@@ -51,7 +51,7 @@ def evaluate(
     near-wall) is scored per protocol: the hits with each kind of free point, and all
     points together (union).
 
-    ``--labels-from`` scores the same points with the labels of a truth raster at their
+    --labels-from scores the same points with the labels of a truth raster at their
     positions: the held-out points of a simulated log are measured with its sensors'
     noise (a noisy hit can land in free space), the simulator's truth raster is exact.
     """

@@ -46,9 +46,9 @@ Workers = Annotated[int | None, typer.Option(
     "--workers", help="Local processes for the map's local problems (default and most: the "
     "cores this process may use).")]
 Scheduler = Annotated[str | None, typer.Option(
-    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute the "
-    "map's local problems, and in training the likelihood patches and the classifier's "
-    "predictions (output identical to a local run).")]
+    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute "
+    "training's likelihood patches and classifier predictions and the map's local problems "
+    "(output identical to a local run).")]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
 
@@ -72,7 +72,7 @@ def check_resolution(resolution: float) -> float:
         raise GpoccError(f"--resolution must be a positive number of metres, got {resolution}")
     if resolution > MAX_RESOLUTION_M:
         raise GpoccError(f"--resolution must be at most {MAX_RESOLUTION_M:g} m, got "
-                         f"{resolution:g}; check its units (metres)")
+                         f"{resolution:.10g}; check its units (metres)")
     return resolution
 
 

@@ -35,7 +35,8 @@ def split(
     config_path: ConfigFile = None,
     keep_every: int = typer.Option(1, "--keep-every", help="Keep every S-th training scan."),
     beam_every: int = typer.Option(1, "--beam-every", help="Keep every B-th training beam."),
-    seed: int | None = typer.Option(None, "--seed", help="Seed for the free points [config seed]."),
+    seed: int | None = typer.Option(
+        None, "--seed", help="Seed for the free points (default: the config's seed)."),
     free_per_beam: int = typer.Option(3, "--free-per-beam", help="Free points per held-out beam."),
     near_wall_per_beam: int = typer.Option(
         1, "--near-wall-per-beam",

@@ -325,6 +325,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     chain, why = (find_chain(tf, sensor, scans.frame_id)
                   if tf and sensor.position_from_tf and scans.frame_id else (None, ""))
     notes: list[str] = []
+    warned: set[str] = set()  # notes already on stderr as warnings
     mount_tf = None
     if (tf and sensor.position_from_tf and scans.frame_id and series is not None
             and (chain is None or why) and in_map_frame(series.frame_id, sensor)):
@@ -348,6 +349,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         if why:
             log(f"warning: {path}: sensor '{sensor.name}': {why}")
             notes.append(why)
+            warned.add(why)
         look = tf.lookup(chain, stamps, sensor.max_pose_gap_s)
         valid, tilt_skips = _level_scans(path, sensor, scans.frame_id, chain.describe(),
                                          look.valid, look.tilt_rad)
@@ -456,12 +458,13 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     if not (math.isfinite(range_min) and math.isfinite(range_max) and
             0.0 <= range_min < range_max):
         raise GpoccError(
-            f"{path}: topic {scan_topic} gives range_min={range_min} and range_max={range_max}, "
+            f"{path}: topic {scan_topic} gives range_min={range_min:.7g} and "
+            f"range_max={range_max:.7g}, "
             "which are unusable; set sensors[].range_min_m and range_max_m in the config"
         )
     n_skipped = int(np.count_nonzero(~valid))
     for note in notes:
-        if _ROUNDED in note:
+        if _ROUNDED in note or note in warned:
             continue  # rounding is no fault of the log: counted in `gpocc info` only
         log(f"note: {path}: sensor '{sensor.name}': {note}")
     if n_skipped > SKIP_WARNING_SHARE * stamps.size:
