@@ -341,6 +341,12 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
             f"{geometry[0]}, or a different angle_min/angle_increment) at "
             f"t={t:.3f} s; split the bag at that time"
         )
+    elif frame_name(msg.header.frame_id) != acc.frame_id:
+        # One topic, one laser: TF poses every scan by the first frame's mount.
+        raise GpoccError(
+            f"{path}: topic {topic} changes its header.frame_id from '{acc.frame_id}' to "
+            f"'{frame_name(msg.header.frame_id)}' at t={t:.3f} s; a laser topic needs one "
+            "frame: fix the driver's frame_id, or split the bag at that time")
     acc.stamps.append(header)
     acc.log_times.append(record_ns * 1e-9)
     acc.ranges.append(ranges)

@@ -109,7 +109,7 @@ class CloudCollector:
     path: Path
     sensor: SensorConfig
     tf: TfBuffer | None
-    scans: ScanTopic = field(default_factory=ScanTopic)
+    scans: ScanTopic = field(default_factory=lambda: ScanTopic(levelled=True))
     stats: CloudStats = field(default_factory=CloudStats)
     base: str = ""
     inner: Chain | None = None

@@ -64,6 +64,9 @@ class ScanTopic:
     geometry: tuple[int, float, float] | None = None
     range_limits: tuple[float, float] | None = None
     frame_id: str = ""
+    # Scans already on the level ground plane (a 3-D lidar's projected clouds,
+    # gpocc.io.cloudread): their frame may tilt with the base; the TF tilt check is moot.
+    levelled: bool = False
 
 
 def namespace(topic: str) -> str:
@@ -315,9 +318,11 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
               Stamps(np.asarray(scans.stamps, dtype=float), HEADER))
     if timing.reason:
         log(f"warning: {path}: {timing.warning(scan_topic)}")
-    stamps = timing.times
-    order = np.argsort(stamps, kind="stable")
-    stamps = stamps[order]
+    kept = (np.arange(len(scans.stamps)) if timing.keep is None
+            else np.flatnonzero(timing.keep))
+    stamps = timing.times[kept]
+    order = kept[np.argsort(stamps, kind="stable")]
+    stamps = timing.times[order]
     ranges = np.stack(scans.ranges)[order]
     n, angle_min, increment = scans.geometry
     angles = angle_min + np.arange(n) * increment
@@ -351,8 +356,8 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
             notes.append(why)
             warned.add(why)
         look = tf.lookup(chain, stamps, sensor.max_pose_gap_s)
-        valid, tilt_skips = _level_scans(path, sensor, scans.frame_id, chain.describe(),
-                                         look.valid, look.tilt_rad)
+        valid, tilt_skips = (look.valid, []) if scans.levelled else _level_scans(
+            path, sensor, scans.frame_id, chain.describe(), look.valid, look.tilt_rad)
         poses = look.poses
         if valid.any():
             flipped = look.upside_down[valid]
@@ -383,6 +388,19 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         if not series.stamps.size:
             raise GpoccError(f"{path}: topic {series.topic} has no messages; pick another "
                              "pose_topic")
+        if (tf and sensor.position_from_tf and mount_tf is None
+                and sensor.mount == MountConfig()):
+            # The bag has TF, but not to this laser: where the laser sits on the pose's
+            # frame is unknown, and a zero mount draws the map shifted (or, for a laser
+            # facing backwards, mirrored). A missing /tf_static is the usual cause.
+            frame = f"the scan frame '{scans.frame_id}'" if scans.frame_id else (
+                "the scans, which have no frame_id,")
+            raise GpoccError(
+                f"{path}: sensor '{sensor.name}': the bag has TF, but it does not place "
+                f"{frame} ({why or 'no chain'}), so the laser's mount on {series.topic}'s "
+                "frame is unknown; record /tf_static (the robot's static transforms), set "
+                "sensors[].mount to where the laser sits, or set position_from_tf: false if "
+                f"{series.topic} gives the laser's own pose")
         if why and tf:
             notes.append(f"poses from {series.topic}: {why}")
         if sensor.mount.upside_down:
@@ -422,9 +440,10 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                     f"({mount_tf.describe()}), and the config sets sensors[].mount too; "
                     "remove mount from that entry (or set position_from_tf: false)")
             rel = tf.lookup(mount_tf, stamps, sensor.max_pose_gap_s)
-            valid, tilt_skips = _level_scans(path, sensor, scans.frame_id,
-                                             mount_tf.describe(), valid, rel.tilt_rad)
-            skipped += tilt_skips
+            if not scans.levelled:
+                valid, tilt_skips = _level_scans(path, sensor, scans.frame_id,
+                                                 mount_tf.describe(), valid, rel.tilt_rad)
+                skipped += tilt_skips
             laser = _compose(poses, rel.poses)
             # The base's covariance carried to the laser through the mount's lever arm.
             covariances = move_covariances(covariances, laser[:, :2] - poses[:, :2])

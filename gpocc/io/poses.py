@@ -139,6 +139,8 @@ class PoseCollector:
         poses = np.asarray(self.poses, dtype=float).reshape(-1, 3)
         covs = (np.asarray(self.covariances, dtype=float).reshape(-1, 3, 3)
                 if self.covariances else np.full((len(stamps), 3, 3), np.nan))
+        if chosen.keep is not None:
+            stamps, poses, covs = stamps[chosen.keep], poses[chosen.keep], covs[chosen.keep]
         order = np.argsort(stamps, kind="stable")
         stamps, poses, covs = stamps[order], poses[order], covs[order]
         same = np.flatnonzero(np.diff(stamps) == 0)

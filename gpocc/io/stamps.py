@@ -7,6 +7,12 @@ trusted. A topic whose header stamps are zero (a driver that never sets them), a
 repeat or go back; a pose topic whose stamps go back: a clock reset or a replayed
 segment) is timed by its log time instead, for the whole topic (mixing the two clocks
 would reorder messages), with one warning giving the count.
+
+A few bad stamps among good ones (at most :data:`MAX_DROPPED_SHARE` of the topic: a zero
+stamp, a repeated one, one out of order) are a glitch, not a broken clock: those messages
+are dropped, with one warning, and the rest keep their header stamps. Switching the
+whole topic to log time for them would shift every message by the recorder's latency
+against TF, which stays on header stamps (a ghost of every wall at 0.4 s of latency).
 """
 
 from __future__ import annotations
@@ -17,6 +23,9 @@ import numpy as np
 
 HEADER = "header stamps"
 LOG_TIME = "log (receive) time"
+#: Most messages of a topic whose bad header stamps are dropped (a glitch); more, and the
+#: topic is timed by its log time.
+MAX_DROPPED_SHARE = 0.05
 
 
 @dataclass(frozen=True)
@@ -26,21 +35,28 @@ class Stamps:
     Attributes:
         times: (N,) seconds.
         source: :data:`HEADER` or :data:`LOG_TIME`.
-        reason: why the header stamps were not used ("" when they were).
+        reason: why the header stamps were not used ("" when they were), or, with
+            ``keep``, why some messages are dropped.
+        keep: (N,) bool, the messages to use (None: all).
     """
 
     times: np.ndarray
     source: str
     reason: str = ""
+    keep: np.ndarray | None = None
 
     def describe(self, topic: str) -> str:
         """``/scan: log (receive) time (120 of 120 header stamps are zero)``."""
         return f"{topic}: {self.source}" + (f" ({self.reason})" if self.reason else "")
 
     def warning(self, topic: str) -> str:
-        """The one warning for a topic timed by its log time ("" when it is not)."""
+        """The one warning for a topic timed by its log time, or with messages dropped
+        ("" when neither)."""
         if not self.reason:
             return ""
+        if self.keep is not None:
+            return (f"topic {topic}: {self.reason}; those messages are dropped, the others "
+                    "keep their header stamps")
         return (f"topic {topic}: {self.reason}; its messages are timed by their log "
                 "(receive) time instead (fix the driver's header stamps to use the time "
                 "the data was taken)")
@@ -59,7 +75,10 @@ def choose_stamps(header: np.ndarray, log_time: np.ndarray, repeats_allowed: boo
     log_time = np.asarray(log_time, dtype=float)
     n = header.size
     reason = ""
-    zero = int(np.count_nonzero(header == 0.0))
+    # A zero stamp is unset, unless the recorder logged the message at time 0 too (a log
+    # converted from line order, as gpocc split writes CARMEN logs: scan 0 at 0 s).
+    unset = (header == 0.0) & (log_time != 0.0)
+    zero = int(np.count_nonzero(unset))
     step = np.diff(header)
     back = int(np.count_nonzero(step < 0 if repeats_allowed else step <= 0))
     if zero:
@@ -69,6 +88,41 @@ def choose_stamps(header: np.ndarray, log_time: np.ndarray, repeats_allowed: boo
     elif back:
         what = "go back" if repeats_allowed else "repeat or go back"
         reason = f"{back} of {n - 1} header stamps {what} in log order"
-    if reason:
-        return Stamps(log_time, LOG_TIME, reason)
-    return Stamps(header, HEADER)
+    if not reason:
+        return Stamps(header, HEADER)
+    if not reason.startswith("all"):
+        stamped = np.flatnonzero(~unset)
+        keep = np.zeros(n, bool)
+        keep[stamped] = _increasing(header[stamped], strict=not repeats_allowed)
+        dropped = n - int(np.count_nonzero(keep))
+        if dropped <= MAX_DROPPED_SHARE * n:
+            what = "are zero, repeat or go back" if not repeats_allowed else "are zero or go back"
+            return Stamps(header, HEADER, f"{dropped} of {n} header stamps {what}", keep)
+    return Stamps(log_time, LOG_TIME, reason)
+
+
+def _increasing(values: np.ndarray, strict: bool) -> np.ndarray:
+    """(N,) bool: a longest (strictly, with ``strict``) increasing subsequence of
+    ``values`` (N,) in their order; the fewest messages to drop for an ordered topic."""
+    import bisect
+
+    tails: list[float] = []  # tails[k]: the smallest end of an increasing run of k + 1
+    tail_at: list[int] = []
+    parent = np.full(values.size, -1)
+    find = bisect.bisect_left if strict else bisect.bisect_right
+    for i, v in enumerate(values.tolist()):
+        k = find(tails, v)
+        if strict and k < len(tails) and tails[k] == v:
+            continue  # a repeat: the first message of a stamp is kept, as tf2 does
+        if k == len(tails):
+            tails.append(v)
+            tail_at.append(i)
+        else:
+            tails[k], tail_at[k] = v, i
+        parent[i] = tail_at[k - 1] if k else -1
+    keep = np.zeros(values.size, bool)
+    i = tail_at[-1] if tail_at else -1
+    while i >= 0:
+        keep[i] = True
+        i = parent[i]
+    return keep

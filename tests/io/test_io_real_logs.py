@@ -204,6 +204,57 @@ def test_choose_stamps_rules() -> None:
     assert choose_stamps(good[[0, 1, 1, 2, 3]], log_t, True).reason == ""
 
 
+def test_a_few_bad_stamps_are_dropped_and_the_rest_keep_their_header_stamps() -> None:
+    """A glitch (a zero, a repeated and an out-of-order stamp in 100) drops those
+    messages, not the header clock; the kept ones are the longest increasing run."""
+    import itertools
+
+    from gpocc.io.stamps import MAX_DROPPED_SHARE, _increasing
+
+    header = np.arange(100.0) + 100.0
+    header[10] = 0.0
+    header[40] = header[39]
+    header[70] = 500.0  # one stamp far ahead: it, not the 29 after it, is the bad one
+    chosen = choose_stamps(header, header + 0.4, False)
+    assert chosen.source == "header stamps" and np.array_equal(chosen.times, header)
+    assert np.flatnonzero(~chosen.keep).tolist() == [10, 40, 70]
+    assert chosen.reason == "3 of 100 header stamps are zero, repeat or go back"
+    assert 3 <= MAX_DROPPED_SHARE * 100
+    # Brute force: no larger strictly increasing subsequence exists.
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        values = rng.integers(0, 6, rng.integers(1, 10)).astype(float)
+        keep = _increasing(values, strict=True)
+        assert np.all(np.diff(values[keep]) > 0)
+        best = max(k for k in range(values.size + 1)
+                   for sub in itertools.combinations(values.tolist(), k)
+                   if all(a < b for a, b in itertools.pairwise(sub)))
+        assert keep.sum() == best
+
+
+def test_a_repeated_scan_stamp_keeps_the_scans_on_the_tf_clock(tmp_path: Path, capsys) -> None:
+    """The recorder logs each scan 0.4 s late and one stamp repeats: timing the whole topic
+    by log time put every scan 0.4 s off TF (a ghost of every wall); now that one scan is
+    dropped and the others keep their exact poses."""
+    robot = one_robot()
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot)
+    scans = [m for m in bag.messages if m[1] == "/scan"]
+    bag.messages = [m for m in bag.messages if m[1] != "/scan"]
+    for k, (t, topic, msgtype, msg) in enumerate(scans):
+        if k == 20:
+            msg.header.stamp = scans[19][3].header.stamp
+        bag.add(topic, msgtype, t + 0.4, msg)
+    [batch] = read_inputs([bag.write(tmp_path / "late")], Config())
+    err = capsys.readouterr().err
+    assert f"1 of {len(scans)} header stamps are zero, repeat or go back; those messages " \
+           "are dropped" in err.replace("\n", "")
+    t_true = np.delete(robot.scans["/scan"][0], 20)
+    np.testing.assert_allclose(batch.stamps - T0, t_true, atol=1e-6)
+    truth = robot.laser_pose(robot.lasers[0], t_true)
+    assert np.abs(batch.poses[:, :2] - truth[:, :2]).max() < 1e-3
+
+
 @pytest.mark.parametrize("kind", ["zero", "constant", "backwards"])
 def test_broken_scan_stamps_fall_back_to_log_time_with_one_warning(tmp_path: Path, capsys,
                                                                     kind: str) -> None:

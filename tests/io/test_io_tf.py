@@ -500,3 +500,60 @@ def test_level_scans_skips_only_the_tilted_scans_with_a_pose() -> None:
     kept, skips = _level_scans("b", sensor, "laser", "map -> laser", valid, np.zeros(5))
     np.testing.assert_array_equal(kept, valid)
     assert skips == []
+
+
+def test_tf_that_misses_the_laser_frame_is_an_error_not_a_zero_mount(tmp_path: Path) -> None:
+    """/tf_static not recorded: TF moves the base but never reaches the laser, so the
+    laser's place on the pose topic's frame is unknown. It was taken as zero (the map
+    shifted by the mount, mirrored for a laser facing backwards); the config's mount, or
+    position_from_tf: false for a pose topic that is the laser's own pose, says it."""
+    from gpocc.errors import GpoccError
+
+    laser = Laser("/scan", "laser", mount=(-0.3, 0.1, math.pi))
+    robot = one_robot(lasers=[laser])
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot, static_tf=False)
+    for t in amcl_stamps(robot, dist=0.05, turn=0.05):
+        p = robot.route.base(np.array([t]))[0]
+        bag.pose_cov("/amcl_pose", T0 + t, "map", (p[0], p[1], 0), quat(yaw=p[2]),
+                     cov6(0.01, 0.01, 0.002))
+    path = bag.write(tmp_path / "b")
+    with pytest.raises(GpoccError, match=r"b: sensor .*the bag has TF, but it does not place "
+                                         r"the scan frame 'laser'.*record /tf_static"):
+        read_inputs([path], Config())
+    mount = MountConfig(x_m=-0.3, y_m=0.1, yaw_deg=180.0)
+    [batch] = read_inputs([path], Config(sensors=(SensorConfig(
+        name="r", scan_topic="/scan", pose_topic="/amcl_pose", mount=mount,
+        max_pose_gap_s=1.0),)))
+    # The mount applies when samples are built: the back laser's hits land on the walls.
+    from rosbag_scenes import WORLD
+
+    hits = build_samples([batch], NO_THIN)
+    assert np.median(np.abs(WORLD.clearance(hits.means[hits.labels > 0]))) < 0.02
+    [as_laser] = read_inputs([path], Config(sensors=(SensorConfig(
+        name="r", scan_topic="/scan", pose_topic="/amcl_pose", position_from_tf=False,
+        max_pose_gap_s=1.0),)))
+    assert as_laser.n_scans == batch.n_scans
+    off = build_samples([as_laser], NO_THIN)  # the zero mount: hits off the walls
+    assert np.median(np.abs(WORLD.clearance(off.means[off.labels > 0]))) > 0.1
+
+
+def test_a_scan_topic_whose_frame_id_changes_is_an_error(tmp_path: Path) -> None:
+    """Every scan was posed by the first scan's frame (its TF mount): a driver that
+    leaves the first frame_id empty, or a topic that switches lasers, mapped wrongly."""
+    from gpocc.errors import GpoccError
+
+    robot = one_robot()
+    robot.simulate()
+    t, _, ranges = robot.scans["/scan"]
+    for first in ("", "laser_old"):
+        bag = BagWriter("ros2-mcap")
+        add_robot(bag, dataclasses.replace(robot, scans={"/scan": (t[:0], None, ranges[:0])}))
+        laser = robot.lasers[0]
+        for k, (tk, r) in enumerate(zip(t, ranges, strict=True)):
+            bag.scan("/scan", first if k < 3 else "laser", T0 + tk, laser.angles, r,
+                     laser.max_range)
+        path = bag.write(tmp_path / f"b{len(first)}")
+        with pytest.raises(GpoccError, match=rf"topic /scan changes its header.frame_id from "
+                                             rf"'{first}' to 'laser' at t="):
+            read_inputs([path], Config())
