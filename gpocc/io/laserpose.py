@@ -105,6 +105,19 @@ def find_chain(tf: TfBuffer, sensor: SensorConfig, laser_frame: str) -> tuple[Ch
     return None, "; ".join(why)
 
 
+def _tf_fix(tf: TfBuffer, laser_frame: str) -> str:
+    """What to change when TF in a bag does not reach ``laser_frame`` from the map."""
+    if tf.conflicts:
+        return "filter the bag to one publisher of each frame with two parents"
+    if not laser_frame or laser_frame not in tf.frames():
+        return "record /tf_static (the robot's static transforms)"
+    root, seen = laser_frame, {laser_frame}
+    while root in tf.edges and tf.edges[root].parent not in seen:
+        root = tf.edges[root].parent
+        seen.add(root)
+    return f"set sensors[].map_frame to '{root}' (the root of the laser's TF tree)"
+
+
 def in_map_frame(frame: str, sensor: SensorConfig) -> bool:
     """Whether ``frame`` is the sensor's map frame (as given, or under its namespace)."""
     ns = namespace(sensor.scan_topic or "")
@@ -398,8 +411,8 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
             raise GpoccError(
                 f"{path}: sensor '{sensor.name}': the bag has TF, but it does not place "
                 f"{frame} ({why or 'no chain'}), so the laser's mount on {series.topic}'s "
-                "frame is unknown; record /tf_static (the robot's static transforms), set "
-                "sensors[].mount to where the laser sits, or set position_from_tf: false if "
+                f"frame is unknown; {_tf_fix(tf, scans.frame_id)}, set sensors[].mount to "
+                "where the laser sits, or set position_from_tf: false if "
                 f"{series.topic} gives the laser's own pose")
         if why and tf:
             notes.append(f"poses from {series.topic}: {why}")

@@ -557,3 +557,23 @@ def test_a_scan_topic_whose_frame_id_changes_is_an_error(tmp_path: Path) -> None
         with pytest.raises(GpoccError, match=rf"topic /scan changes its header.frame_id from "
                                              rf"'{first}' to 'laser' at t="):
             read_inputs([path], Config())
+
+
+def test_the_fix_for_tf_that_misses_the_laser_names_the_cause() -> None:
+    from gpocc.io.laserpose import _tf_fix
+    from gpocc.io.tf import Edge, TfBuffer
+
+    def edge(parent: str, child: str) -> Edge:
+        return Edge(parent=parent, child=child, static=True, topic="/tf_static",
+                    stamps=np.zeros(1), translations=np.zeros((1, 3)),
+                    quaternions=np.array([[0.0, 0.0, 0.0, 1.0]]))
+
+    tree = TfBuffer({"odom": edge("world", "odom"), "base": edge("odom", "base"),
+                     "laser": edge("base", "laser")})
+    assert "map_frame to 'world'" in _tf_fix(tree, "laser")
+    assert "record /tf_static" in _tf_fix(tree, "lidar")
+    assert "record /tf_static" in _tf_fix(tree, "")
+    loop = TfBuffer({"a": edge("b", "a"), "b": edge("a", "b"), "laser": edge("a", "laser")})
+    assert "map_frame to" in _tf_fix(loop, "laser")  # ends, whatever the cycle
+    torn = TfBuffer({"laser": edge("base", "laser")}, conflicts={"base": "odom and map"})
+    assert "one publisher" in _tf_fix(torn, "laser")
