@@ -339,7 +339,9 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
         raise GpoccError(
             f"{path}: topic {topic} changes its beam layout (from {acc.geometry[0]} beams to "
             f"{geometry[0]}, or a different angle_min/angle_increment) at "
-            f"t={t:.3f} s; split the bag at that time"
+            f"t={t:.3f} s; gpocc reads one layout per topic: a driver whose beam count "
+            "varies from scan to scan can publish a fixed one (rplidar_ros: "
+            "angle_compensate: true), else split the bag at that time"
         )
     elif frame_name(msg.header.frame_id) != acc.frame_id:
         # One topic, one laser: TF poses every scan by the first frame's mount.

@@ -105,6 +105,23 @@ def find_chain(tf: TfBuffer, sensor: SensorConfig, laser_frame: str) -> tuple[Ch
     return None, "; ".join(why)
 
 
+def _sparse_edge(tf: TfBuffer | None, chain: Chain | None,
+                 skipped: list[tuple[str, str, int]]) -> str:
+    """For an error: the chain's edge that served the fewest scans, with its message
+    count when it has fewer than two (a dynamic edge is only interpolated between two
+    messages: one published once belongs on /tf_static)."""
+    if tf is None or chain is None:
+        return ""
+    for edge, _ in chain.steps:
+        if not edge.static and edge.stamps.size < 2:
+            return (f" (TF {edge.label()} on {edge.topic} has {edge.stamps.size} message: a "
+                    "transform published once belongs on /tf_static)")
+    if skipped:
+        reason, _, count = max(skipped, key=lambda r: r[2])
+        return f" (mostly: {reason})"
+    return ""
+
+
 def _tf_fix(tf: TfBuffer, laser_frame: str) -> str:
     """What to change when TF in a bag does not reach ``laser_frame`` from the map."""
     if tf.conflicts:
@@ -481,8 +498,8 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         raise GpoccError(
             f"{path}: none of the {stamps.size} scans on {scan_topic} "
             f"({stamps[0]:.3f}..{stamps[-1]:.3f} s) has a pose from {source} within "
-            f"max_pose_gap_s={sensor.max_pose_gap_s} s; check the topics' stamps or raise "
-            f"sensors[].max_pose_gap_s"
+            f"max_pose_gap_s={sensor.max_pose_gap_s} s{_sparse_edge(tf, chain, skipped)}; "
+            "check the topics' stamps or raise sensors[].max_pose_gap_s"
         )
     msg_min, msg_max = scans.range_limits
     range_min = sensor.range_min_m if sensor.range_min_m is not None else msg_min

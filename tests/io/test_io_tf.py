@@ -577,3 +577,15 @@ def test_the_fix_for_tf_that_misses_the_laser_names_the_cause() -> None:
     assert "map_frame to" in _tf_fix(loop, "laser")  # ends, whatever the cycle
     torn = TfBuffer({"laser": edge("base", "laser")}, conflicts={"base": "odom and map"})
     assert "one publisher" in _tf_fix(torn, "laser")
+
+
+def test_a_tf_edge_published_once_is_named_in_the_error(tmp_path: Path) -> None:
+    from gpocc.errors import GpoccError
+
+    robot = one_robot()
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot, map_to_odom=False)
+    bag.tf("/tf", T0 + 0.5, [("map", "odom", (0.0, 0.0, 0.0), quat())])
+    with pytest.raises(GpoccError, match=r"TF map->odom on /tf has 1 message: a transform "
+                                         r"published once belongs on /tf_static"):
+        read_inputs([bag.write(tmp_path / "once")], Config())
