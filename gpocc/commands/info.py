@@ -215,7 +215,8 @@ def info(
     cfg = load_config(config)
     # As training would: a path given twice is refused, a log under two names warned of.
     check_distinct(inputs)
-    warn_repeated_content(inputs, [content_hash(p) for p in inputs])
+    if len(inputs) > 1:  # hashing reads each input whole: only where two may be one log
+        warn_repeated_content(inputs, [content_hash(p) for p in inputs])
     batches: list[ScanBatch] = []
     for path in inputs:
         summary = describe_input(path)

@@ -271,7 +271,10 @@ def _refuse_current_folder(given: str | os.PathLike[str], target: Path) -> None:
     """An output is written beside its final path and renamed onto it: the current
     folder, or a folder holding it, cannot be that path (``--out .``, ``--out ""``,
     ``--out ..``)."""
-    here = Path.cwd().resolve()
+    try:
+        here = Path.cwd().resolve()
+    except FileNotFoundError:  # the current folder was deleted: no output can be it
+        return
     resolved = target.resolve()
     if not os.fspath(given) or resolved == here or resolved in here.parents:
         raise GpoccError(

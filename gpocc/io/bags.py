@@ -327,10 +327,14 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
     t = header or record_ns * 1e-9
     _check_scan_fields(path, topic, msg, t, ranges.shape[0])
     geometry = (ranges.shape[0], float(msg.angle_min), float(msg.angle_increment))
+    frame = frame_name(msg.header.frame_id)
+    if frame and not acc.frame_id:  # the first frame given: a driver may leave some empty
+        acc.frame_id = frame
+    elif frame and frame != acc.frame_id and acc.frame_change is None:
+        acc.frame_change = (t, acc.frame_id, frame)
     if acc.geometry is None:
         acc.geometry = geometry
         acc.range_limits = (float(msg.range_min), float(msg.range_max))
-        acc.frame_id = frame_name(msg.header.frame_id)
     elif geometry[0] != acc.geometry[0] or not all(
             # np.allclose(atol=1e-6) on two finite floats, without its per-call cost (a
             # tenth of a second per 1000 scans).
@@ -343,12 +347,6 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
             "varies from scan to scan can publish a fixed one (rplidar_ros: "
             "angle_compensate: true), else split the bag at that time"
         )
-    elif frame_name(msg.header.frame_id) != acc.frame_id:
-        # One topic, one laser: TF poses every scan by the first frame's mount.
-        raise GpoccError(
-            f"{path}: topic {topic} changes its header.frame_id from '{acc.frame_id}' to "
-            f"'{frame_name(msg.header.frame_id)}' at t={t:.3f} s; a laser topic needs one "
-            "frame: fix the driver's frame_id, or split the bag at that time")
     acc.stamps.append(header)
     acc.log_times.append(record_ns * 1e-9)
     acc.ranges.append(ranges)

@@ -63,7 +63,9 @@ class ScanTopic:
     log_times: list[float] = field(default_factory=list)  # empty: time by ``stamps``
     geometry: tuple[int, float, float] | None = None
     range_limits: tuple[float, float] | None = None
-    frame_id: str = ""
+    frame_id: str = ""  # the first non-empty header.frame_id
+    # The first change of a non-empty frame_id: (time s, from, to), None if it never does.
+    frame_change: tuple[float, str, str] | None = None
     # Scans already on the level ground plane (a 3-D lidar's projected clouds,
     # gpocc.io.cloudread): their frame may tilt with the base; the TF tilt check is moot.
     levelled: bool = False
@@ -105,34 +107,39 @@ def find_chain(tf: TfBuffer, sensor: SensorConfig, laser_frame: str) -> tuple[Ch
     return None, "; ".join(why)
 
 
-def _sparse_edge(tf: TfBuffer | None, chain: Chain | None,
-                 skipped: list[tuple[str, str, int]]) -> str:
-    """For an error: the chain's edge that served the fewest scans, with its message
-    count when it has fewer than two (a dynamic edge is only interpolated between two
-    messages: one published once belongs on /tf_static)."""
-    if tf is None or chain is None:
-        return ""
-    for edge, _ in chain.steps:
+def _no_pose_fix(chain: Chain | None, skipped: list[tuple[str, str, int]]) -> str:
+    """For the error of a sensor whose scans all lack a pose: a dynamic TF edge of the
+    chain with one message (interpolation needs two: one published once belongs on
+    /tf_static), else the commonest skip reason, with what to change."""
+    for edge, _ in chain.steps if chain is not None else ():
         if not edge.static and edge.stamps.size < 2:
-            return (f" (TF {edge.label()} on {edge.topic} has {edge.stamps.size} message: a "
-                    "transform published once belongs on /tf_static)")
-    if skipped:
-        reason, _, count = max(skipped, key=lambda r: r[2])
-        return f" (mostly: {reason})"
-    return ""
+            return (f"TF {edge.label()} on {edge.topic} has {edge.stamps.size} message: "
+                    "publish a transform that never changes on /tf_static")
+    mostly = f"mostly for {max(skipped, key=lambda r: r[2])[0]}; " if skipped else ""
+    return f"{mostly}check the topics' stamps or raise sensors[].max_pose_gap_s"
 
 
 def _tf_fix(tf: TfBuffer, laser_frame: str) -> str:
-    """What to change when TF in a bag does not reach ``laser_frame`` from the map."""
-    if tf.conflicts:
-        return "filter the bag to one publisher of each frame with two parents"
-    if not laser_frame or laser_frame not in tf.frames():
+    """What to change when TF in a bag does not reach ``laser_frame`` from the map: the
+    cause on the laser's own path up TF (a frame of two parents, a cycle), else the root
+    it hangs from, else the missing frame."""
+    if not laser_frame:
+        return "fix the driver's header.frame_id"
+    if laser_frame not in tf.frames():
         return "record /tf_static (the robot's static transforms)"
-    root, seen = laser_frame, {laser_frame}
-    while root in tf.edges and tf.edges[root].parent not in seen:
-        root = tf.edges[root].parent
-        seen.add(root)
-    return f"set sensors[].map_frame to '{root}' (the root of the laser's TF tree)"
+    frame, seen = laser_frame, [laser_frame]
+    while True:
+        if frame in tf.conflicts:
+            return (f"filter the bag to one publisher of '{frame}' (it has two parents: "
+                    f"{tf.conflicts[frame]})")
+        edge = tf.edges.get(frame)
+        if edge is None:
+            return f"set sensors[].map_frame to '{frame}' (the root of the laser's TF tree)"
+        if edge.parent in seen:
+            return (f"remove the TF cycle through '{edge.parent}' (a transform published "
+                    "the wrong way round)")
+        frame = edge.parent
+        seen.append(frame)
 
 
 def in_map_frame(frame: str, sensor: SensorConfig) -> bool:
@@ -336,8 +343,10 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     """One sensor's batch: scans sorted by stamp, each with its laser pose and covariance.
 
     Raises:
-        GpoccError: no scans, no pose source, a config mount on top of a TF mount, no scan
-            with a pose, or unusable range limits.
+        GpoccError: no scans, no pose source, a config mount on top of a TF mount, TF in
+            the bag that does not place the laser (its mount unknown), a frame_id that
+            changes when TF poses the scans, a laser tilted in every scan, no scan with a
+            pose, or unusable range limits.
     """
     scan_topic = sensor.scan_topic
     if not scans.stamps:
@@ -363,15 +372,24 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     warned: set[str] = set()  # notes already on stderr as warnings
     mount_tf = None
     if (tf and sensor.position_from_tf and scans.frame_id and series is not None
-            and (chain is None or why) and in_map_frame(series.frame_id, sensor)):
+            and (chain is None and not scans.levelled
+                 or (chain is None or why) and in_map_frame(series.frame_id, sensor))):
         # A map-frame pose topic (AMCL, robot_localization's global Odometry) beats TF
-        # from odom, which drifts; TF still gives the base -> laser mount.
+        # from odom, which drifts; TF still gives the base -> laser mount. Without any TF
+        # chain to the laser (a bag of /odom and /tf_static), TF's mount is still the one.
         mount_tf = mount_chain(tf, series, scans.frame_id)
         if mount_tf is not None and chain is not None:
             notes.append(f"TF reaches '{scans.frame_id}' only from '{chain.target}', which "
                          f"drifts: poses from {series.topic} (frame '{series.frame_id}') "
                          "with the mount from TF instead")
             chain, why = None, ""
+    if scans.frame_change is not None and (chain is not None or mount_tf is not None):
+        # TF poses the topic by one frame's mount: a second laser's scans would take it.
+        t_change, before, after = scans.frame_change
+        raise GpoccError(
+            f"{path}: topic {scan_topic} changes its header.frame_id from '{before}' to "
+            f"'{after}' at t={t_change:.3f} s; TF poses a laser topic by one frame: fix the "
+            "driver's frame_id, or split the bag at that time")
     skipped: list[tuple[str, str, int]] = []
     chain_text = ""
     if chain is not None:
@@ -418,11 +436,14 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         if not series.stamps.size:
             raise GpoccError(f"{path}: topic {series.topic} has no messages; pick another "
                              "pose_topic")
-        if (tf and sensor.position_from_tf and mount_tf is None
-                and sensor.mount == MountConfig()):
+        if (tf and sensor.position_from_tf and mount_tf is None and not scans.levelled
+                and sensor.mount == MountConfig()
+                and not (scans.frame_id and series.child_frame_id == scans.frame_id)):
             # The bag has TF, but not to this laser: where the laser sits on the pose's
             # frame is unknown, and a zero mount draws the map shifted (or, for a laser
-            # facing backwards, mirrored). A missing /tf_static is the usual cause.
+            # facing backwards, turned 180 degrees). A missing /tf_static is the usual
+            # cause. (A pose topic whose child frame is the scan's poses the laser itself;
+            # a 3-D lidar's projection brings its own mount.)
             frame = f"the scan frame '{scans.frame_id}'" if scans.frame_id else (
                 "the scans, which have no frame_id,")
             raise GpoccError(
@@ -498,9 +519,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         raise GpoccError(
             f"{path}: none of the {stamps.size} scans on {scan_topic} "
             f"({stamps[0]:.3f}..{stamps[-1]:.3f} s) has a pose from {source} within "
-            f"max_pose_gap_s={sensor.max_pose_gap_s} s{_sparse_edge(tf, chain, skipped)}; "
-            "check the topics' stamps or raise sensors[].max_pose_gap_s"
-        )
+            f"max_pose_gap_s={sensor.max_pose_gap_s} s; {_no_pose_fix(chain, skipped)}")
     msg_min, msg_max = scans.range_limits
     range_min = sensor.range_min_m if sensor.range_min_m is not None else msg_min
     range_max = sensor.range_max_m if sensor.range_max_m is not None else msg_max

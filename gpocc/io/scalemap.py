@@ -1,18 +1,22 @@
 """``map_scale.yaml`` + ``map_scale.png``: a Nav2 / ROS map_server map in ``scale`` mode,
 which keeps the probability (``map.yaml`` stays trinary).
 
-The image is 8-bit grey + alpha, one pixel per map cell, row 0 north: grey ``v =
-round(255 - 255 p)``, alpha 255 where the map has data and 0 where it has none. A loader
-recovers ``p = (255 - v) / 255`` within 0.5/255 of the map's.
+The image is 8-bit grey + alpha, one pixel per map cell, row 0 north: grey ``v``, the
+integer nearest ``255 - 255 p`` among those that Nav2 (below) reads as ``round(100 p)``
+exactly, alpha 255 where the map has data and 0 where it has none. A loader recovers
+``p = (255 - v) / 255`` within 1/255 of the map's (0.5/255 unless the nearest grey reads
+as a neighbouring percent).
 
 Nav2's map_io, in ``scale`` mode, makes a cell unknown (-1) when its pixel is not
 opaque; otherwise, with ``occ = (255 - v) / 255`` (``negate: 0``), 100 when
 ``occ > occupied_thresh``, 0 when ``occ < free_thresh`` and ``rint(100 (occ - free_thresh)
 / (occupied_thresh - free_thresh))`` between. With ``free_thresh: 0`` and
-``occupied_thresh: 1`` neither end applies, so Nav2 publishes ``rint(100 occ)``: the scale
-of ``map.mcap``'s ``/map``, within one unit. (ROS 1's map_server scales by 99 instead,
-and truncates: ``int(99 occ)``.) Nav2's static costmap layer reads such a map as graded
-costs only with ``trinary_costmap: false``.
+``occupied_thresh: 1`` neither end applies, so Nav2 publishes ``rint(100 occ)``, which
+the grey is chosen to make ``map.mcap``'s ``/map`` value. (``100 occ`` is a multiple of
+100/255 and never lies half-way between two integers, so no rounding tie arises.)
+(ROS 1's map_server scales by 99 instead, and truncates: ``int(99 occ)``.) Nav2's
+static costmap layer reads such a map as graded costs only with ``trinary_costmap:
+false``.
 
 The image is assembled in memory (2 bytes a cell); ``map.max_pgm_pixels`` bounds it as
 it bounds ``map.pgm``.
@@ -41,7 +45,12 @@ def scale_pixels(probability: np.ndarray) -> np.ndarray:
     known = np.isfinite(p)
     out = np.empty(p.shape + (2,), dtype=np.uint8)
     grey = np.full(p.shape, NO_DATA_GREY, dtype=np.float64)
-    grey[known] = np.rint(255.0 - 255.0 * np.clip(p[known], 0.0, 1.0))
+    q = np.clip(p[known], 0.0, 1.0)
+    # The greys Nav2 reads as percent v: |100 (255 - g) / 255 - v| < 1/2.
+    v = np.rint(100.0 * q)
+    low = np.maximum(np.ceil(255.0 * (1.0 - (v + 0.5) / 100.0)), 0.0)
+    high = np.minimum(np.floor(255.0 * (1.0 - (v - 0.5) / 100.0)), 255.0)
+    grey[known] = np.clip(np.rint(255.0 - 255.0 * q), low, high)
     out[..., 0] = grey.astype(np.uint8)
     out[..., 1] = np.where(known, 255, 0).astype(np.uint8)
     return out
@@ -70,9 +79,9 @@ def write_scale_map(yaml_path: str | os.PathLike[str], spec: GridSpec,
         row, col = tile_offset(window, spec)
         pixels[row:row + window.height, col:col + window.width] = scale_pixels(probability)
     text = (
-        "# Nav2 map in scale mode written by gpocc: grey = 255 - 255 p(occupied), "
-        "transparent where\n# the map has no data; Nav2 publishes round(100 p). map.yaml "
-        "holds the trinary classes.\n"
+        "# Nav2 map in scale mode written by gpocc: grey = 255 - 255 p(occupied) (within "
+        "1), transparent\n# where the map has no data; Nav2 publishes round(100 p). "
+        "map.yaml holds the trinary classes.\n"
         f"image: {image_path.name}\n"
         "mode: scale\n"
         f"resolution: {float(spec.resolution)!r}\n"

@@ -17,6 +17,7 @@ against TF, which stays on header stamps (a ghost of every wall at 0.4 s of late
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,30 +91,43 @@ def choose_stamps(header: np.ndarray, log_time: np.ndarray, repeats_allowed: boo
         reason = f"{back} of {n - 1} header stamps {what} in log order"
     if not reason:
         return Stamps(header, HEADER)
-    if not reason.startswith("all"):
-        stamped = np.flatnonzero(~unset)
-        keep = np.zeros(n, bool)
-        keep[stamped] = _increasing(header[stamped], strict=not repeats_allowed)
-        dropped = n - int(np.count_nonzero(keep))
-        if dropped <= MAX_DROPPED_SHARE * n:
-            what = "are zero, repeat or go back" if not repeats_allowed else "are zero or go back"
-            return Stamps(header, HEADER, f"{dropped} of {n} header stamps {what}", keep)
+    keep = _ordered(header, unset, repeats_allowed)
+    dropped = n - int(np.count_nonzero(keep))
+    if dropped <= MAX_DROPPED_SHARE * n:  # all equal or all zero: never (n > 20)
+        what = "are zero or go back" if repeats_allowed else "are zero, repeat or go back"
+        return Stamps(header, HEADER, f"{dropped} of {n} header stamps {what}", keep)
     return Stamps(log_time, LOG_TIME, reason)
 
 
-def _increasing(values: np.ndarray, strict: bool) -> np.ndarray:
-    """(N,) bool: a longest (strictly, with ``strict``) increasing subsequence of
-    ``values`` (N,) in their order; the fewest messages to drop for an ordered topic."""
-    import bisect
+def _ordered(header: np.ndarray, unset: np.ndarray, repeats_allowed: bool) -> np.ndarray:
+    """(N,) bool: the most messages of ``header`` (N,) s, leaving out ``unset`` (N,), whose
+    stamps increase in log order. With ``repeats_allowed`` a message may repeat the
+    stamp of the one just before it (a pose topic's repeat), not an earlier one (a stale
+    stamp): runs of equal consecutive stamps are kept or dropped whole."""
+    stamped = np.flatnonzero(~unset)
+    values = header[stamped]
+    if repeats_allowed and values.size:
+        first = np.r_[True, values[1:] != values[:-1]]
+        runs = np.cumsum(first) - 1
+        kept = _increasing(values[first])[runs]
+    else:
+        kept = _increasing(values)
+    keep = np.zeros(header.size, bool)
+    keep[stamped[kept]] = True
+    return keep
 
+
+def _increasing(values: np.ndarray) -> np.ndarray:
+    """(N,) bool: a longest strictly increasing subsequence of ``values`` (N,) in their
+    order (patience sorting, O(N log N)); of equal values the first is kept, as tf2
+    keeps the first transform of a repeated stamp."""
     tails: list[float] = []  # tails[k]: the smallest end of an increasing run of k + 1
     tail_at: list[int] = []
     parent = np.full(values.size, -1)
-    find = bisect.bisect_left if strict else bisect.bisect_right
     for i, v in enumerate(values.tolist()):
-        k = find(tails, v)
-        if strict and k < len(tails) and tails[k] == v:
-            continue  # a repeat: the first message of a stamp is kept, as tf2 does
+        k = bisect.bisect_left(tails, v)
+        if k < len(tails) and tails[k] == v:
+            continue
         if k == len(tails):
             tails.append(v)
             tail_at.append(i)

@@ -234,8 +234,8 @@ class MapFolder:
                 "mode": "scale",
                 "free_thresh": SCALE_FREE_THRESH,
                 "occupied_thresh": SCALE_OCCUPIED_THRESH,
-                "pixels": "grey = round(255 - 255 p), alpha 0 where no data; "
-                          "Nav2 publishes round(100 (255 - grey) / 255)",
+                "pixels": "grey = 255 - 255 p within 1, alpha 0 where no data; Nav2 "
+                          "publishes round(100 (255 - grey) / 255), which is round(100 p)",
             },
         }
 

@@ -209,8 +209,6 @@ def test_out_under_a_regular_file_is_one_line(model_path, tmp_path):
         assert "not a folder" in line
 
 
-
-
 def test_out_naming_the_current_folder_is_one_line(model_path, tmp_path):
     """An empty folder counts as a previous output that --force may replace, but not when
     it is the folder the command runs in (or holds it): the rename would have no name."""
@@ -223,6 +221,17 @@ def test_out_naming_the_current_folder_is_one_line(model_path, tmp_path):
             assert run.returncode == 2, run.stderr
             assert "current folder" in _one_error_line(run.stderr, "error:")
             assert list(here.iterdir()) == []
+
+
+def test_an_absolute_out_works_from_a_deleted_current_folder(tmp_path, monkeypatch):
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    monkeypatch.chdir(gone)
+    gone.rmdir()
+    prepare_output(tmp_path / "out", force=False)  # no FileNotFoundError from the cwd
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("err", [errno.ENOSPC, errno.EACCES, errno.EROFS])
 def test_a_write_failure_is_one_line_and_leaves_nothing(model_path, tmp_path, monkeypatch, err):
     # A full disk or a read-only folder cannot be made portably as root in a container,

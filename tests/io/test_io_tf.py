@@ -539,24 +539,30 @@ def test_tf_that_misses_the_laser_frame_is_an_error_not_a_zero_mount(tmp_path: P
 
 
 def test_a_scan_topic_whose_frame_id_changes_is_an_error(tmp_path: Path) -> None:
-    """Every scan was posed by the first scan's frame (its TF mount): a driver that
-    leaves the first frame_id empty, or a topic that switches lasers, mapped wrongly."""
+    """TF poses a topic by one frame's mount: a topic that switches lasers mapped every
+    scan with the first one's. Scans whose frame_id is empty (a driver's first few) take
+    the topic's frame."""
     from gpocc.errors import GpoccError
 
-    robot = one_robot()
+    robot = one_robot(lasers=[Laser("/scan", "laser"), Laser("/old", "laser_old")])
     robot.simulate()
     t, _, ranges = robot.scans["/scan"]
+    laser = robot.lasers[0]
+    paths = {}
+    none = (t[:0], None, ranges[:0])
     for first in ("", "laser_old"):
         bag = BagWriter("ros2-mcap")
-        add_robot(bag, dataclasses.replace(robot, scans={"/scan": (t[:0], None, ranges[:0])}))
-        laser = robot.lasers[0]
+        add_robot(bag, dataclasses.replace(robot, scans={"/scan": none, "/old": none}))
         for k, (tk, r) in enumerate(zip(t, ranges, strict=True)):
             bag.scan("/scan", first if k < 3 else "laser", T0 + tk, laser.angles, r,
                      laser.max_range)
-        path = bag.write(tmp_path / f"b{len(first)}")
-        with pytest.raises(GpoccError, match=rf"topic /scan changes its header.frame_id from "
-                                             rf"'{first}' to 'laser' at t="):
-            read_inputs([path], Config())
+        paths[first] = bag.write(tmp_path / f"b{len(first)}")
+    with pytest.raises(GpoccError, match=r"topic /scan changes its header.frame_id from "
+                                         r"'laser_old' to 'laser' at t="):
+        read_inputs([paths["laser_old"]], Config())
+    [batch] = read_inputs([paths[""]], Config())
+    assert batch.n_scans == t.size
+    assert_poses(batch, robot.laser_pose(laser, batch.stamps - T0))
 
 
 def test_the_fix_for_tf_that_misses_the_laser_names_the_cause() -> None:
@@ -572,11 +578,14 @@ def test_the_fix_for_tf_that_misses_the_laser_names_the_cause() -> None:
                      "laser": edge("base", "laser")})
     assert "map_frame to 'world'" in _tf_fix(tree, "laser")
     assert "record /tf_static" in _tf_fix(tree, "lidar")
-    assert "record /tf_static" in _tf_fix(tree, "")
+    assert "fix the driver's header.frame_id" in _tf_fix(tree, "")
     loop = TfBuffer({"a": edge("b", "a"), "b": edge("a", "b"), "laser": edge("a", "laser")})
-    assert "map_frame to" in _tf_fix(loop, "laser")  # ends, whatever the cycle
+    assert "remove the TF cycle through 'a'" in _tf_fix(loop, "laser")
     torn = TfBuffer({"laser": edge("base", "laser")}, conflicts={"base": "odom and map"})
-    assert "one publisher" in _tf_fix(torn, "laser")
+    assert "one publisher of 'base'" in _tf_fix(torn, "laser")
+    # Another robot's conflict is not this laser's cause.
+    elsewhere = TfBuffer(tree.edges, conflicts={"robot2/base": "odom and map"})
+    assert "record /tf_static" in _tf_fix(elsewhere, "lidar")
 
 
 def test_a_tf_edge_published_once_is_named_in_the_error(tmp_path: Path) -> None:
@@ -586,6 +595,57 @@ def test_a_tf_edge_published_once_is_named_in_the_error(tmp_path: Path) -> None:
     bag = BagWriter("ros2-mcap")
     add_robot(bag, robot, map_to_odom=False)
     bag.tf("/tf", T0 + 0.5, [("map", "odom", (0.0, 0.0, 0.0), quat())])
-    with pytest.raises(GpoccError, match=r"TF map->odom on /tf has 1 message: a transform "
-                                         r"published once belongs on /tf_static"):
+    with pytest.raises(GpoccError, match=r"TF map->odom on /tf has 1 message: publish a "
+                                         r"transform that never changes on /tf_static$"):
         read_inputs([bag.write(tmp_path / "once")], Config())
+
+
+def test_an_odometry_topic_with_only_static_tf_takes_the_mount_from_tf(tmp_path: Path) -> None:
+    """/odom (odom -> base_footprint) and /tf_static, no /tf: TF reaches the laser from no
+    map frame, but it holds the mount; the scans take the odometry pose and that mount."""
+    laser = Laser("/scan", "laser", mount=(-0.3, 0.1, math.pi))
+    robot = one_robot(lasers=[laser])
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot, map_to_odom=False, odom_tf=False)
+    t_odom = np.arange(0.0, robot.duration, 0.02)
+    for tk, p in zip(t_odom, robot.odometry(t_odom), strict=True):
+        bag.odom("/odom", T0 + tk, "odom", "base_footprint", (p[0], p[1], 0.0), quat(yaw=p[2]),
+                 cov6(0.01, 0.01, 0.002))
+    [batch] = read_inputs([bag.write(tmp_path / "odom")], Config())
+    assert batch.provenance.frame_chain.startswith("base_footprint")
+    t = batch.stamps - T0
+    truth = compose(robot.odometry(t), np.asarray(laser.mount))
+    assert np.abs(batch.poses[:, :2] - truth[:, :2]).max() < 1e-3
+
+
+def test_a_pose_topic_of_the_laser_itself_needs_no_mount_from_tf(tmp_path: Path) -> None:
+    """Odometry whose child frame is the scan's frame poses the laser itself: TF for other
+    frames (a camera) does not make its mount unknown."""
+    laser = Laser("/scan", "laser", mount=(0.25, 0.05, 0.1))
+    robot = one_robot(lasers=[laser])
+    bag = BagWriter("ros2-mcap")
+    add_robot(bag, robot, map_to_odom=False, odom_tf=False, static_tf=False)
+    bag.tf("/tf_static", T0, [("base_link", "camera", (0.1, 0.0, 0.5), quat())])
+    t_pose = np.arange(0.0, robot.duration, 0.02)
+    for tk, p in zip(t_pose, robot.laser_pose(laser, t_pose), strict=True):
+        bag.odom("/laser_odom", T0 + tk, "map", "laser", (p[0], p[1], 0.0), quat(yaw=p[2]),
+                 cov6(0.01, 0.01, 0.002))
+    [batch] = read_inputs([bag.write(tmp_path / "self")], Config())
+    truth = robot.laser_pose(laser, batch.stamps - T0)
+    assert np.abs(batch.poses[:, :2] - truth[:, :2]).max() < 1e-3
+
+
+def test_a_changing_frame_id_is_harmless_where_tf_does_not_pose_the_scans(tmp_path: Path
+                                                                         ) -> None:
+    robot = one_robot()
+    robot.simulate()
+    t, _, ranges = robot.scans["/scan"]
+    laser = robot.lasers[0]
+    bag = BagWriter("ros2-mcap")
+    for k, (tk, r) in enumerate(zip(t, ranges, strict=True)):
+        bag.scan("/scan", "" if k < 3 else "laser", T0 + tk, laser.angles, r, laser.max_range)
+    for tk, p in zip(t, robot.laser_pose(laser, t), strict=True):
+        bag.pose_cov("/pose", T0 + tk, "map", (p[0], p[1], 0), quat(yaw=p[2]),
+                     cov6(0.01, 0.01, 0.002))
+    [batch] = read_inputs([bag.write(tmp_path / "no_tf")], Config())
+    assert batch.n_scans == t.size

@@ -280,21 +280,31 @@ def test_scale_map_loads_in_nav2_as_the_probability(tmp_path: Path) -> None:
     assert meta["image"] == "map_scale.png"
     known = np.isfinite(p)[::-1].ravel()
     np.testing.assert_array_equal(data == -1, ~known)
-    # Nav2's value is 100 p within one unit of the p-quantisation (p back within 1/255)...
+    # Nav2's value is round(100 p), exactly map.mcap's /map...
     p_south = p[::-1].ravel().astype(np.float64)
-    assert np.all(np.abs(data[known] - 100 * p_south[known]) <= 100 / 255 / 2 + 0.5 + 1e-9)
-    # ... and within one unit of map.mcap's /map.
+    np.testing.assert_array_equal(data[known], np.rint(100 * p_south[known]))
     with AnyReader([folder / "map.mcap"]) as reader:
         conn = next(c for c in reader.connections if c.topic == "/map")
         _, _, raw = next(reader.messages(connections=[conn]))
         mcap_data = np.asarray(reader.deserialize(raw, conn.msgtype).data, dtype=np.int64)
-    assert np.all(np.abs(data - mcap_data) <= 1)
-    # The PNG gives p back within 1/255: p = (255 - grey) / 255 on opaque pixels.
+    np.testing.assert_array_equal(data, mcap_data)
+    # ... and the PNG gives p back within 1/255: p = (255 - grey) / 255 on opaque pixels.
     la = np.asarray(Image.open(folder / "map_scale.png"))
     assert la.shape == p.shape + (2,)
     assert np.all((la[..., 1] == 0) == ~np.isfinite(p))
     back = (255.0 - la[..., 0]) / 255.0
-    assert np.nanmax(np.abs(back - p)[np.isfinite(p)]) <= 0.5 / 255 + 1e-7
+    assert np.nanmax(np.abs(back - p)[np.isfinite(p)]) <= 1 / 255 + 1e-7
+
+
+def test_scale_pixels_read_in_nav2_as_the_percent_of_every_probability() -> None:
+    """Every float32 probability on a fine grid: Nav2's scale-mode decoding of its grey
+    (rint(100 (1 - grey / 255))) is rint(100 p), and the grey is within 1 of 255 - 255 p."""
+    from gpocc.io.scalemap import scale_pixels
+
+    p = np.linspace(0.0, 1.0, 200_001, dtype=np.float32).astype(np.float64)
+    grey = scale_pixels(p[None, :])[0, :, 0].astype(np.float64)
+    np.testing.assert_array_equal(np.rint(100.0 * (1.0 - grey / 255.0)), np.rint(100.0 * p))
+    assert np.abs(grey - (255.0 - 255.0 * p)).max() <= 1.0
 
 
 def test_trinary_map_yaml_is_unchanged_by_the_scale_map(tmp_path: Path) -> None:
