@@ -20,10 +20,12 @@ XT datasheets give), ``bearing_variance_deg2`` 0.01 plus the bearing bin's width
 (the hit lies anywhere in its bin). The horizontal resolution comes from the layout:
 the width of an organised cloud, else the fullest ring's returns; else 0.4 degrees.
 
-A bin with no return at any height is a no-return only when the cloud's returns cover
-at least :data:`FULL_TURN_SHARE` of the bins (a spinning lidar: a silent direction saw
-nothing in range); for a sensor with a narrower field of view such bins are invalid (no
-information), so a camera's or a masked lidar's blind sector is never cleared.
+A bin with no return in the height band is a no-return (cleared up to
+``no_return_free_m``) when its rays returned from the floor or ceiling; a bin with no
+return at any height is invalid (no information), so a camera's or a masked lidar's
+blind sector, or a bin the binning left empty, is never cleared. When the band's returns
+alone fill :data:`FULL_TURN_SHARE` of the bins, the floor and ceiling returns are not
+binned (their cost), and the bins left are invalid too.
 """
 
 from __future__ import annotations
@@ -56,7 +58,8 @@ CLOUD_BEARING_VARIANCE_DEG2 = 0.01
 DEFAULT_RESOLUTION_DEG = 0.4
 #: Bin counts from a layout are kept within these (a 10-degree to a 0.09-degree step).
 MIN_BINS, MAX_BINS = 36, 4096
-#: Share of bins with a return (any height) above which a cloud is a full turn.
+#: Share of bins with a return in the band above which the floor and ceiling returns
+#: are not binned (the bins left are then invalid; see the module docs).
 FULL_TURN_SHARE = 0.9
 #: Base-frame heights (m) of the fine histogram that finds the floor's peak.
 FLOOR_EDGES = np.round(np.arange(-3.01, 0.51, 0.02), 2)  # centres on even centimetres
@@ -214,8 +217,10 @@ class CloudCollector:
         ranges, heard, z = scan_from_cloud(cloud.points, rotation, translation, level,
                                            self.band_base, self.bins, self.range_min,
                                            FULL_TURN_SHARE)
-        if np.count_nonzero(heard) < FULL_TURN_SHARE * self.bins:
-            ranges[~heard & np.isinf(ranges)] = np.nan
+        # A bin no return fell into, at any height, is unknown: a masked sector, or a gap
+        # of the binning (a random-pattern lidar, columns on bin edges). Clearing it as a
+        # no-return cleared free space through walls.
+        ranges[~heard & np.isinf(ranges)] = np.nan
         self.scans.stamps.append(t)
         self.scans.ranges.append(ranges)
         self.origins.append(translation)

@@ -12,7 +12,8 @@ measures heights above the base frame's ground plane (its x-y plane). Then
 * the nearest obstacle of a bin, at least ``range_min`` away horizontally, is its hit
   (range = horizontal distance); a bin with no obstacle (its rays saw only floor,
   ceiling or nothing) is a no-return (``+inf``), which the beam rules clear up to
-  ``no_return_free_m`` as for a planar laser.
+  ``no_return_free_m`` as for a planar laser; :func:`bin_returns` also says which bins
+  any return fell into, and :mod:`gpocc.io.cloudread` makes the others unknown.
 
 The result is a LaserScan-like row of ranges at bearings
 ``-pi + (i + 1/2) 2 pi / bins``. All points of a sweep are taken at the cloud's stamp:

@@ -268,8 +268,10 @@ def test_horizontal_resolution_key_bins_coarser(tmp_path):
                                             "horizontal_resolution_deg": 0.8}]})
     [coarse] = read_inputs([path], config)
     assert coarse.n_beams == 450
-    # An 0.8-degree bin is two 0.4-degree bins: its hit is the nearer of theirs.
-    np.testing.assert_allclose(coarse.ranges, fine.ranges.reshape(2, 450, 2).min(axis=2))
+    # An 0.8-degree bin is two 0.4-degree bins: its hit is the nearer of theirs (a fine
+    # bin no return fell into is unknown, NaN).
+    np.testing.assert_allclose(coarse.ranges, np.fmin.reduce(fine.ranges.reshape(2, 450, 2),
+                                                             axis=2))
     # Its bearing noise carries the wider bin's quantisation: (0.8 deg)^2 / 12.
     assert coarse.sensor_config.bearing_variance_deg2 == pytest.approx(0.01 + 0.64 / 12)
 
@@ -354,3 +356,16 @@ def test_info_names_base_height_when_the_floor_is_below_the_base_frame(tmp_path)
     path = write_run(tmp_path / "a", LidarRun(room(), Lidar(), cloud_t=np.array([0.31])))
     [ok] = read_inputs([path], Config())
     assert not [line for line in ok.provenance.sensor_lines if "base_height_m" in line]
+
+
+def test_a_masked_sector_of_a_spinning_lidar_is_never_cleared(tmp_path):
+    """A 330-degree lidar (its back 30 degrees masked by the robot): the bins of the mask
+    got no return at any height. They were cleared as no-returns, through the walls behind
+    the robot, because the rest covered 90% of the bins."""
+    lidar = Lidar(columns=1100, azimuth_deg=(-165.0, 165.0), max_range=6.0)
+    run = LidarRun(room(), lidar, cloud_t=np.array([0.31, 5.31]))
+    [batch] = read_inputs([write_run(tmp_path, run)], Config())
+    back = np.abs(batch.angles) > math.radians(166)
+    front = np.abs(batch.angles) < math.radians(164)
+    assert back.any() and np.isnan(batch.ranges[:, back]).all()
+    assert np.isfinite(batch.ranges[:, front]).mean() > 0.9  # the room's walls
