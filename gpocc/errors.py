@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 
@@ -60,3 +61,22 @@ def check_regular_file(path: str | os.PathLike[str], what: str, fix: str,
         raise GpoccError(f"{path}: is a folder, not a {what}; {fix}")
     raise GpoccError(f"{path}: not a regular file (a pipe, socket or device); save the "
                      f"{what} to a file and pass that file")
+
+
+def check_distinct(paths: Sequence[str | Path],
+                   consequence: str = "or its scans count twice") -> None:
+    """Refuse a path given twice (``run.log ./run.log``, a shell glob that also matches a
+    named input): its scans would count twice, and the config's ``inputs`` entries, keyed
+    by path, cannot tell the two apart. Another name of the same log (a link, a copy) is
+    allowed: an ``inputs`` entry each can place it twice (training warns,
+    :func:`gpocc.io.records.warn_repeated_content`).
+
+    Raises:
+        GpoccError: naming both spellings.
+    """
+    seen: dict[str, int] = {}
+    for i, p in enumerate(paths):
+        first = seen.setdefault(os.path.abspath(p), i)
+        if first != i:
+            also = "" if str(p) == str(paths[first]) else f" (also as {paths[first]})"
+            raise GpoccError(f"{p}: given twice{also}; pass each input once, {consequence}")

@@ -8,7 +8,7 @@ import numpy as np
 import typer
 
 from gpocc.commands.options import Force
-from gpocc.errors import GpoccError
+from gpocc.errors import GpoccError, check_distinct
 from gpocc.evaluation.report import (
     kind_summary,
     probability_raster,
@@ -58,6 +58,7 @@ def evaluate(
     if out is not None:
         prepare_output(out, force, inputs=[*maps, ground_truth,
                                            *([labels_from] if labels_from else [])])
+    check_distinct(maps, "or it is scored twice")
     located = [probability_raster(p) for p in maps]
     names = unique_names([n for n, _ in located], list(maps))
     points, labels, kinds = load_truth_kinds(ground_truth)

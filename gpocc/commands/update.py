@@ -36,17 +36,23 @@ def update(
     keep: bool = typer.Option(
         False, "--keep", help="Keep the model's hyperparameters and only refit the "
         "classifier (fastest; they were learned on the old logs' patches alone)."),
-    refine_iterations: int = typer.Option(
-        REFINE_ITERATIONS, "--refine-iterations",
-        help="Steps of the refinement, at most, one likelihood evaluation each (L-BFGS-B "
+    refine_iterations: int | None = typer.Option(
+        None, "--refine-iterations",
+        help=f"Steps of the refinement, at most, one likelihood evaluation each (L-BFGS-B "
         "iterations for a kernel whose loops give no input-noise-scale derivative); "
-        "it stops earlier where a step gains under 0.01 nats."),
+        f"it stops earlier where a step gains under 0.01 nats. Default {REFINE_ITERATIONS}; "
+        "not with --relearn or --keep."),
     force: Force = False,
 ) -> None:
     """Add new logs to a model: their samples join the model's, its hyperparameters are
     refined and the classifier refitted on all of them; the old logs are not read again."""
     if relearn and keep:
         raise GpoccError("--relearn and --keep exclude each other; give one of them")
+    if refine_iterations is not None and (relearn or keep):
+        raise GpoccError(f"--refine-iterations sets the refinement, which --"
+                         f"{'relearn' if relearn else 'keep'} does not run; give one of them")
+    if refine_iterations is None:
+        refine_iterations = REFINE_ITERATIONS
     check_at_least("--refine-iterations", refine_iterations, 1)
     prepare_output(out, force, folder=False, inputs=[model_path, *inputs, config])
     started = time.perf_counter()

@@ -428,6 +428,8 @@ def _growth_record(growth: Growth) -> dict[str, Any]:
 def load_model(path: str | Path) -> GPModel:
     """Read a model file; a missing, corrupt or newer-format file is a GpoccError."""
     p = Path(path)
+    if p.is_dir() and (p / "model.npz").is_file():  # a `gpocc build` map folder
+        raise GpoccError(f"{p}: is a map folder; pass its model, {p / 'model.npz'}")
     check_regular_file(p, "model file", "pass a model file (create one with `gpocc train`)")
     try:
         loaded = np.load(p, allow_pickle=False)

@@ -16,13 +16,12 @@ file stem. An entry without ``pose_topic`` gets one the same way.
 from __future__ import annotations
 
 import fnmatch
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 from gpocc.config import Config, SensorConfig
-from gpocc.errors import GpoccError, check_regular_file
+from gpocc.errors import GpoccError, check_distinct, check_regular_file
 from gpocc.io import autodetect, bags, carmen
 from gpocc.io.bags import BagContents, TopicSummary
 from gpocc.io.frames import input_transform, transform_batch
@@ -246,25 +245,6 @@ def read_input(path: str | Path, config: Config,
             for b, s in zip(batches, sensors, strict=True)]
 
 
-def check_distinct(paths: Sequence[str | Path]) -> None:
-    """Refuse a path given twice (``run.log ./run.log``, a shell glob that also matches a
-    named input): its scans would count twice, and the config's ``inputs`` entries, keyed
-    by path, cannot tell the two apart. Another name of the same log (a link, a copy) is
-    allowed: an ``inputs`` entry each can place it twice (training warns,
-    :func:`gpocc.io.records.warn_repeated_content`).
-
-    Raises:
-        GpoccError: naming both spellings.
-    """
-    seen: dict[str, int] = {}
-    for i, p in enumerate(paths):
-        first = seen.setdefault(os.path.abspath(p), i)
-        if first != i:
-            also = "" if str(p) == str(paths[first]) else f" (also as {paths[first]})"
-            raise GpoccError(f"{p}: given twice{also}; pass each input once, or its scans "
-                             "count twice")
-
-
 def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:
     """Read every input into scan batches, one per (input, sensor).
 
@@ -287,7 +267,8 @@ def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:
     used = {b.sensor for b in batches}
     for sensor in config.sensors:
         if sensor.name not in used:
-            log(f"note: sensor '{sensor.name}' ({sensor.scan_topic}) is in no input; skipped")
+            topic = f" ({sensor.scan_topic})" if sensor.scan_topic else ""
+            log(f"note: sensor '{sensor.name}'{topic} reads nothing from these inputs")
     if sum(b.n_scans for b in batches) == 0:
         names = ", ".join(str(p) for p in paths)
         raise GpoccError(f"{names}: no laser scans in the inputs; check the topics and files")

@@ -231,6 +231,13 @@ CASES = [
                                 "--out", "{root}/out.npz"], "ok.mcap`given twice", "out.npz"),
     ("info-same-input-twice", ["info", "{root}/ok.mcap", "{root}/./ok.mcap"],
      "ok.mcap`given twice", None),
+    ("update-keep-with-refine", ["update", "{root}/good.npz", "{root}/ok.mcap", "--keep",
+                                 "--refine-iterations", "3", "--out", "{root}/out.npz"],
+     "--refine-iterations`--keep does not run", "out.npz"),
+    ("update-relearn-with-refine", ["update", "{root}/good.npz", "{root}/ok.mcap",
+                                    "--relearn", "--refine-iterations", "3", "--out",
+                                    "{root}/out.npz"],
+     "--refine-iterations`--relearn does not run", "out.npz"),
     # Paths that are not regular files: a pipe blocks a read, and is read only once
     ("train-input-pipe", ["train", "{root}/fifo", "--out", "{root}/out.npz"],
      "fifo`not a regular file", "out.npz"),

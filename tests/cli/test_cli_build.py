@@ -79,6 +79,16 @@ def test_the_kept_model_maps_again_to_the_same_map(built, tmp_path: Path) -> Non
                           read(tmp_path / "again" / "probability.tif"), equal_nan=True)
 
 
+def test_a_build_folder_given_as_the_model_names_its_model(built, tmp_path: Path) -> None:
+    out, _ = built
+    for args in (["map", str(out), "--resolution", "0.2", "--out", str(tmp_path / "m")],
+                 ["update", str(out), str(SAMPLE), "--out", str(tmp_path / "u.npz")]):
+        result = runner.invoke(app, args)
+        assert result.exit_code == 2, result.output
+        assert f"is a map folder; pass its model, {out / 'model.npz'}" in result.stderr
+        assert not any(tmp_path.iterdir())
+
+
 def test_build_refuses_an_existing_output_before_any_work(tmp_path: Path) -> None:
     out = tmp_path / "map"
     out.mkdir()

@@ -402,6 +402,19 @@ def test_truth_that_misses_every_map_is_an_error_and_writes_nothing(tmp_path, ma
             and f"in the map (x {x0:.1f} .. {x1:.1f}, y {y0:.1f} .. {y1:.1f} m)" in quiet.stderr)
 
 
+def test_the_same_map_given_twice_is_refused(tmp_path, maps):
+    """Two rows of one name, and roc.csv's two curves joined into one series."""
+    gp_folder, _ = maps
+    points, labels = _truth_points(5)
+    truth = _write_csv(tmp_path / "t.csv", points, labels)
+    result = _invoke(str(gp_folder), str(gp_folder), "--ground-truth", str(truth),
+                     "--out", str(tmp_path / "e"))
+    assert result.exit_code == 2
+    [line] = _error_lines(result)
+    assert "given twice; pass each input once, or it is scored twice" in line
+    assert not (tmp_path / "e").exists()
+
+
 def test_a_map_that_misses_the_truth_is_scored_with_a_warning(tmp_path, maps):
     """One map covers the points, the other (moved 100 m west) none: the covered map is
     scored as before, the other at p = 0.5 everywhere (AUC 0.5), with a warning."""
