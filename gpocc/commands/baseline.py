@@ -88,4 +88,14 @@ def write_baseline(job: BaselineJob, out: Path, force: bool, method: str, title:
     typer.echo(f"cells: {spec.width} x {spec.height} at {spec.resolution} m, bounds {spec.bounds}")
     typer.echo(f"classes: {counts['occupied']} occupied, {counts['free']} free, "
                f"{counts['unsure']} unsure")
+    if not np.isfinite(probability).any():  # as gpocc map warns: the bounds miss the data
+        log(f"warning: every cell of the map is nodata: no beam reaches it; check --bounds "
+            f"against the data's extent ({_scans_extent(batches)})")
     return counts
+
+
+def _scans_extent(batches: list[ScanBatch]) -> str:
+    """``x .. , y .. m`` of the scans' poses, for a message."""
+    poses = np.concatenate([b.poses[:, :2] for b in batches if b.n_scans])
+    (x0, y0), (x1, y1) = poses.min(axis=0), poses.max(axis=0)
+    return f"the robot drove x {x0:.1f} .. {x1:.1f} m, y {y0:.1f} .. {y1:.1f} m"

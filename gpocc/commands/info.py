@@ -216,7 +216,7 @@ def info(
     # As training would: a path given twice is refused, a log under two names warned of.
     check_distinct(inputs)
     if len(inputs) > 1:  # hashing reads each input whole: only where two may be one log
-        warn_repeated_content(inputs, [content_hash(p) for p in inputs])
+        warn_repeated_content(inputs, [content_hash(p) for p in inputs], cfg)
     batches: list[ScanBatch] = []
     for path in inputs:
         summary = describe_input(path)

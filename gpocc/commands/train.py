@@ -84,7 +84,7 @@ def learn_model(inputs: list[Path], cfg: Config, scheduler: str | None = None) -
     # The model records each input's content hash; computed here, before learning, it
     # also tells of a log given twice under two names.
     hashes = [content_hash(p) for p in inputs]
-    warn_repeated_content(inputs, hashes)
+    warn_repeated_content(inputs, hashes, cfg)
     read_s = time.perf_counter() - started
     log(f"read {sum(b.n_scans for b in batches)} scans from {len(inputs)} input(s)")
     # The coverage raster is built beside the samples (both mostly numpy and compiled

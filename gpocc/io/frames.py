@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import fnmatch
 import math
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -22,6 +22,17 @@ from gpocc.io.scans import ScanBatch
 IDENTITY = TransformConfig()
 
 
+def entry_matches(pattern: str, path: str | Path) -> bool:
+    """Whether an ``inputs`` entry's ``pattern`` (globs allowed) names ``path``: as its
+    file name, its last folders and file name (``day2/run.mcap`` names
+    ``logs/day2/run.mcap``), or the whole path as given."""
+    path = Path(path)
+    depth = len(PurePosixPath(pattern).parts)
+    tail = "/".join(path.parts[-depth:]) if depth else ""
+    return any(fnmatch.fnmatchcase(text, pattern)
+               for text in (path.name, tail, path.as_posix(), str(path)))
+
+
 def input_transform(path: str | Path, config: Config) -> TransformConfig:
     """The transform of the config's ``inputs`` entry whose ``path`` matches ``path``
     (file name or whole path, globs allowed); the identity when none does.
@@ -30,9 +41,7 @@ def input_transform(path: str | Path, config: Config) -> TransformConfig:
         GpoccError: several entries match.
     """
     path = Path(path)
-    matching = [entry for entry in config.inputs
-                if any(fnmatch.fnmatchcase(text, entry.path)
-                       for text in (path.name, path.as_posix(), str(path)))]
+    matching = [entry for entry in config.inputs if entry_matches(entry.path, path)]
     if len(matching) > 1:
         raise GpoccError(
             f"{path}: several `inputs` entries of the config match this input "

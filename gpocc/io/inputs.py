@@ -24,7 +24,7 @@ from gpocc.config import Config, SensorConfig
 from gpocc.errors import GpoccError, check_distinct, check_regular_file
 from gpocc.io import autodetect, bags, carmen
 from gpocc.io.bags import BagContents, TopicSummary
-from gpocc.io.frames import input_transform, transform_batch
+from gpocc.io.frames import entry_matches, input_transform, transform_batch
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import debug, log
 
@@ -264,6 +264,10 @@ def read_inputs(paths: Sequence[str | Path], config: Config) -> list[ScanBatch]:
               f"range {b.range_min:g}..{b.range_max:g} m, pose covariance from "
               f"{'the input' if b.has_pose_covariance else 'the config'}, "
               f"{b.skipped_scans} scans skipped")
+    for entry in config.inputs:
+        if not any(entry_matches(entry.path, p) for p in paths):
+            log(f"note: the config's inputs entry '{entry.path}' matches none of these "
+                "inputs (by file name or trailing folders); its transform applies to none")
     used = {b.sensor for b in batches}
     for sensor in config.sensors:
         if sensor.name not in used:

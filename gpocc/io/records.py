@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gpocc.config import Config
+from gpocc.config import Config, TransformConfig
 from gpocc.errors import GpoccError, check_regular_file
-from gpocc.io.frames import input_transform
+from gpocc.io.frames import IDENTITY, input_transform
 from gpocc.io.scans import ScanBatch
 from gpocc.progress import log
 
@@ -104,12 +104,15 @@ def check_new_inputs(known: Sequence[InputRecord], paths: Sequence[str | Path],
         seen[digest] = f"'{path}', given twice"
 
 
-def warn_repeated_content(paths: Sequence[str | Path], hashes: Sequence[str]) -> None:
+def warn_repeated_content(paths: Sequence[str | Path], hashes: Sequence[str],
+                          config: Config | None = None) -> None:
     """A warning for each input whose content (``hashes``) an earlier one already has:
-    two names of one log, whose scans then count twice."""
-    first: dict[str, int] = {}
+    two names of one log, whose scans then count twice, unless ``config``'s ``inputs``
+    entries give the two different transforms (one log placed twice on a site)."""
+    first: dict[tuple[str, TransformConfig], int] = {}
     for i, (path, digest) in enumerate(zip(paths, hashes, strict=True)):
-        earlier = first.setdefault(digest, i)
+        placed = input_transform(path, config) if config is not None else IDENTITY
+        earlier = first.setdefault((digest, placed), i)
         if earlier != i:
             log(f"warning: {path} has the same content as {paths[earlier]}: its scans count "
                 "twice, unless the config's inputs entries place them apart")

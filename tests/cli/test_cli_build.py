@@ -154,3 +154,15 @@ def test_build_checks_the_size_of_bounds_before_training(tmp_path: Path) -> None
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and "map.max_cells in the config" in lines[0], result.output
     assert "built" not in result.output and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["grid", "bhm"])
+def test_a_baseline_window_without_data_warns_as_map_does(tmp_path: Path, command) -> None:
+    result = runner.invoke(app, [command, str(SAMPLE), "--config", str(SAMPLE_CONFIG),
+                                 "--resolution", "0.5", "--bounds", "500", "500", "510",
+                                 "510", "--out", str(tmp_path / "far")])
+    assert result.exit_code == 0, result.output
+    assert "warning: every cell of the map is nodata" in result.stderr
+    near = runner.invoke(app, [command, str(SAMPLE), "--config", str(SAMPLE_CONFIG),
+                               "--resolution", "0.5", "--out", str(tmp_path / "near")])
+    assert near.exit_code == 0 and "nodata" not in near.stderr

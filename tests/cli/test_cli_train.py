@@ -204,6 +204,12 @@ def test_a_log_given_twice_under_two_names_is_warned_about(tmp_path):
     info = invoke("info", SAMPLE, copy, "--config", SAMPLE_CONFIG)
     assert info.exit_code == 0, info.output
     assert f"warning: {copy} has the same content as {SAMPLE}" in info.stderr
+    # Placed apart by the config's inputs entries: one log twice on a site, no warning.
+    site = tmp_path / "site.yaml"
+    site.write_text(Path(SAMPLE_CONFIG).read_text()
+                    + "\ninputs: [{path: copy.mcap, transform: {x_m: 100.0}}]\n")
+    apart = invoke("info", SAMPLE, copy, "--config", site)
+    assert "same content" not in apart.stderr
     twice = runner.invoke(app, ["info", str(SAMPLE), str(SAMPLE), "--config",
                                 str(SAMPLE_CONFIG)])
     assert twice.exit_code == 2 and "given twice; pass each input once" in twice.stderr

@@ -684,3 +684,30 @@ def test_rows_of_the_pool_are_checked_in_blocks(logs, tmp_path, monkeypatch):
     arrays, _ = _raw_arrays(tmp_path / "changed.npz")
     assert "sample_index" not in arrays
     np.testing.assert_array_equal(arrays["covariances"], covariances)
+
+
+def test_an_inputs_entry_matches_by_trailing_folders_and_a_stray_one_is_noted(tmp_path,
+                                                                              capsys):
+    """An entry written relative to the config's folder (``o/room.log``) names the input
+    wherever the job runs from; an entry that names no input says so (its transform
+    applied to nothing, silently)."""
+    from gpocc.io.frames import entry_matches
+
+    assert entry_matches("o/room.log", Path("/data/site/o/room.log"))
+    assert entry_matches("room*.log", Path("x/room_2.log"))
+    assert entry_matches("site/*/room.log", Path("/data/site/o/room.log"))
+    assert not entry_matches("p/room.log", Path("/data/site/o/room.log"))
+    assert not entry_matches("room.log", Path("/data/site/o/room.log.bak"))
+    frame = TransformConfig(x_m=2.0, y_m=-1.5, yaw_deg=35.0)
+    (tmp_path / "o").mkdir()
+    world = write_log(tmp_path / "room_w.log", 8, door_closed=True)
+    other = write_log(tmp_path / "o" / "room.log", 8, door_closed=True, frame=frame)
+    (tmp_path / "job.yaml").write_text(
+        "inputs: [{path: o/room.log, transform: {x_m: 2.0, y_m: -1.5, yaw_deg: 35.0}},\n"
+        "         {path: gone.log, transform: {x_m: 9.0}}]\n")
+    cfg = load_config(tmp_path / "job.yaml")
+    moved, direct = read_inputs([other, world], cfg)
+    np.testing.assert_allclose(moved.poses, direct.poses, atol=2e-6)
+    err = capsys.readouterr().err
+    assert "inputs entry 'gone.log' matches none of these inputs" in err
+    assert "'o/room.log' matches none" not in err
