@@ -34,7 +34,7 @@ def _span(summary: InputSummary) -> str:
     # A CARMEN log's scans may be stamped by line order instead (see gpocc.io.carmen).
     which = " (logger stamps)" if summary.format == "carmen" else ""
     return (f"time span{which}: {summary.start_s:.3f} .. {summary.end_s:.3f} s "
-            f"({length:.1f} s)")
+            f"({length:.1f} s)" + (f"; {summary.clock_note}" if summary.clock_note else ""))
 
 
 def format_input(summary: InputSummary) -> list[str]:

@@ -43,6 +43,9 @@ class CarmenContents:
     counts: dict[str, int]
     start_s: float | None
     end_s: float | None
+    #: Scan lines whose logger stamp does not increase (the scans are then timed by line
+    #: order, scan k at k seconds: :func:`read_carmen`).
+    out_of_order: int = 0
 
 
 def _flaser_bearings(n: int) -> np.ndarray:
@@ -90,6 +93,7 @@ def describe_carmen(path: str | Path) -> CarmenContents:
     path = Path(path)
     counts: Counter[str] = Counter()
     stamps: list[float] = []
+    by_type: dict[str, list[float]] = {"FLASER": [], "ROBOTLASER1": []}
     for line in _lines(path):
         # Only the first and last tokens matter: splitting whole lines took 0.04 s of
         # every Intel job (and its reader splits them again).
@@ -100,12 +104,17 @@ def describe_carmen(path: str | Path) -> CarmenContents:
         if head[0] in ("FLASER", "ROBOTLASER1"):
             try:
                 stamps.append(float(line.rsplit(None, 1)[-1]))
+                by_type[head[0]].append(stamps[-1])
             except ValueError:
                 pass
+    # Per line type: a log may write a FLASER and a ROBOTLASER1 line of one scan.
+    disorder = [int(np.count_nonzero(~(np.diff(np.asarray(v)) > 0)))
+                for v in by_type.values() if v]
     return CarmenContents(
         counts=dict(counts),
         start_s=min(stamps) if stamps else None,
         end_s=max(stamps) if stamps else None,
+        out_of_order=min(disorder, default=0),
     )
 
 

@@ -48,6 +48,7 @@ class InputSummary:
     start_s: float | None
     end_s: float | None
     frames: tuple[tuple[str, str, str], ...] = ()  # see BagContents.frames
+    clock_note: str = ""  # how the scans are timed when not by the span's clock
 
     @property
     def format_name(self) -> str:
@@ -111,7 +112,11 @@ def describe_input(path: str | Path) -> InputSummary:
             TopicSummary(name, f"carmen/{name}", count)
             for name, count in sorted(contents.counts.items())
         )
-        return InputSummary(path, fmt, topics, contents.start_s, contents.end_s)
+        n = contents.out_of_order
+        note = (f"{n} logger stamp{' does' if n == 1 else 's do'} not increase, so scans "
+                "are timed by line order (scan k at k s)" if n else "")
+        return InputSummary(path, fmt, topics, contents.start_s, contents.end_s,
+                            clock_note=note)
     bag = bags.describe_bag(path)
     return InputSummary(path, fmt, bag.topics, bag.start_s, bag.end_s, bag.frames)
 

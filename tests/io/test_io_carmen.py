@@ -66,6 +66,24 @@ def test_stamps_fall_back_to_line_order(tmp_path: Path) -> None:
     np.testing.assert_array_equal(batch.stamps, [0.0, 1.0, 2.0])
 
 
+def test_describe_says_when_the_scans_are_timed_by_line_order(tmp_path: Path) -> None:
+    """`gpocc info` printed the logger stamps' span while every command timed the scans
+    by line order; a FLASER and a ROBOTLASER1 line of one scan (equal stamps) are not
+    out of order."""
+    lines = [_flaser([1.0] * 6, (0, 0, 0), t) for t in (5.0, 4.0, 6.0)]
+    assert describe_carmen(_write(tmp_path, lines)).out_of_order == 1
+    robot = ("ROBOTLASER1 0 -1.0 2.0 1.0 20.0 0.01 0 3 1.5 25.0 2.5 2 0.1 0.2 "
+             "3.0 4.0 0.5 2.9 4.0 0.5 0 0 0 0 0 {t} host {t}")
+    both = [line for t in (1.0, 2.0, 3.0)
+            for line in (_flaser([1.0] * 6, (0, 0, 0), t), robot.format(t=t))]
+    assert describe_carmen(_write(tmp_path, both, "both.log")).out_of_order == 0
+    from gpocc.cli import app
+    from typer.testing import CliRunner
+
+    shown = CliRunner().invoke(app, ["info", str(tmp_path / "lab.log")])
+    assert "1 logger stamp does not increase, so scans are timed by line order" in shown.output
+
+
 def test_config_range_limits_and_odd_beam_count(tmp_path: Path) -> None:
     sensor = SensorConfig(range_min_m=0.2, range_max_m=30.0)
     batch = read_carmen(_write(tmp_path, [_flaser([1.0] * 181, (0, 0, 0), 1.0)]), sensor)
