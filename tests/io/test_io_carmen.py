@@ -77,8 +77,9 @@ def test_describe_says_when_the_scans_are_timed_by_line_order(tmp_path: Path) ->
     both = [line for t in (1.0, 2.0, 3.0)
             for line in (_flaser([1.0] * 6, (0, 0, 0), t), robot.format(t=t))]
     assert describe_carmen(_write(tmp_path, both, "both.log")).out_of_order == 0
-    from gpocc.cli import app
     from typer.testing import CliRunner
+
+    from gpocc.cli import app
 
     shown = CliRunner().invoke(app, ["info", str(tmp_path / "lab.log")])
     assert "1 logger stamp does not increase, so scans are timed by line order" in shown.output
