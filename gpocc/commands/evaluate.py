@@ -63,9 +63,14 @@ def evaluate(
     names = unique_names([n for n, _ in located], list(maps))
     points, labels, kinds = load_truth_kinds(ground_truth)
     stated = None
+    relabelling = None
     if labels_from is not None:
+        given = len(points)
         points, labels, kinds, stated = _relabelled(points, labels, kinds, labels_from,
                                                     ground_truth)
+        relabelling = {"raster": str(labels_from),
+                       "relabelled": int(np.count_nonzero(stated != labels)),
+                       "left_out": given - len(points)}
     n_occupied = int(np.count_nonzero(labels == 1))
     n_free = int(labels.size - n_occupied)
     if n_occupied == 0 or n_free == 0:
@@ -96,7 +101,8 @@ def evaluate(
     typer.echo(results_table(scored))
     if out is not None:
         write_outputs(out, force, results, list(maps), ground_truth, labels, scored,
-                      kind_summary(names, sampled, labels, kinds))
+                      kind_summary(names, sampled, labels, kinds),
+                      labels_from=relabelling)
         log(f"wrote {out}/roc.png, reliability.png, roc.csv, results.json, results.md")
 
 

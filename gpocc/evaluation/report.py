@@ -13,6 +13,7 @@ import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -242,10 +243,16 @@ CALIBRATION_NOTE = (
 
 
 def results_markdown(results: list[RocResult], truth: Path, n_occupied: int, n_free: int,
-                     protocols: list[ProtocolResults] | None = None) -> str:
+                     protocols: list[ProtocolResults] | None = None,
+                     labels_from: dict[str, Any] | None = None) -> str:
     """The results as a markdown table, with the ground truth named above it; with
-    several ``protocols``, one table per protocol (``results`` is then the last, union)."""
+    several ``protocols``, one table per protocol (``results`` is then the last, union);
+    ``labels_from`` as :func:`write_outputs`'."""
     lines = [f"Ground truth: `{truth}` ({n_occupied} occupied, {n_free} free points)"]
+    if labels_from:
+        lines[0] += (f", labelled by `{labels_from['raster']}` ({labels_from['relabelled']} "
+                     f"relabelled, {labels_from['left_out']} on its unknown cells or "
+                     "outside it left out)")
     groups = protocols if protocols and len(protocols) > 1 else [
         ProtocolResults(ALL, n_occupied, n_free, results)]
     for g in groups:
@@ -295,11 +302,13 @@ def write_outputs(
     labels: np.ndarray,
     protocol_results: list[ProtocolResults] | None = None,
     kinds: dict[str, dict] | None = None,
+    labels_from: dict[str, Any] | None = None,
 ) -> None:
     """roc.png, reliability.png, roc.csv, results.json and results.md in a new folder,
     atomically. ``results`` score every truth point (the union); results.json's
     ``protocols`` holds every protocol's (:func:`score_protocols`) and ``kinds`` the
-    per-kind summary (:func:`kind_summary`)."""
+    per-kind summary (:func:`kind_summary`); ``labels_from``: the truth raster that
+    labelled the points (``raster``, ``relabelled`` and ``left_out`` counts), or None."""
     n_occupied = int(np.count_nonzero(labels == 1))
     n_free = int(labels.size - n_occupied)
     with atomic_directory(out, force=force) as tmp:
@@ -317,6 +326,7 @@ def write_outputs(
                 )
         summary = {
             "ground_truth": str(truth),
+            "labels_from": labels_from,
             "n_points": int(labels.size),
             "n_occupied": n_occupied,
             "n_free": n_free,
@@ -334,4 +344,5 @@ def write_outputs(
         }
         (tmp / RESULTS_FILE).write_text(json.dumps(summary, indent=2) + "\n")
         (tmp / "results.md").write_text(
-            results_markdown(results, truth, n_occupied, n_free, protocol_results))
+            results_markdown(results, truth, n_occupied, n_free, protocol_results,
+                             labels_from))

@@ -112,6 +112,11 @@ def test_evaluate_labels_from_scores_the_truths_labels_like_sklearn(tmp_path):
     relabelled = int((labels[known] != stated[known]).sum())
     assert f"{relabelled} of {int(known.sum())} points relabelled" in result.output
     assert f"{int((~known).sum())} on unknown cells or outside it left out" in result.output
+    # The files say so too: results.json and results.md, not only stderr.
+    assert summary["labels_from"] == {"raster": str(truth), "relabelled": relabelled,
+                                      "left_out": int((~known).sum())}
+    assert (f"labelled by `{truth}` ({relabelled} relabelled, {int((~known).sum())} on"
+            in (out / "results.md").read_text())
     # Protocols keep their kinds whatever the truth says of a point: a hit the truth
     # calls free stays in hits+free and hits+near-wall.
     y, p, k = labels[known], p[known], kinds[known]
