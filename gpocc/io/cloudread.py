@@ -170,6 +170,14 @@ class CloudCollector:
             raise GpoccError(
                 f"{where}: no TF chain from sensors[].base_frame '{base}' to the cloud's frame "
                 f"'{frame}'; set base_frame to a frame TF connects to it")
+        if any(upward and not edge.static for edge, upward in inner.steps):
+            # Up from the base through a moving edge: the cloud is in the world (a
+            # registered cloud), and its frame's origin is not the sensor's.
+            raise GpoccError(
+                f"{where}: the cloud's frame '{frame}' is not on the robot: TF reaches it from "
+                f"the base frame '{base}' only through the robot's motion ({inner.describe()}),"
+                " as for a registered cloud in the map frame; give the lidar's own cloud "
+                "topic, in its sensor frame")
         self.base, self.inner, self.scans.frame_id = base, inner, plane_frame(frame)
         self.outer, _ = find_chain(tf, sensor, base)
         self.yaw_only = self.outer is not None and all(

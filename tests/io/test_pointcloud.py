@@ -369,3 +369,23 @@ def test_a_masked_sector_of_a_spinning_lidar_is_never_cleared(tmp_path):
     front = np.abs(batch.angles) < math.radians(164)
     assert back.any() and np.isnan(batch.ranges[:, back]).all()
     assert np.isfinite(batch.ranges[:, front]).mean() > 0.9  # the room's walls
+
+
+def test_a_registered_cloud_in_the_map_frame_is_refused(tmp_path):
+    """A cloud already in the map frame (a lidar odometry's registered cloud) was taken
+    with the map's origin as the sensor, beams cast from the map's corner."""
+    from cloud_scenes import add_cloud, base_rotation, pack_cloud, scan_cloud, tf_item
+
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
+    bag = BagWriter("mcap")
+    for t in np.arange(0.0, 6.0, 1 / 30):
+        x, y, yaw = base_path(np.array([t]))[0]
+        bag.tf("/tf", T0 + t, [tf_item("map", "base_footprint", (x, y, 0.0),
+                                       base_rotation(yaw, 0.0))])
+    rng = np.random.default_rng(0)
+    for t, pose in zip(run.cloud_t, base_path(run.cloud_t), strict=True):
+        add_cloud(bag, "/cloud_registered", "map", T0 + t,
+                  pack_cloud(scan_cloud(run.world, run.lidar, pose, rng), run.layout))
+    path = bag.write(tmp_path / "registered.mcap")
+    with pytest.raises(GpoccError, match=r"the cloud's frame 'map' is not on the robot"):
+        read_inputs([path], Config())
