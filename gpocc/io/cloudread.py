@@ -121,6 +121,9 @@ class CloudCollector:
     bins_source: str = ""
     origins: list[np.ndarray] = field(default_factory=list)
     unposed: int = 0
+    #: Clouds of fewer than MIN_BINS points before the first fuller one: skipped, as they
+    #: would set the bins (and so the scan) of the whole topic.
+    too_small: int = 0
     #: base <- lidar when every edge between them is static: looked up once.
     mount: tuple[np.ndarray, np.ndarray] | None = None
     #: Every rotation on the chain map -> base is a yaw (a planar robot's TF): the base
@@ -210,6 +213,9 @@ class CloudCollector:
         where = f"{self.path}: topic {self.topic} at t={t:.6f} s"
         cloud = decode_cloud(msg, where)
         frame = frame_name(msg.header.frame_id)
+        if self.inner is None and cloud.n_points < MIN_BINS:
+            self.too_small += 1  # a driver's first, partial clouds
+            return
         if self.inner is None:
             self._start(frame, cloud)
         elif plane_frame(frame) != self.scans.frame_id:
@@ -304,6 +310,9 @@ class CloudCollector:
             GpoccError: no clouds, or none with TF from the base frame at its stamp.
         """
         where = f"{self.path}: topic {self.topic}"
+        if self.inner is None and self.too_small:
+            raise GpoccError(f"{where}: none of its {self.too_small} clouds has {MIN_BINS} "
+                             "points or more; check the driver, or pick another scan_topic")
         if self.inner is None:
             raise GpoccError(f"{where} has no messages; pick another scan_topic")
         if not self.scans.stamps:
@@ -368,6 +377,9 @@ class CloudCollector:
         if self.unposed:
             lines.append(f"  {self.unposed} clouds without TF from '{self.base}' at their stamp "
                          "skipped")
+        if self.too_small:
+            lines.append(f"  {self.too_small} clouds of fewer than {MIN_BINS} points before the "
+                         "first fuller one skipped (they would set the bearing bins)")
         return tuple(lines)
 
     def _floor_hint(self) -> list[str]:

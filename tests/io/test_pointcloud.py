@@ -389,3 +389,24 @@ def test_a_registered_cloud_in_the_map_frame_is_refused(tmp_path):
     path = bag.write(tmp_path / "registered.mcap")
     with pytest.raises(GpoccError, match=r"the cloud's frame 'map' is not on the robot"):
         read_inputs([path], Config())
+
+
+def test_a_partial_first_cloud_does_not_set_the_bins(tmp_path):
+    """A driver's first cloud of a point or two set 36 bins of 10 degrees for the whole
+    topic (its layout); clouds before the first one of MIN_BINS points are skipped."""
+    from cloud_scenes import add_cloud, pack_cloud, scan_cloud
+
+    from gpocc.io.cloudread import MIN_BINS
+
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
+    [full] = read_inputs([write_run(tmp_path / "full", run)], Config())
+    bag = BagWriter("mcap")
+    run.write(bag)
+    pts = scan_cloud(run.world, run.lidar, base_path(np.array([0.2]))[0],
+                     np.random.default_rng(1))
+    add_cloud(bag, "/velodyne_points", "velodyne", T0 + 0.2,
+              pack_cloud(pts[:1, :1], run.layout))
+    [batch] = read_inputs([bag.write(tmp_path / "partial.mcap")], Config())
+    assert batch.n_beams == full.n_beams > MIN_BINS
+    assert batch.n_scans == full.n_scans
+    np.testing.assert_array_equal(batch.ranges, full.ranges)
