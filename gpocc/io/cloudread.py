@@ -316,10 +316,14 @@ class CloudCollector:
         if self.inner is None:
             raise GpoccError(f"{where} has no messages; pick another scan_topic")
         if not self.scans.stamps:
+            once = next((e for e, _ in self.inner.steps if not e.static and e.stamps.size < 2),
+                        None)
+            fix = (f"TF {once.label()} on {once.topic} has {once.stamps.size} message: publish "
+                   "a mount that never changes on /tf_static" if once is not None else
+                   "check the TF stamps or raise sensors[].max_pose_gap_s")
             raise GpoccError(
                 f"{where}: none of its {self.unposed} clouds has TF from '{self.base}' to the "
-                f"cloud's frame within max_pose_gap_s={self.sensor.max_pose_gap_s} s; check "
-                "the TF stamps or raise sensors[].max_pose_gap_s")
+                f"cloud's frame within max_pose_gap_s={self.sensor.max_pose_gap_s} s; {fix}")
         assert self.tf is not None
         edge = self.plane_edge()
         tf = TfBuffer({**self.tf.edges, edge.child: edge}, dict(self.tf.conflicts),

@@ -410,3 +410,23 @@ def test_a_partial_first_cloud_does_not_set_the_bins(tmp_path):
     assert batch.n_beams == full.n_beams > MIN_BINS
     assert batch.n_scans == full.n_scans
     np.testing.assert_array_equal(batch.ranges, full.ranges)
+
+
+def test_a_lidar_mount_published_once_on_tf_is_named(tmp_path):
+    from cloud_scenes import add_cloud, base_rotation, pack_cloud, scan_cloud, tf_item
+
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
+    bag = BagWriter("mcap")
+    for t in np.arange(0.0, 6.0, 1 / 30):
+        x, y, yaw = base_path(np.array([t]))[0]
+        bag.tf("/tf", T0 + t, [tf_item("map", "base_footprint", (x, y, 0.0),
+                                       base_rotation(yaw, 0.0))])
+    bag.tf("/tf", T0, [tf_item("base_footprint", "velodyne", run.lidar.xyz,
+                               run.lidar.rotation)])
+    rng = np.random.default_rng(0)
+    for t, pose in zip(run.cloud_t, base_path(run.cloud_t), strict=True):
+        add_cloud(bag, "/velodyne_points", "velodyne", T0 + t,
+                  pack_cloud(scan_cloud(run.world, run.lidar, pose, rng), run.layout))
+    with pytest.raises(GpoccError, match=r"TF base_footprint->velodyne on /tf has 1 message: "
+                                         r"publish a mount that never changes on /tf_static$"):
+        read_inputs([bag.write(tmp_path / "once.mcap")], Config())
