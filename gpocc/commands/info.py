@@ -160,9 +160,17 @@ def format_model(path: Path, model: GPModel) -> list[str]:
                                                       else f"{len(on_bounds)} ({GUIDE_SECTION})"))
     lines += [f"    {b.message()}" for b in on_bounds]
     if "log_marginal_likelihood" in training:
+        kept = training.get("hyperparameters") == "kept"  # gpocc update --keep
         lines.append(f"  log marginal likelihood: {training['log_marginal_likelihood']:.3f} "
-                     f"({training.get('evaluations', '?')} evaluations"
-                     + patch_summary(training) + ")")
+                     + ("(kept by the last update with the hyperparameters, from training on "
+                        "the earlier logs' patches)" if kept else
+                        f"({training.get('evaluations', '?')} evaluations"
+                        + patch_summary(training) + ")"))
+    updates = training.get("updates") or []
+    if updates:
+        lines.append(f"  updates: {len(updates)} (" + "; ".join(
+            f"{len(u.get('inputs', []))} input(s), hyperparameters {u.get('hyperparameters')}"
+            for u in updates) + ")")
     lines.append("  training time: " + (
         ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
         + f" (total {sum(timings.values()):.1f} s)" if timings else "(not recorded)"))

@@ -142,9 +142,13 @@ def echo_model(model: GPModel, out: Path, seconds: float | None) -> None:
     typer.echo(f"input noise: {'on' if model.input_noise else 'off'}")
     typer.echo("kernel: " + ", ".join(f"{k}={v}" for k, v in params.items()))
     typer.echo(f"noise_variance: {model.noise_variance:.6g}")
-    typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
-               f"(initial {model.training['initial_log_marginal_likelihood']:.3f}"
-               + patch_summary(model.training) + ")")
+    if model.training.get("hyperparameters") == "kept":  # gpocc update --keep
+        typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
+                   "(kept with the hyperparameters: the model's own, on its own patches)")
+    else:
+        typer.echo(f"log marginal likelihood: {model.training['log_marginal_likelihood']:.3f} "
+                   f"(initial {model.training['initial_log_marginal_likelihood']:.3f}"
+                   + patch_summary(model.training) + ")")
     if model.input_noise_scale != 1.0:
         part = model.config.model.training.input_noise_scale_part
         typer.echo(f"input noise scale (learned): {model.input_noise_scale:.4g}"

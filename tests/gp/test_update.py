@@ -230,13 +230,16 @@ def test_relearn_and_keep_together_are_one_error_line(logs, tmp_path):
 
 def test_kept_hyperparameters_ids_and_sensors_continue(logs, tmp_path):
     train_a(logs, tmp_path)
-    gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--keep",
-          "--out", str(tmp_path / "ab.npz"))
+    kept = gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--keep",
+                 "--out", str(tmp_path / "ab.npz")).output
     c = write_log(tmp_path / "room_a_again.log", 6, door_closed=False, start=200.0)
     gpocc("update", str(tmp_path / "ab.npz"), str(c), "--out", str(tmp_path / "abc.npz"))
     a, ab, abc = (load_model(tmp_path / n) for n in ("a.npz", "ab.npz", "abc.npz"))
     if ab.training["hyperparameters"] == "kept":
         assert ab.kernel == a.kernel and ab.input_noise_scale == a.input_noise_scale
+        # Its likelihood is A's, on A's patches: said so, not shown as the update's own.
+        assert "(kept with the hyperparameters: the model's own, on its own patches)" in kept
+        assert "(kept by the last update" in gpocc("info", str(tmp_path / "ab.npz")).output
     # Without sensors in the config a CARMEN log's sensor is its file stem: B and C add
     # sensors after A's, and their scan ids follow all scans read before.
     assert abc.samples.sensor_names == ("room_a", "room_b", "room_a_again")
@@ -254,6 +257,10 @@ def test_kept_hyperparameters_ids_and_sensors_continue(logs, tmp_path):
                                direct.covariances * abc.input_noise_scale, rtol=1e-12)
     info = gpocc("info", str(tmp_path / "abc.npz")).output
     assert "room_b.log: 10 scans, time span 100.000 .. 109.000 s" in info
+    labels = [u["hyperparameters"] for u in abc.training["updates"]]
+    assert labels[0] == ab.training["hyperparameters"]
+    assert (f"updates: 2 (1 input(s), hyperparameters {labels[0]}; 1 input(s), "
+            f"hyperparameters {labels[1]})") in info
 
 
 def test_coverage_union_is_the_coverage_of_all_segments():
