@@ -370,7 +370,14 @@ def _install(tmp: Path, target: Path, force: bool) -> None:
         ) from None
 
 
-def _prepare(target: Path) -> None:
+def _prepare(target: Path) -> list[Path]:
+    """Create ``target``'s missing parent folders and claim it; the folders created,
+    innermost first (removed again if the output is never installed)."""
+    missing = []
+    folder = target.parent
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
     if not target.parent.is_dir():
         _check_ancestor(target)
     try:
@@ -378,6 +385,17 @@ def _prepare(target: Path) -> None:
     except OSError as exc:
         raise _write_error(target, exc) from None
     claim_output(target)
+    return missing
+
+
+def _remove_if_empty(folders: list[Path]) -> None:
+    """Remove each of ``folders`` (innermost first) that is empty: a run that wrote
+    nothing leaves no folders it created."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (another run's output), or already gone
+            return
 
 
 @contextlib.contextmanager
@@ -388,7 +406,8 @@ def _claimed_temporary(path: str | os.PathLike[str], force: bool, folder: bool
     The temporary is removed on any exit; the claim is released.
     """
     target = Path(path)
-    _prepare(target)
+    created = _prepare(target)
+    installed = False
     try:
         _refuse_existing(target, force, folder=folder)
         prefix = f".{target.name}{_TMP}{os.getpid()}-"
@@ -406,6 +425,7 @@ def _claimed_temporary(path: str | os.PathLike[str], force: bool, folder: bool
             yield tmp
             os.chmod(tmp, (0o777 if folder else 0o666) & ~_umask())
             _install(tmp, target, force)
+            installed = True
         except OSError as exc:
             raise _write_error(target, exc) from None
         except GpoccError as exc:
@@ -420,6 +440,8 @@ def _claimed_temporary(path: str | os.PathLike[str], force: bool, folder: bool
                 tmp.unlink(missing_ok=True)
     finally:
         release_claim(target)
+        if not installed:
+            _remove_if_empty(created)
 
 
 @contextlib.contextmanager

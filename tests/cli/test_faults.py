@@ -382,3 +382,22 @@ def test_outputs_take_the_umask_without_the_umask_being_set(tmp_path, monkeypatc
         os.umask(previous)
     assert (tmp_path / "layer.tif").stat().st_mode & 0o777 == 0o640
     assert (tmp_path / "model.npz").stat().st_mode & 0o777 == 0o640
+
+
+def test_a_failed_run_removes_the_folders_it_created_for_its_output(model_path, tmp_path,
+                                                                     monkeypatch):
+    """An interrupted or failed map under new folders left them behind, empty; folders
+    that existed before, or hold anything else, stay."""
+    import gpocc.mapping.folder as folder
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(folder, "write_geotiff", interrupted)
+    (tmp_path / "kept").mkdir()
+    out = tmp_path / "kept" / "n1" / "n2" / "map"
+    result = runner.invoke(app, ["map", str(model_path), "--resolution", "0.3",
+                                 "--out", str(out)])
+    assert result.exit_code == 130, result.output
+    assert list(tmp_path.iterdir()) == [tmp_path / "kept"]
+    assert list((tmp_path / "kept").iterdir()) == []
