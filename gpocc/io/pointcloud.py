@@ -127,6 +127,8 @@ def decode_cloud(msg: Any, where: str) -> Cloud:
     endian = ">" if msg.is_bigendian else "<"
     fields = {f.name: f for f in msg.fields}
     names = tuple(f.name for f in msg.fields)
+    if not names and height * width == 0:  # a default-constructed, empty message
+        return Cloud(np.zeros((0, 3), np.float32), 0, height, width, names)
     for axis in ("x", "y", "z"):
         f = fields.get(axis)
         if f is None:

@@ -106,6 +106,14 @@ def test_decode_errors_name_the_field():
     with pytest.raises(GpoccError, match="cut off"):
         decode_cloud(SimpleNamespace(**{**base, "width": 2}, fields=[
             _field("x", 0, 7), _field("y", 4, 7), _field("z", 8, 7)]), "b")
+    # A default-constructed PointCloud2 (no fields, no points) is an empty cloud, skipped
+    # as others are, not a reason to refuse the whole topic.
+    empty = decode_cloud(SimpleNamespace(height=0, width=0, point_step=0, row_step=0,
+                                         is_bigendian=False, data=np.zeros(0, np.uint8),
+                                         fields=[]), "b")
+    assert empty.n_points == 0 and empty.points.shape == (0, 3)
+    with pytest.raises(GpoccError, match="no field x"):  # fields missing, points present
+        decode_cloud(SimpleNamespace(**base, fields=[]), "b")
 
 
 # --------------------------------------------------------------------------- projection
