@@ -124,6 +124,8 @@ class CloudCollector:
     #: Clouds of fewer than MIN_BINS points before the first fuller one: skipped, as they
     #: would set the bins (and so the scan) of the whole topic.
     too_small: int = 0
+    #: Clouds without a header.frame_id before the first one with it: skipped.
+    unframed: int = 0
     #: base <- lidar when every edge between them is static: looked up once.
     mount: tuple[np.ndarray, np.ndarray] | None = None
     #: Every rotation on the chain map -> base is a yaw (a planar robot's TF): the base
@@ -213,6 +215,11 @@ class CloudCollector:
         where = f"{self.path}: topic {self.topic} at t={t:.6f} s"
         cloud = decode_cloud(msg, where)
         frame = frame_name(msg.header.frame_id)
+        if not frame and self.inner is not None:  # as a LaserScan's: the topic's frame
+            frame = self.scans.frame_id.rsplit(":", 1)[0]
+        if not frame:  # before any cloud with a frame: nothing places it on the robot
+            self.unframed += 1
+            return
         if self.inner is None and cloud.n_points < MIN_BINS:
             self.too_small += 1  # a driver's first, partial clouds
             return
@@ -310,6 +317,10 @@ class CloudCollector:
             GpoccError: no clouds, or none with TF from the base frame at its stamp.
         """
         where = f"{self.path}: topic {self.topic}"
+        if self.inner is None and self.unframed:
+            raise GpoccError(f"{where}: none of its {self.unframed} clouds has a "
+                             "header.frame_id, so TF cannot place the lidar on the robot; fix "
+                             "the driver's frame_id")
         if self.inner is None and self.too_small:
             raise GpoccError(f"{where}: none of its {self.too_small} clouds has {MIN_BINS} "
                              "points or more; check the driver, or pick another scan_topic")
@@ -381,6 +392,9 @@ class CloudCollector:
         if self.unposed:
             lines.append(f"  {self.unposed} clouds without TF from '{self.base}' at their stamp "
                          "skipped")
+        if self.unframed:
+            lines.append(f"  {self.unframed} clouds without a header.frame_id before the first "
+                         "one with it skipped")
         if self.too_small:
             lines.append(f"  {self.too_small} clouds of fewer than {MIN_BINS} points before the "
                          "first fuller one skipped (they would set the bearing bins)")

@@ -438,3 +438,27 @@ def test_a_lidar_mount_published_once_on_tf_is_named(tmp_path):
     with pytest.raises(GpoccError, match=r"TF base_footprint->velodyne on /tf has 1 message: "
                                          r"publish a mount that never changes on /tf_static$"):
         read_inputs([bag.write(tmp_path / "once.mcap")], Config())
+
+
+def test_clouds_without_a_frame_id_take_the_topics_or_are_one_error(tmp_path):
+    """As for LaserScan: a cloud whose header.frame_id is empty takes the topic's frame;
+    those before the first cloud with a frame are skipped; none with a frame is one
+    error line naming the driver's frame_id (it said to record a mount for frame '')."""
+    from cloud_scenes import add_cloud, pack_cloud, scan_cloud
+
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 2.31, 4.31, 6.31]))
+
+    rng = np.random.default_rng(0)
+    clouds = [pack_cloud(scan_cloud(run.world, run.lidar, pose, rng), run.layout)
+              for pose in base_path(run.cloud_t)]
+    paths = {}
+    for name, frames in (("mixed", ["", "velodyne", "", "velodyne"]), ("none", [""] * 4)):
+        bag = BagWriter("mcap")
+        LidarRun(room(), Lidar(), cloud_t=np.zeros(0)).write(bag)
+        for t, frame, cloud in zip(run.cloud_t, frames, clouds, strict=True):
+            add_cloud(bag, "/velodyne_points", frame, T0 + t, cloud)
+        paths[name] = bag.write(tmp_path / f"{name}.mcap")
+    [batch] = read_inputs([paths["mixed"]], Config())
+    assert batch.n_scans == 3  # the first, frameless, skipped; the third takes 'velodyne'
+    with pytest.raises(GpoccError, match=r"none of its 4 clouds has a header.frame_id"):
+        read_inputs([paths["none"]], Config())
