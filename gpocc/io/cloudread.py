@@ -163,8 +163,12 @@ class CloudCollector:
             if body is not None and body != frame and chain is not None and chain.steps:
                 base = body
             else:
+                # base_footprint itself too: a cloud already moved into it (a filter's
+                # output) is taken as seen from the base's origin, as one in base_link
+                # above it already was. (A lidar frame that TF moves is not a base.)
                 base = next((b for b in ("base_footprint", "base_link")
-                             if tf.chain(b, frame) is not None and b != frame), None)
+                             if tf.chain(b, frame) is not None
+                             and (b != frame or b == "base_footprint")), None)
         if base is None:
             raise GpoccError(
                 f"{where}: cannot tell the robot's base frame under the cloud's frame "

@@ -462,3 +462,29 @@ def test_clouds_without_a_frame_id_take_the_topics_or_are_one_error(tmp_path):
     assert batch.n_scans == 3  # the first, frameless, skipped; the third takes 'velodyne'
     with pytest.raises(GpoccError, match=r"none of its 4 clouds has a header.frame_id"):
         read_inputs([paths["none"]], Config())
+
+
+def test_a_cloud_already_in_the_base_frame_is_mapped(tmp_path):
+    """A filter's output in base_footprint (the frame TF moves) was refused as having no
+    base frame under it; it is taken as seen from the base's origin, as a cloud in
+    base_link already was."""
+    from cloud_scenes import add_cloud, base_rotation, pack_cloud, scan_cloud, tf_item
+
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
+    bag = BagWriter("mcap")
+    for t in np.arange(0.0, 6.0, 1 / 30):
+        x, y, yaw = base_path(np.array([t]))[0]
+        bag.tf("/tf", T0 + t, [tf_item("map", "base_footprint", (x, y, 0.0),
+                                       base_rotation(yaw, 0.0))])
+    rng = np.random.default_rng(0)
+    for t, pose in zip(run.cloud_t, base_path(run.cloud_t), strict=True):
+        pts = scan_cloud(run.world, run.lidar, pose, rng)
+        shape = pts.shape
+        in_base = run.lidar.rotation.apply(pts.reshape(-1, 3)) + np.asarray(run.lidar.xyz)
+        add_cloud(bag, "/velodyne_points", "base_footprint", T0 + t,
+                  pack_cloud(in_base.reshape(shape), run.layout))
+    [batch] = read_inputs([bag.write(tmp_path / "in_base.mcap")], Config())
+    assert batch.n_scans == 2
+    p = hits(batch)
+    off = np.where(inside(p, TABLE), 0.0, obstacle_distance(p, OBSTACLES))
+    assert np.median(off) < 0.02
