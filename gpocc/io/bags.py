@@ -505,7 +505,8 @@ def read_bag(path: str | Path, sensors: Sequence[SensorConfig]) -> list[ScanBatc
                 msg = reader.deserialize(raw, conn.msgtype)
                 # The header stamp, else the log time: a cloud is projected with the TF at
                 # its time as it is read, before the topic's clock could be judged whole.
-                cloud_acc[conn.topic].add(msg, _stamp(msg) or record_ns * 1e-9)
+                cloud_acc[conn.topic].add(msg, _stamp(msg) or record_ns * 1e-9,
+                                          record_ns * 1e-9)
     with _corruption_named(path):
         return [_assemble(path, s, scan_acc, cloud_acc, tfs[s.name], series,
                           series.get(odom_for[s.name]) if odom_for[s.name] else None)

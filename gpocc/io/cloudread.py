@@ -214,8 +214,10 @@ class CloudCollector:
         self.stats.layout = (f"organised {cloud.height} x {cloud.width}" if cloud.organised
                              else "unorganised")
 
-    def add(self, msg: Any, t: float) -> None:
-        """Decode, move into the base frame and project one cloud stamped ``t`` seconds."""
+    def add(self, msg: Any, t: float, log_time: float | None = None) -> None:
+        """Decode, move into the base frame and project one cloud stamped ``t`` seconds
+        (logged at ``log_time``: with it, the scans' clock is chosen as a LaserScan's,
+        :func:`gpocc.io.stamps.choose_stamps`)."""
         where = f"{self.path}: topic {self.topic} at t={t:.6f} s"
         cloud = decode_cloud(msg, where)
         frame = frame_name(msg.header.frame_id)
@@ -247,6 +249,8 @@ class CloudCollector:
         # no-return cleared free space through walls.
         ranges[~heard & np.isinf(ranges)] = np.nan
         self.scans.stamps.append(t)
+        if log_time is not None:
+            self.scans.log_times.append(log_time)
         self.scans.ranges.append(ranges)
         self.origins.append(translation)
         st = self.stats

@@ -488,3 +488,21 @@ def test_a_cloud_already_in_the_base_frame_is_mapped(tmp_path):
     p = hits(batch)
     off = np.where(inside(p, TABLE), 0.0, obstacle_distance(p, OBSTACLES))
     assert np.median(off) < 0.02
+
+
+def test_cloud_stamps_that_are_all_equal_fall_back_to_log_time(tmp_path, capsys):
+    """A driver that stamps every cloud alike posed every scan at the first one's pose;
+    clouds follow LaserScan's clock rules now."""
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 2.31, 4.31, 6.31]))
+    [ref] = read_inputs([write_run(tmp_path / "ref", run)], Config())
+    bag = BagWriter("mcap")
+    run.write(bag)
+    first = None
+    for _, topic, _, msg in bag.messages:
+        if topic == "/velodyne_points":
+            first = first or (msg.header.stamp.sec, msg.header.stamp.nanosec)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = first
+    [batch] = read_inputs([bag.write(tmp_path / "equal.mcap")], Config())
+    assert "all 4 header stamps are equal" in capsys.readouterr().err
+    np.testing.assert_allclose(batch.stamps, ref.stamps, atol=1e-6)
+    np.testing.assert_allclose(batch.poses, ref.poses, atol=1e-6)
