@@ -376,7 +376,9 @@ def _prepare(target: Path) -> list[Path]:
     missing = []
     folder = target.parent
     while not folder.exists() and folder != folder.parent:
-        missing.append(folder)
+        # 'a/new/..' is 'a', which existed: never one to remove.
+        if folder.name not in ("..", "."):
+            missing.append(folder)
         folder = folder.parent
     if not target.parent.is_dir():
         _check_ancestor(target)
@@ -395,7 +397,7 @@ def _remove_if_empty(folders: list[Path]) -> None:
         try:
             folder.rmdir()
         except OSError:  # not empty (another run's output), or already gone
-            return
+            continue
 
 
 @contextlib.contextmanager

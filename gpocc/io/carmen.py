@@ -107,14 +107,14 @@ def describe_carmen(path: str | Path) -> CarmenContents:
                 by_type[head[0]].append(stamps[-1])
             except ValueError:
                 pass
-    # Per line type: a log may write a FLASER and a ROBOTLASER1 line of one scan.
-    disorder = [int(np.count_nonzero(~(np.diff(np.asarray(v)) > 0)))
-                for v in by_type.values() if v]
+    # Of the line type the reader reads (FLASER where there are any: read_carmen); a log
+    # may write a FLASER and a ROBOTLASER1 line of one scan.
+    read = by_type["FLASER"] or by_type["ROBOTLASER1"]
     return CarmenContents(
         counts=dict(counts),
         start_s=min(stamps) if stamps else None,
         end_s=max(stamps) if stamps else None,
-        out_of_order=min(disorder, default=0),
+        out_of_order=int(np.count_nonzero(~(np.diff(np.asarray(read, dtype=float)) > 0))),
     )
 
 

@@ -225,8 +225,8 @@ def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
         block_size_m=cfg.model.block_size_m,
         # The anchors' spacing on this map: block_size_m rounded down to whole cells, so
         # maps of one model at two resolutions can differ where it does.
-        anchor_spacing_m=AnchorLattice.of_model(summary.spec, cfg.model).cells
-        * summary.spec.resolution,
+        anchor_spacing_m=round(AnchorLattice.of_model(summary.spec, cfg.model).cells
+                               * summary.spec.resolution, 9),
         blend_overlap=AnchorLattice.of_model(summary.spec, cfg.model).blend,
         tiles=summary.tiles,
         blocks=summary.blocks,

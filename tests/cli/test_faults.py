@@ -401,3 +401,8 @@ def test_a_failed_run_removes_the_folders_it_created_for_its_output(model_path, 
     assert result.exit_code == 130, result.output
     assert list(tmp_path.iterdir()) == [tmp_path / "kept"]
     assert list((tmp_path / "kept").iterdir()) == []
+    dotted = tmp_path / "kept" / "n1" / ".." / "n3" / "map"  # n1 is created, then left
+    result = runner.invoke(app, ["map", str(model_path), "--resolution", "0.3",
+                                 "--out", str(dotted)])
+    assert result.exit_code == 130, result.output
+    assert list((tmp_path / "kept").iterdir()) == []

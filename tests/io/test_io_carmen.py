@@ -77,6 +77,10 @@ def test_describe_says_when_the_scans_are_timed_by_line_order(tmp_path: Path) ->
     both = [line for t in (1.0, 2.0, 3.0)
             for line in (_flaser([1.0] * 6, (0, 0, 0), t), robot.format(t=t))]
     assert describe_carmen(_write(tmp_path, both, "both.log")).out_of_order == 0
+    # The reader reads FLASER lines where there are any: their order decides.
+    mixed = [line for t, u in ((1.0, 1.0), (3.0, 2.0), (2.0, 3.0))
+             for line in (_flaser([1.0] * 6, (0, 0, 0), t), robot.format(t=u))]
+    assert describe_carmen(_write(tmp_path, mixed, "mixed.log")).out_of_order == 1
     from typer.testing import CliRunner
 
     from gpocc.cli import app
