@@ -170,9 +170,13 @@ class CloudCollector:
                              if tf.chain(b, frame) is not None
                              and (b != frame or b == "base_footprint")), None)
         if base is None:
+            parents, edge = [], tf.edges.get(frame)
+            while edge is not None and edge.parent not in parents and edge.parent != frame:
+                parents.append(edge.parent)
+                edge = tf.edges.get(edge.parent)
             raise GpoccError(
                 f"{where}: cannot tell the robot's base frame under the cloud's frame "
-                f"'{frame}' (its TF parents: {', '.join(sorted(tf.frames())) or 'none'}); "
+                f"'{frame}' (its TF parents: {', '.join(parents) or 'none'}); "
                 "set sensors[].base_frame to the frame whose x-y plane is the ground")
         inner = tf.chain(base, frame)
         if inner is None:

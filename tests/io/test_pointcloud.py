@@ -506,3 +506,22 @@ def test_cloud_stamps_that_are_all_equal_fall_back_to_log_time(tmp_path, capsys)
     assert "all 4 header stamps are equal" in capsys.readouterr().err
     np.testing.assert_allclose(batch.stamps, ref.stamps, atol=1e-6)
     np.testing.assert_allclose(batch.poses, ref.poses, atol=1e-6)
+
+
+def test_no_base_frame_names_the_clouds_own_parents(tmp_path):
+    """The error listed every TF frame as the cloud's parents."""
+    from cloud_scenes import add_cloud, pack_cloud, scan_cloud, tf_item
+    from scipy.spatial.transform import Rotation
+
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31]))
+    bag = BagWriter("mcap")
+    still = Rotation.identity()
+    bag.tf("/tf_static", T0, [tf_item("world", "mast", (0.0, 0.0, 1.0), still),
+                              tf_item("mast", "lidar", (0.0, 0.0, 0.5), still),
+                              tf_item("world", "camera", (1.0, 0.0, 1.0), still)])
+    pts = scan_cloud(run.world, run.lidar, base_path(run.cloud_t)[0],
+                     np.random.default_rng(0))
+    add_cloud(bag, "/points", "lidar", T0 + 0.31, pack_cloud(pts, run.layout))
+    with pytest.raises(GpoccError, match=r"under the cloud's frame 'lidar' \(its TF parents: "
+                                         r"mast, world\)"):
+        read_inputs([bag.write(tmp_path / "mast.mcap")], Config())
