@@ -21,7 +21,9 @@ XT datasheets give), ``bearing_variance_deg2`` 0.01 plus the bearing bin's width
 the width of an organised cloud, else the fullest ring's returns; else 0.4 degrees.
 
 A bin with no return in the height band is a no-return (cleared up to
-``no_return_free_m``) when its rays returned from the floor or ceiling; a bin with no
+``no_return_free_m``) when its rays returned from the floor or ceiling at least that far
+away horizontally (nearer, clearing it would pass where its rays stopped: it is
+unknown, as for a lidar pitched down or a depth camera); a bin with no
 return at any height is invalid (no information), so a camera's or a masked lidar's
 blind sector, or a bin the binning left empty, is never cleared. When the band's returns
 alone fill :data:`FULL_TURN_SHARE` of the bins, the floor and ceiling returns are not
@@ -245,9 +247,14 @@ class CloudCollector:
             return
         translation, rotation = mount
         level = self._level(t)
+        reach = np.full(self.bins, np.inf)
         ranges, heard, z = scan_from_cloud(cloud.points, rotation, translation, level,
                                            self.band_base, self.bins, self.range_min,
-                                           FULL_TURN_SHARE)
+                                           FULL_TURN_SHARE, reach=reach)
+        # A bin whose rays met only floor or ceiling, all nearer than the free extent a
+        # no-return clears (a lidar pitched down, a depth camera): clearing it would pass
+        # the place its rays stopped, so it is unknown.
+        ranges[np.isinf(ranges) & (reach < self.sensor.no_return_free_m)] = np.nan
         # A bin no return fell into, at any height, is unknown: a masked sector, or a gap
         # of the binning (a random-pattern lidar, columns on bin edges). Clearing it as a
         # no-return cleared free space through walls.

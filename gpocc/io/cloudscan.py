@@ -190,7 +190,7 @@ def bin_returns(x: np.ndarray, y: np.ndarray, z: np.ndarray, origin: np.ndarray,
 def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                     level: np.ndarray | None, band: tuple[float, float], bins: int,
                     range_min: float, enough: float = 1.0,
-                    valid: np.ndarray | None = None
+                    valid: np.ndarray | None = None, reach: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`bin_returns` of a cloud in the lidar frame.
 
@@ -211,6 +211,9 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
         rotation: (3, 3) base <- lidar. translation: (3,) metres.
         valid: (N,) bool, the returns among the points; None: those that pass
             :func:`gpocc.io.pointcloud.returns_mask` (finite, not all zero).
+        reach: optional (bins,) output: where the floor's and ceiling's returns were
+            binned, the farthest of them per bin, metres horizontally (0: none); left
+            untouched where they were not (the band's returns filled ``enough``).
 
     Returns:
         ``(ranges (bins,), heard (bins,), heights (N,))``: the heights of all the points
@@ -260,7 +263,11 @@ def scan_from_cloud(xyz: np.ndarray, rotation: np.ndarray, translation: np.ndarr
         out = ~in_band & (returns_mask(xyz) if valid is None else valid)
         pick = np.flatnonzero(out)[::HEARD_STRIDE]
         dx, dy = bearings(*(c[pick] for c in columns))
-        heard[_bin_index(dx, dy, bins)] = True
+        index = _bin_index(dx, dy, bins)
+        heard[index] = True
+        if reach is not None:
+            reach[:] = 0.0
+            np.maximum.at(reach, index, np.hypot(dx, dy).astype(np.float64))
     return ranges, heard, z
 
 

@@ -525,3 +525,17 @@ def test_no_base_frame_names_the_clouds_own_parents(tmp_path):
     with pytest.raises(GpoccError, match=r"under the cloud's frame 'lidar' \(its TF parents: "
                                          r"mast, world\)"):
         read_inputs([bag.write(tmp_path / "mast.mcap")], Config())
+
+
+def test_bins_that_saw_only_a_near_floor_are_not_cleared_to_the_free_extent(tmp_path):
+    """A lidar pitched down: in many bearings every ray meets the floor a metre or two
+    away. Those bins were no-returns, cleared to no_return_free_m (5 m) through the
+    walls beyond; now they are unknown."""
+    lidar = Lidar(rings=8, columns=360, fov_deg=(-10.0, 10.0), xyz=(0.15, 0.0, 0.45),
+                  rpy=(0.0, math.radians(35.0), 0.0))
+    run = LidarRun(room(), lidar, cloud_t=np.array([0.31, 5.31]))
+    [batch] = read_inputs([write_run(tmp_path, run)], Config())
+    front = np.abs(batch.angles) < math.radians(45.0)  # pitched down: toward the floor
+    assert np.isnan(batch.ranges[:, front]).any()  # the floor-only bearings
+    # None cleared past where its rays stopped (behind, rays rise to the far ceiling).
+    assert not np.isposinf(batch.ranges[:, front]).any()
