@@ -88,6 +88,12 @@ def _lines(path: Path) -> list[str]:
         ) from None
 
 
+def _not_increasing(stamps: np.ndarray) -> int:
+    """Steps of ``stamps`` (N,) s, in line order, that do not increase (NaN included):
+    with any, a log's scans are timed by line order."""
+    return int(np.count_nonzero(~(np.diff(stamps) > 0)))
+
+
 def describe_carmen(path: str | Path) -> CarmenContents:
     """Count the message types of a CARMEN log and its logger time span."""
     path = Path(path)
@@ -114,7 +120,7 @@ def describe_carmen(path: str | Path) -> CarmenContents:
         counts=dict(counts),
         start_s=min(stamps) if stamps else None,
         end_s=max(stamps) if stamps else None,
-        out_of_order=int(np.count_nonzero(~(np.diff(np.asarray(read, dtype=float)) > 0))),
+        out_of_order=_not_increasing(np.asarray(read, dtype=float)),
     )
 
 
@@ -236,7 +242,7 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
         raise GpoccError(f"{path}: line {table.linenos[far]}: the pose has a coordinate beyond "
                          f"{MAX_POSITION_M:g} m; fix or delete that line")
     logger = table.logger_stamps
-    monotonic = bool(np.isfinite(logger).all() and np.all(np.diff(logger) > 0))
+    monotonic = bool(np.isfinite(logger).all()) and _not_increasing(logger) == 0
     n_scans = len(table.linenos)
     stamps = logger if monotonic else np.arange(n_scans, dtype=float)
     covariance = np.broadcast_to(sensor.pose_covariance_matrix, (n_scans, 3, 3)).copy()

@@ -172,13 +172,9 @@ class CloudCollector:
                              if tf.chain(b, frame) is not None
                              and (b != frame or b == "base_footprint")), None)
         if base is None:
-            parents, edge = [], tf.edges.get(frame)
-            while edge is not None and edge.parent not in parents and edge.parent != frame:
-                parents.append(edge.parent)
-                edge = tf.edges.get(edge.parent)
             raise GpoccError(
                 f"{where}: cannot tell the robot's base frame under the cloud's frame "
-                f"'{frame}' (its TF parents: {', '.join(parents) or 'none'}); "
+                f"'{frame}' (its TF parents: {', '.join(tf.parents(frame)) or 'none'}); "
                 "set sensors[].base_frame to the frame whose x-y plane is the ground")
         inner = tf.chain(base, frame)
         if inner is None:
@@ -346,8 +342,7 @@ class CloudCollector:
         if self.inner is None:
             raise GpoccError(f"{where} has no messages; pick another scan_topic")
         if not self.scans.stamps:
-            once = next((e for e, _ in self.inner.steps if not e.static and e.stamps.size < 2),
-                        None)
+            once = self.inner.published_once()
             fix = (f"TF {once.label()} on {once.topic} has {once.stamps.size} message: publish "
                    "a mount that never changes on /tf_static" if once is not None else
                    "check the TF stamps or raise sensors[].max_pose_gap_s")

@@ -111,10 +111,10 @@ def _no_pose_fix(chain: Chain | None, skipped: list[tuple[str, str, int]]) -> st
     """For the error of a sensor whose scans all lack a pose: a dynamic TF edge of the
     chain with one message (interpolation needs two: one published once belongs on
     /tf_static), else the commonest skip reason, with what to change."""
-    for edge, _ in chain.steps if chain is not None else ():
-        if not edge.static and edge.stamps.size < 2:
-            return (f"TF {edge.label()} on {edge.topic} has {edge.stamps.size} message: "
-                    "publish a transform that never changes on /tf_static")
+    once = chain.published_once() if chain is not None else None
+    if once is not None:
+        return (f"TF {once.label()} on {once.topic} has {once.stamps.size} message: "
+                "publish a transform that never changes on /tf_static")
     mostly = f"mostly for {max(skipped, key=lambda r: r[2])[0]}; " if skipped else ""
     return f"{mostly}check the topics' stamps or raise sensors[].max_pose_gap_s"
 
@@ -127,19 +127,16 @@ def _tf_fix(tf: TfBuffer, laser_frame: str) -> str:
         return "fix the driver's header.frame_id"
     if laser_frame not in tf.frames():
         return "record /tf_static (the robot's static transforms)"
-    frame, seen = laser_frame, [laser_frame]
-    while True:
-        if frame in tf.conflicts:
-            return (f"filter the bag to one publisher of '{frame}' (it has two parents: "
-                    f"{tf.conflicts[frame]})")
-        edge = tf.edges.get(frame)
-        if edge is None:
-            return f"set sensors[].map_frame to '{frame}' (the root of the laser's TF tree)"
-        if edge.parent in seen:
-            return (f"remove the TF cycle through '{edge.parent}' (a transform published "
-                    "the wrong way round)")
-        frame = edge.parent
-        seen.append(frame)
+    path = [laser_frame, *tf.parents(laser_frame)]
+    torn = next((frame for frame in path if frame in tf.conflicts), None)
+    if torn is not None:
+        return (f"filter the bag to one publisher of '{torn}' (it has two parents: "
+                f"{tf.conflicts[torn]})")
+    last = tf.edges.get(path[-1])
+    if last is not None:  # the walk stopped where a parent repeats
+        return (f"remove the TF cycle through '{last.parent}' (a transform published the "
+                "wrong way round)")
+    return f"set sensors[].map_frame to '{path[-1]}' (the root of the laser's TF tree)"
 
 
 def in_map_frame(frame: str, sensor: SensorConfig) -> bool:
@@ -180,16 +177,20 @@ def _skip_reasons(valid: np.ndarray, missing: np.ndarray) -> list[tuple[str, str
     return out
 
 
-def _level_scans(path: str | Path, sensor: SensorConfig, frame: str, via: str,
+def _level_scans(path: str | Path, sensor: SensorConfig, scans: ScanTopic, via: str,
                  valid: np.ndarray, tilt_rad: np.ndarray
                  ) -> tuple[np.ndarray, list[tuple[str, str, int]]]:
     """``valid`` (S,) without the scans whose laser plane TF tilts (``tilt_rad`` (S,))
-    more than ``sensors[].max_tilt_deg`` from level, and their skip reason.
+    more than ``sensors[].max_tilt_deg`` from level, and their skip reason; all of
+    ``valid`` for scans already levelled (projected 3-D clouds).
 
     Raises:
         GpoccError: every scan with a pose is tilted (``via``: the TF chain, for the
             message).
     """
+    if scans.levelled:
+        return valid, []
+    frame = scans.frame_id
     tilted = valid & (tilt_rad > math.radians(sensor.max_tilt_deg))
     count = int(np.count_nonzero(tilted))
     if count == 0:
@@ -404,8 +405,8 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
             notes.append(why)
             warned.add(why)
         look = tf.lookup(chain, stamps, sensor.max_pose_gap_s)
-        valid, tilt_skips = (look.valid, []) if scans.levelled else _level_scans(
-            path, sensor, scans.frame_id, chain.describe(), look.valid, look.tilt_rad)
+        valid, tilt_skips = _level_scans(path, sensor, scans, chain.describe(), look.valid,
+                                         look.tilt_rad)
         poses = look.poses
         if valid.any():
             flipped = look.upside_down[valid]
@@ -491,10 +492,9 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
                     f"({mount_tf.describe()}), and the config sets sensors[].mount too; "
                     "remove mount from that entry (or set position_from_tf: false)")
             rel = tf.lookup(mount_tf, stamps, sensor.max_pose_gap_s)
-            if not scans.levelled:
-                valid, tilt_skips = _level_scans(path, sensor, scans.frame_id,
-                                                 mount_tf.describe(), valid, rel.tilt_rad)
-                skipped += tilt_skips
+            valid, tilt_skips = _level_scans(path, sensor, scans, mount_tf.describe(), valid,
+                                             rel.tilt_rad)
+            skipped += tilt_skips
             laser = _compose(poses, rel.poses)
             # The base's covariance carried to the laser through the mount's lever arm.
             covariances = move_covariances(covariances, laser[:, :2] - poses[:, :2])

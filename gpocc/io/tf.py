@@ -184,6 +184,12 @@ class Chain:
             k -= 1
         return k
 
+    def published_once(self) -> Edge | None:
+        """The first dynamic edge with fewer than two messages: it serves no stamp but
+        its own (interpolation needs two), where a transform that never changes belongs
+        on /tf_static; None if there is none."""
+        return next((e for e, _ in self.steps if not e.static and e.stamps.size < 2), None)
+
     def body_frame(self) -> str:
         """The frame the last dynamic edge moves (``base_link``): where the mount starts."""
         k = self.static_tail()
@@ -224,6 +230,16 @@ class TfBuffer:
 
     def frames(self) -> set[str]:
         return set(self.edges) | {e.parent for e in self.edges.values()}
+
+    def parents(self, frame: str) -> list[str]:
+        """``frame``'s parent, its parent's, ... up to a root, a frame of two parents
+        (which has no edge here) or the frame before a cycle closes."""
+        out: list[str] = []
+        edge = self.edges.get(frame)
+        while edge is not None and edge.parent != frame and edge.parent not in out:
+            out.append(edge.parent)
+            edge = self.edges.get(edge.parent)
+        return out
 
     def _ancestors(self, frame: str) -> list[tuple[str, Edge | None]] | None:
         """[(frame, edge to its parent), ...] up to the root, or None through a conflict."""

@@ -489,15 +489,20 @@ def test_a_tilted_laser_is_refused_unless_max_tilt_allows_it(tmp_path: Path, amc
 
 
 def test_level_scans_skips_only_the_tilted_scans_with_a_pose() -> None:
-    from gpocc.io.laserpose import _level_scans
+    from gpocc.io.laserpose import ScanTopic, _level_scans
 
     sensor = SensorConfig(name="r", max_tilt_deg=5.0)
     valid = np.array([True, True, False, True, True])
     tilt = np.radians([0.0, 6.0, 40.0, 4.9, 90.0])
-    kept, skips = _level_scans("b", sensor, "laser", "map -> laser", valid, tilt)
+    laser = ScanTopic(frame_id="laser")
+    kept, skips = _level_scans("b", sensor, laser, "map -> laser", valid, tilt)
     np.testing.assert_array_equal(kept, [True, False, False, True, False])
     assert [(key, count) for _, key, count in skips] == [("sensors[].max_tilt_deg", 2)]
-    kept, skips = _level_scans("b", sensor, "laser", "map -> laser", valid, np.zeros(5))
+    projected = ScanTopic(frame_id="velodyne:plane", levelled=True)  # a cloud's, levelled
+    kept, skips = _level_scans("b", sensor, projected, "map -> velodyne", valid, tilt)
+    np.testing.assert_array_equal(kept, valid)
+    assert skips == []
+    kept, skips = _level_scans("b", sensor, laser, "map -> laser", valid, np.zeros(5))
     np.testing.assert_array_equal(kept, valid)
     assert skips == []
 
