@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import errno
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -274,6 +275,19 @@ def test_a_stale_pose_stamp_drops_that_pose_only(tmp_path: Path, capsys) -> None
     assert np.abs(batch.poses[:, :2] - truth[:, :2]).max() < 2e-3
 
 
+def _relog_scans(bag: BagWriter, delay_s: float,
+                 restamp: Callable[[int, float, object, list], None]) -> list:
+    """Take the bag's /scan messages out, let ``restamp(k, t, msg, scans)`` edit the k-th
+    one's header stamp, and log each ``delay_s`` seconds after its time ``t``; the scans
+    as they were listed, ``(t, topic, msgtype, msg)``."""
+    scans = [m for m in bag.messages if m[1] == "/scan"]
+    bag.messages = [m for m in bag.messages if m[1] != "/scan"]
+    for k, (t, topic, msgtype, msg) in enumerate(scans):
+        restamp(k, t, msg, scans)
+        bag.add(topic, msgtype, t + delay_s, msg)
+    return scans
+
+
 def test_a_repeated_scan_stamp_keeps_the_scans_on_the_tf_clock(tmp_path: Path, capsys) -> None:
     """The recorder logs each scan 0.4 s late and one stamp repeats: timing the whole topic
     by log time put every scan 0.4 s off TF (a ghost of every wall); now that one scan is
@@ -281,12 +295,12 @@ def test_a_repeated_scan_stamp_keeps_the_scans_on_the_tf_clock(tmp_path: Path, c
     robot = one_robot()
     bag = BagWriter("ros2-mcap")
     add_robot(bag, robot)
-    scans = [m for m in bag.messages if m[1] == "/scan"]
-    bag.messages = [m for m in bag.messages if m[1] != "/scan"]
-    for k, (t, topic, msgtype, msg) in enumerate(scans):
+
+    def repeat_20th(k: int, t: float, msg, scans: list) -> None:
         if k == 20:
             msg.header.stamp = scans[19][3].header.stamp
-        bag.add(topic, msgtype, t + 0.4, msg)
+
+    scans = _relog_scans(bag, 0.4, repeat_20th)
     [batch] = read_inputs([bag.write(tmp_path / "late")], Config())
     err = capsys.readouterr().err
     assert f"1 of {len(scans)} header stamps are zero, repeat or go back; those messages " \
@@ -304,13 +318,12 @@ def test_broken_scan_stamps_fall_back_to_log_time_with_one_warning(tmp_path: Pat
     bag = BagWriter("ros2-mcap")
     add_robot(bag, robot)
     # The recorder logs each scan 4 ms after it was taken; the driver's stamps are broken.
-    scans = [m for m in bag.messages if m[1] == "/scan"]
-    bag.messages = [m for m in bag.messages if m[1] != "/scan"]
-    for k, (t, topic, msgtype, msg) in enumerate(scans):
+    def break_stamp(k: int, t: float, msg, scans: list) -> None:
         stamp = {"zero": 0.0, "constant": T0, "backwards": t - 2.0 * (k % 10 == 9)}[kind]
         sec = int(stamp)
         msg.header.stamp.sec, msg.header.stamp.nanosec = sec, round((stamp - sec) * 1e9)
-        bag.add(topic, msgtype, t + 0.004, msg)
+
+    scans = _relog_scans(bag, 0.004, break_stamp)
     path = bag.write(tmp_path / "stamps")
     [batch] = read_inputs([path], Config())
     err = capsys.readouterr().err

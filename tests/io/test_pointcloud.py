@@ -379,21 +379,37 @@ def test_a_masked_sector_of_a_spinning_lidar_is_never_cleared(tmp_path):
     assert np.isfinite(batch.ranges[:, front]).mean() > 0.9  # the room's walls
 
 
-def test_a_registered_cloud_in_the_map_frame_is_refused(tmp_path):
-    """A cloud already in the map frame (a lidar odometry's registered cloud) was taken
-    with the map's origin as the sensor, beams cast from the map's corner."""
-    from cloud_scenes import add_cloud, base_rotation, pack_cloud, scan_cloud, tf_item
+def _moving_base_bag(until_s: float = 6.0) -> BagWriter:
+    """A bag with TF map -> base_footprint along the test route at 30 Hz, no mount."""
+    from cloud_scenes import base_rotation, tf_item
 
-    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
     bag = BagWriter("mcap")
-    for t in np.arange(0.0, 6.0, 1 / 30):
+    for t in np.arange(0.0, until_s, 1 / 30):
         x, y, yaw = base_path(np.array([t]))[0]
         bag.tf("/tf", T0 + t, [tf_item("map", "base_footprint", (x, y, 0.0),
                                        base_rotation(yaw, 0.0))])
+    return bag
+
+
+def _add_clouds(bag: BagWriter, run: LidarRun, topic: str, frame: str,
+                to_frame=lambda pts: pts) -> None:
+    """The run's clouds on ``topic`` in ``frame``, their (rings, columns, 3) points in the
+    lidar frame moved by ``to_frame``."""
+    from cloud_scenes import add_cloud, pack_cloud, scan_cloud
+
     rng = np.random.default_rng(0)
     for t, pose in zip(run.cloud_t, base_path(run.cloud_t), strict=True):
-        add_cloud(bag, "/cloud_registered", "map", T0 + t,
-                  pack_cloud(scan_cloud(run.world, run.lidar, pose, rng), run.layout))
+        add_cloud(bag, topic, frame, T0 + t,
+                  pack_cloud(to_frame(scan_cloud(run.world, run.lidar, pose, rng)),
+                             run.layout))
+
+
+def test_a_registered_cloud_in_the_map_frame_is_refused(tmp_path):
+    """A cloud already in the map frame (a lidar odometry's registered cloud) was taken
+    with the map's origin as the sensor, beams cast from the map's corner."""
+    run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
+    bag = _moving_base_bag()
+    _add_clouds(bag, run, "/cloud_registered", "map")
     path = bag.write(tmp_path / "registered.mcap")
     with pytest.raises(GpoccError, match=r"the cloud's frame 'map' is not on the robot"):
         read_inputs([path], Config())
@@ -421,20 +437,13 @@ def test_a_partial_first_cloud_does_not_set_the_bins(tmp_path):
 
 
 def test_a_lidar_mount_published_once_on_tf_is_named(tmp_path):
-    from cloud_scenes import add_cloud, base_rotation, pack_cloud, scan_cloud, tf_item
+    from cloud_scenes import tf_item
 
     run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
-    bag = BagWriter("mcap")
-    for t in np.arange(0.0, 6.0, 1 / 30):
-        x, y, yaw = base_path(np.array([t]))[0]
-        bag.tf("/tf", T0 + t, [tf_item("map", "base_footprint", (x, y, 0.0),
-                                       base_rotation(yaw, 0.0))])
+    bag = _moving_base_bag()
     bag.tf("/tf", T0, [tf_item("base_footprint", "velodyne", run.lidar.xyz,
                                run.lidar.rotation)])
-    rng = np.random.default_rng(0)
-    for t, pose in zip(run.cloud_t, base_path(run.cloud_t), strict=True):
-        add_cloud(bag, "/velodyne_points", "velodyne", T0 + t,
-                  pack_cloud(scan_cloud(run.world, run.lidar, pose, rng), run.layout))
+    _add_clouds(bag, run, "/velodyne_points", "velodyne")
     with pytest.raises(GpoccError, match=r"TF base_footprint->velodyne on /tf has 1 message: "
                                          r"publish a mount that never changes on /tf_static$"):
         read_inputs([bag.write(tmp_path / "once.mcap")], Config())
@@ -468,21 +477,14 @@ def test_a_cloud_already_in_the_base_frame_is_mapped(tmp_path):
     """A filter's output in base_footprint (the frame TF moves) was refused as having no
     base frame under it; it is taken as seen from the base's origin, as a cloud in
     base_link already was."""
-    from cloud_scenes import add_cloud, base_rotation, pack_cloud, scan_cloud, tf_item
-
     run = LidarRun(room(), Lidar(), cloud_t=np.array([0.31, 5.31]))
-    bag = BagWriter("mcap")
-    for t in np.arange(0.0, 6.0, 1 / 30):
-        x, y, yaw = base_path(np.array([t]))[0]
-        bag.tf("/tf", T0 + t, [tf_item("map", "base_footprint", (x, y, 0.0),
-                                       base_rotation(yaw, 0.0))])
-    rng = np.random.default_rng(0)
-    for t, pose in zip(run.cloud_t, base_path(run.cloud_t), strict=True):
-        pts = scan_cloud(run.world, run.lidar, pose, rng)
-        shape = pts.shape
-        in_base = run.lidar.rotation.apply(pts.reshape(-1, 3)) + np.asarray(run.lidar.xyz)
-        add_cloud(bag, "/velodyne_points", "base_footprint", T0 + t,
-                  pack_cloud(in_base.reshape(shape), run.layout))
+
+    def in_base(pts: np.ndarray) -> np.ndarray:
+        moved = run.lidar.rotation.apply(pts.reshape(-1, 3)) + np.asarray(run.lidar.xyz)
+        return moved.reshape(pts.shape)
+
+    bag = _moving_base_bag()
+    _add_clouds(bag, run, "/velodyne_points", "base_footprint", in_base)
     [batch] = read_inputs([bag.write(tmp_path / "in_base.mcap")], Config())
     assert batch.n_scans == 2
     p = hits(batch)
