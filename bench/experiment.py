@@ -181,7 +181,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     # The classifier's offset fitted on left-out samples (leave-one-out, as published)
     # instead of on held-out scans' points with its temperature, with the settings of
     # before-count (the family of variants that change one of its settings, HOLDOUT_BASED).
-    "offset-holdout": {**_BEFORE_COUNT, "model.training.classifier_offset": "holdout"},
+    # isotropic: false too, the default when this run and its variants were made.
+    "offset-holdout": {**_BEFORE_COUNT, "model.training.classifier_offset": "holdout",
+                       "model.training.isotropic": False},
     "accurate-poses-offset-beams": {**_ACCURATE_POSES,
                                     "model.training.classifier_offset": "beams"},
     # The same with more of the finer samples per local problem, or free samples as
@@ -201,6 +203,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "thin-0.12-n160-offset-beams": {"samples.thin_cell_m": 0.12, "model.neighbours": 160,
                                     "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
+    "anisotropic": {"model.training.isotropic": False},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
     "calibration-along-beam": {"model.training.calibration_near_wall": 0},

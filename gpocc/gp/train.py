@@ -560,6 +560,10 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
         if learn_scale:
             given = np.append(given, math.log(warm_start.input_noise_scale))
         given = np.clip(given, [lo for lo, _ in bounds], [hi for _, hi in bounds])
+        # A model learned with one value per axis, refined isotropic: each pair starts
+        # at its geometric mean, the nearest tied point in the logs, not at its x.
+        for x, y in tied:
+            given[x] = 0.5 * (given[x] + given[y])
         given = lift(given[free])
         if fisher is not None:
             first = fisher(given)

@@ -59,7 +59,7 @@ def test_summary_counts_wins_per_protocol_and_the_page_is_stamped():
 #: What ``offset-holdout`` and the variants of it pin, as the page lists overrides.
 PINNED = ("`samples.label_weights: none`, `model.training.learn_input_noise_scale: True`, "
           "`model.training.classifier_offset_range: wide`, "
-          "`model.training.classifier_offset: holdout`")
+          "`model.training.classifier_offset: holdout`, `model.training.isotropic: False`")
 
 
 def test_the_page_compares_the_gp_with_each_variant_case_by_case():
@@ -618,7 +618,8 @@ def test_a_variant_of_offset_holdout_keeps_its_pins_and_changes_one_of_them(tmp_
 _OWN = {"fixed-scale": ("model.training.learn_input_noise_scale",),
         "label-weights": ("samples.label_weights",),
         "thin-0.1-n256-fixed-scale": ("model.training.learn_input_noise_scale",),
-        "accurate-poses": ("model.training.learn_input_noise_scale",)}
+        "accurate-poses": ("model.training.learn_input_noise_scale",),
+        "isotropic": ("model.training.isotropic",)}
 
 
 @pytest.mark.parametrize("name", sorted(set(experiment.VARIANTS) - {"defaults"}))

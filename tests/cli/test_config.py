@@ -26,7 +26,8 @@ def test_defaults_and_round_trip():
     assert config == Config()
     assert config_from_dict(config_to_dict(config)) == config
     nested = config_from_dict({"sensors": [{"name": "a", "bearing_variance_deg2": 0.5}],
-                               "model": {"hyperparameters": {"weight_variance": [2, 3]}}})
+                               "model": {"hyperparameters": {"weight_variance": [2, 3]},
+                                         "training": {"isotropic": False}}})
     assert nested.sensors[0].bearing_variance_rad2 == pytest.approx(0.5 * (math.pi / 180) ** 2)
     assert nested.model.hyperparameters.weight_variance == (2.0, 3.0)
     assert config_from_dict(config_to_dict(nested)) == nested
