@@ -317,8 +317,8 @@ class TrainingConfig:
     parameter (the NN kernel's ``weight_variance``, the SE kernel's ``lengthscale``; their
     initial values must then be equal): a map frame's axes mean nothing in the world, while
     a pair learned from a few patches takes its ratio from the walls those patches happen
-    to hold (on Freiburg 079 the two weight variances came out 73 and 495), and a building
-    mapped in a turned frame should give the same map turned. False learns one value per
+    to hold (on Freiburg 079 the two weight variances came out 73 and 495); tied, the
+    kernel does not depend on which way the map's axes point. False learns one value per
     axis (variant ``anisotropic`` of ``make experiment``).
     ``local_search``: the stage after the annealing, ``lbfgs`` (L-BFGS-B, default) or
     ``scoring`` (Fisher scoring, gpocc.gp.refine, as ``gpocc update`` refines: the same
