@@ -117,6 +117,8 @@ class CloudCollector:
     scans: ScanTopic = field(default_factory=lambda: ScanTopic(levelled=True))
     stats: CloudStats = field(default_factory=CloudStats)
     base: str = ""
+    #: The lidar's frame (the clouds' header.frame_id); the scans' is its plane_frame.
+    lidar_frame: str = ""
     inner: Chain | None = None
     outer: Chain | None = None
     bins: int = 0
@@ -189,7 +191,8 @@ class CloudCollector:
                 f"the base frame '{base}' only through the robot's motion ({inner.describe()}),"
                 " as for a registered cloud in the map frame; give the lidar's own cloud "
                 "topic, in its sensor frame")
-        self.base, self.inner, self.scans.frame_id = base, inner, plane_frame(frame)
+        self.base, self.inner, self.lidar_frame = base, inner, frame
+        self.scans.frame_id = plane_frame(frame)
         self.outer, _ = find_chain(tf, sensor, base)
         self.yaw_only = self.outer is not None and all(
             not np.any(edge.quaternions[:, :2]) for edge, _ in self.outer.steps)
@@ -224,7 +227,7 @@ class CloudCollector:
         cloud = decode_cloud(msg, where)
         frame = frame_name(msg.header.frame_id)
         if not frame and self.inner is not None:  # as a LaserScan's: the topic's frame
-            frame = self.scans.frame_id.rsplit(":", 1)[0]
+            frame = self.lidar_frame
         if not frame:  # before any cloud with a frame: nothing places it on the robot
             self.unframed += 1
             return
@@ -233,10 +236,9 @@ class CloudCollector:
             return
         if self.inner is None:
             self._start(frame, cloud)
-        elif plane_frame(frame) != self.scans.frame_id:
+        elif frame != self.lidar_frame:
             raise GpoccError(f"{where}: the cloud's frame_id changes from "
-                             f"'{self.scans.frame_id.rsplit(':', 1)[0]}' to '{frame}'; split the "
-                             "bag at that time")
+                             f"'{self.lidar_frame}' to '{frame}'; split the bag at that time")
         mount = self._mount(t)
         if mount is None:
             self.unposed += 1
@@ -342,10 +344,8 @@ class CloudCollector:
         if self.inner is None:
             raise GpoccError(f"{where} has no messages; pick another scan_topic")
         if not self.scans.stamps:
-            once = self.inner.published_once()
-            fix = (f"TF {once.label()} on {once.topic} has {once.stamps.size} message: publish "
-                   "a mount that never changes on /tf_static" if once is not None else
-                   "check the TF stamps or raise sensors[].max_pose_gap_s")
+            fix = (self.inner.published_once_fix("a mount")
+                   or "check the TF stamps or raise sensors[].max_pose_gap_s")
             raise GpoccError(
                 f"{where}: none of its {self.unposed} clouds has TF from '{self.base}' to the "
                 f"cloud's frame within max_pose_gap_s={self.sensor.max_pose_gap_s} s; {fix}")

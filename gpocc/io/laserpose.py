@@ -111,10 +111,9 @@ def _no_pose_fix(chain: Chain | None, skipped: list[tuple[str, str, int]]) -> st
     """For the error of a sensor whose scans all lack a pose: a dynamic TF edge of the
     chain with one message (interpolation needs two: one published once belongs on
     /tf_static), else the commonest skip reason, with what to change."""
-    once = chain.published_once() if chain is not None else None
-    if once is not None:
-        return (f"TF {once.label()} on {once.topic} has {once.stamps.size} message: "
-                "publish a transform that never changes on /tf_static")
+    fix = chain.published_once_fix("a transform") if chain is not None else None
+    if fix is not None:
+        return fix
     mostly = f"mostly for {max(skipped, key=lambda r: r[2])[0]}; " if skipped else ""
     return f"{mostly}check the topics' stamps or raise sensors[].max_pose_gap_s"
 

@@ -190,6 +190,15 @@ class Chain:
         on /tf_static; None if there is none."""
         return next((e for e, _ in self.steps if not e.static and e.stamps.size < 2), None)
 
+    def published_once_fix(self, what: str) -> str | None:
+        """The fix for :meth:`published_once`'s edge, ``what`` naming the transform
+        (``a mount``), or None if there is no such edge."""
+        once = self.published_once()
+        if once is None:
+            return None
+        return (f"TF {once.label()} on {once.topic} has {once.stamps.size} message: publish "
+                f"{what} that never changes on /tf_static")
+
     def body_frame(self) -> str:
         """The frame the last dynamic edge moves (``base_link``): where the mount starts."""
         k = self.static_tail()

@@ -207,6 +207,7 @@ def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
                  **extra: Any) -> dict[str, Any]:
     """``metadata.json`` of a GP map: the common fields, the model and its versions."""
     cfg = model.config
+    lattice = AnchorLattice.of_model(summary.spec, cfg.model)
     return folder_metadata(
         "gp" if model.input_noise else "gp-no-input-noise", summary.spec, cfg,
         summary.class_counts,
@@ -225,9 +226,8 @@ def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
         block_size_m=cfg.model.block_size_m,
         # The anchors' spacing on this map: block_size_m rounded down to whole cells, so
         # maps of one model at two resolutions can differ where it does.
-        anchor_spacing_m=round(AnchorLattice.of_model(summary.spec, cfg.model).cells
-                               * summary.spec.resolution, 9),
-        blend_overlap=AnchorLattice.of_model(summary.spec, cfg.model).blend,
+        anchor_spacing_m=round(lattice.cells * summary.spec.resolution, 9),
+        blend_overlap=lattice.blend,
         tiles=summary.tiles,
         blocks=summary.blocks,
         **extra,
