@@ -11,9 +11,9 @@ constant or not increasing (:mod:`gpocc.io.stamps`).
 
 LaserScan messages are checked as read: ``angle_min``, ``angle_max`` and
 ``angle_increment`` must be finite and agree with the number of ranges (within two
-increments: drivers differ by one beam), a scan must have ranges, and the beam layout
-must not change within a topic; each is a one-line error naming file, topic, stamp and
-field.
+increments: drivers differ by one beam) and a scan must have ranges; each is a one-line
+error naming file, topic, stamp and field. A topic whose beam layout changes from scan to
+scan is placed on one layout (:mod:`gpocc.io.layouts`).
 """
 
 from __future__ import annotations
@@ -335,18 +335,15 @@ def _add_scan(path: Path, topic: str, acc: _ScanTopic, msg: Any, record_ns: int)
     if acc.geometry is None:
         acc.geometry = geometry
         acc.range_limits = (float(msg.range_min), float(msg.range_max))
+    elif acc.layouts is not None:
+        acc.layouts.append(geometry)
     elif geometry[0] != acc.geometry[0] or not all(
             # np.allclose(atol=1e-6) on two finite floats, without its per-call cost (a
             # tenth of a second per 1000 scans).
             abs(a - b) <= 1e-6 + 1e-5 * abs(b)
             for a, b in zip(geometry[1:], acc.geometry[1:], strict=True)):
-        raise GpoccError(
-            f"{path}: topic {topic} changes its beam layout (from {acc.geometry[0]} beams to "
-            f"{geometry[0]}, or a different angle_min/angle_increment) at "
-            f"t={t:.3f} s; gpocc reads one layout per topic: a driver whose beam count "
-            "varies from scan to scan can publish a fixed one (rplidar_ros: "
-            "angle_compensate: true), else split the bag at that time"
-        )
+        # A driver that publishes each revolution as it came (gpocc.io.layouts).
+        acc.layouts = [acc.geometry] * len(acc.ranges) + [geometry]
     acc.stamps.append(header)
     acc.log_times.append(record_ns * 1e-9)
     acc.ranges.append(ranges)

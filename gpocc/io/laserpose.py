@@ -34,6 +34,7 @@ import numpy as np
 
 from gpocc.config import MountConfig, SensorConfig
 from gpocc.errors import GpoccError
+from gpocc.io.layouts import common_layout
 from gpocc.io.poses import (
     COVARIANCE_DIGITS,
     PoseSeries,
@@ -61,7 +62,10 @@ class ScanTopic:
     stamps: list[float] = field(default_factory=list)  # header stamps, 0.0 when zero
     ranges: list[np.ndarray] = field(default_factory=list)
     log_times: list[float] = field(default_factory=list)  # empty: time by ``stamps``
-    geometry: tuple[int, float, float] | None = None
+    geometry: tuple[int, float, float] | None = None  # the first scan's layout
+    # Every scan's (n, angle_min, angle_increment) once one differs from ``geometry``;
+    # None while all share it.
+    layouts: list[tuple[int, float, float]] | None = None
     range_limits: tuple[float, float] | None = None
     frame_id: str = ""  # the first non-empty header.frame_id
     # The first change of a non-empty frame_id: (time s, from, to), None if it never does.
@@ -362,13 +366,22 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
     stamps = timing.times[kept]
     order = kept[np.argsort(stamps, kind="stable")]
     stamps = timing.times[order]
-    ranges = np.stack(scans.ranges)[order]
-    n, angle_min, increment = scans.geometry
-    angles = angle_min + np.arange(n) * increment
+    if scans.layouts is None:
+        ranges = np.stack(scans.ranges)[order]
+        n, angle_min, increment = scans.geometry
+        angles = angle_min + np.arange(n) * increment
+        layout_note = ""
+    else:
+        common = common_layout(f"{path}: topic {scan_topic}", scans.ranges, scans.layouts)
+        ranges, angles = common.ranges[order], common.angles
+        layout_note = common.describe()
+        sensor = dataclasses.replace(
+            sensor, bearing_variance_deg2=sensor.bearing_variance_deg2
+            + common.shift_variance_rad2 * (180.0 / math.pi) ** 2)
 
     chain, why = (find_chain(tf, sensor, scans.frame_id)
                   if tf and sensor.position_from_tf and scans.frame_id else (None, ""))
-    notes: list[str] = []
+    notes: list[str] = [layout_note] if layout_note else []
     warned: set[str] = set()  # notes already on stderr as warnings
     mount_tf = None
     if (tf and sensor.position_from_tf and scans.frame_id and series is not None
@@ -562,4 +575,6 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         has_pose_covariance=has_cov,
         skipped_scans=n_skipped,
         provenance=provenance,
+        # The bearing variance grown by the layouts' rounding (None: the entry as given).
+        sensor_config=sensor if scans.layouts is not None else None,
     )

@@ -338,3 +338,48 @@ def test_a_split_of_an_upside_down_laser_reads_back_unmirrored(tmp_path: Path) -
     assert train.sensors[0].mount == MountConfig(x_m=0.2, y_m=0.05)
     [again] = read_inputs([tmp_path / "split" / "train.mcap"], train)
     np.testing.assert_allclose(again.angles, read.angles, atol=1e-6)
+
+
+def rplidar_bag(folder: Path) -> Path:
+    """A 360-degree laser publishing each revolution as it came (rplidar_ros with
+    ``angle_compensate: false``): every scan its own beam count (175-180) and first angle
+    (jittered by up to a beam), with AMCL poses; the laser 0.2 m ahead, turned 180 deg."""
+    bag = BagWriter("mcap")
+    laser = Laser(yaw=math.pi)
+    rng = np.random.default_rng(5)
+    for t in SCAN_T:
+        n = 180 - int(rng.integers(0, 6))
+        first = -math.pi + rng.uniform(-1.0, 1.0) * 2 * math.pi / 180
+        laser.angles = first + np.arange(n) * (2 * math.pi / n)
+        [ranges] = laser.ranges(np.array([t]))
+        bag.scan("/scan", "laser", T0 + t, laser.angles, ranges, laser.max_range)
+    add_robot(bag, laser, "amcl", scan_t=np.array([]))
+    return bag.write(folder / "rplidar.mcap")
+
+
+def test_a_laser_whose_beam_layout_changes_every_scan_maps_the_room(tmp_path: Path) -> None:
+    path = rplidar_bag(tmp_path)
+    config = tmp_path / "rplidar.yaml"
+    config.write_text("sensors:\n  - {name: r, scan_topic: /scan, "
+                      "mount: {x_m: 0.2, yaw_deg: 180.0}}\n")
+    [batch] = read_inputs([path], load_config(config))
+    assert batch.n_scans == SCAN_T.size
+    # One layout 2 pi / 180 apart (the finest increment; LaserScan's angles are float32)
+    # holding every beam of every scan.
+    np.testing.assert_allclose(np.diff(batch.angles), 2 * math.pi / 180, rtol=1e-6)
+    assert 175 * SCAN_T.size <= np.count_nonzero(~np.isnan(batch.ranges)) <= 180 * SCAN_T.size
+    assert batch.sensor_config.bearing_variance_deg2 > SensorConfig().bearing_variance_deg2
+    assert any("varies from scan to scan (175-180 beams)" in n for n in batch.provenance.notes)
+    assert_walls(build(path, tmp_path / "map", config))
+    # A split writes one layout, and its train.yaml the grown bearing variance: reading it
+    # back moves nothing again.
+    result = runner.invoke(app, ["split", str(path), "--config", str(config), "--every", "4",
+                                 "--out", str(tmp_path / "split"), "--quiet"])
+    assert result.exit_code == 0, result.output
+    train = load_config(tmp_path / "split" / "train.yaml")
+    assert train.sensors[0].bearing_variance_deg2 == pytest.approx(
+        batch.sensor_config.bearing_variance_deg2)
+    [again] = read_inputs([tmp_path / "split" / "train.mcap"], train)
+    np.testing.assert_allclose(again.angles, batch.angles, atol=1e-6)
+    assert again.sensor_config.bearing_variance_deg2 == train.sensors[0].bearing_variance_deg2
+    assert not any("varies" in n for n in again.provenance.notes)

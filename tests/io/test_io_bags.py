@@ -302,21 +302,29 @@ def test_no_scan_near_a_pose_is_an_error(tmp_path: Path) -> None:
         read_bag(path, [SensorConfig(scan_topic="/scan", pose_topic="/odom")])
 
 
-@pytest.mark.parametrize(("shift", "changes"), [(5e-7, False), (1e-4, True)])
-def test_a_scan_topic_that_changes_its_beam_layout_is_an_error(
+@pytest.mark.parametrize(("shift", "changes"), [(5e-7, False), (0.2, True)])
+def test_a_scan_topic_that_changes_its_beam_layout_is_placed_on_one(
         tmp_path: Path, shift: float, changes: bool) -> None:
     # Within 1e-6 rad the layout is the same one (float rounding of a driver's angles).
+    # Beyond, each beam goes to the nearest bearing of one layout and the shift's mean
+    # square joins the bearing variance (gpocc.io.layouts; tests/io/test_layouts.py).
     poses = [(10.0 + 0.1 * k, (0.0, 0.0, _quat(0, 0, 0)), np.zeros(36)) for k in range(11)]
     path = tmp_path / "layout"
     _write_raw_bag(path, [10.1, 10.5, 10.9], poses, "geometry_msgs/msg/PoseStamped",
                    angle_min=[-1.0, -1.0, -1.0 + shift])
     sensor = SensorConfig(scan_topic="/scan", pose_topic="/odom")
+    [batch] = read_bag(path, [sensor])
+    assert len(batch.stamps) == 3
+    np.testing.assert_allclose(batch.angles, [-1.0, 0.0, 1.0])
+    np.testing.assert_array_equal(batch.ranges, np.tile([1.0, 2.0, 3.0], (3, 1)))
+    notes = " ".join(batch.provenance.notes)
     if changes:
-        with pytest.raises(GpoccError, match=r"layout.*/scan changes its beam layout"):
-            read_bag(path, [sensor])
+        # Three of nine beams moved by 0.2 rad.
+        grown = sensor.bearing_variance_deg2 + math.degrees(0.2) ** 2 / 3
+        assert batch.sensor_config.bearing_variance_deg2 == pytest.approx(grown)
+        assert "varies from scan to scan (3 beams)" in notes
     else:
-        [batch] = read_bag(path, [sensor])
-        assert len(batch.stamps) == 3
+        assert batch.sensor_config is None and "varies" not in notes
 
 
 # --------------------------------------------------------------------------- bad bags
