@@ -204,6 +204,9 @@ VARIANTS: dict[str, dict[str, object]] = {
                                     "model.training.classifier_offset": "beams"},
     "isotropic": {"model.training.isotropic": True},
     "anisotropic": {"model.training.isotropic": False},
+    # The map's local systems (and the classifier's held-out predictions) in double
+    # precision throughout: the single-precision default's accuracy cost.
+    "double-precision": {"model.covariance_precision": "double"},
     # The classifier's temperature fitted without near-wall free points (the default
     # before): hits and free points along the beams of held-out scans only.
     "calibration-along-beam": {"model.training.calibration_near_wall": 0},

@@ -94,7 +94,9 @@ def anchor_cost(ctx: Context) -> Result:
     anchors: the neighbour look-up, the expected training covariance K (independent
     pairs by the product rule, and what the 4-D rule of same-scan pairs adds), the
     expected cross covariance to the footprint's cells, the Cholesky factor and the
-    triangular solve for the variances; `other` is the whole anchor minus the parts."""
+    triangular solve for the variances; `other` is the whole anchor minus the parts. The
+    first table gives the whole anchor with the local systems in each
+    `model.covariance_precision` (the parts: the model's own, the default)."""
     import dataclasses
 
     import numpy as np
@@ -132,8 +134,15 @@ def anchor_cost(ctx: Context) -> Result:
 
     with single_threaded_blas():
         predict_anchor(model, index, lattice, chosen[0])  # compiled loops and caches warm
-        per_anchor = cpu_per_anchor([lambda a=a: predict_anchor(model, index, lattice, a)
-                                     for a in chosen])
+        by_precision = {}
+        for precision in backends.PRECISIONS:
+            variant = dataclasses.replace(model, config=dataclasses.replace(
+                model.config, model=dataclasses.replace(model.config.model,
+                                                        covariance_precision=precision)))
+            predict_anchor(variant, index, lattice, chosen[0])
+            by_precision[precision] = cpu_per_anchor(
+                [lambda a=a, v=variant: predict_anchor(v, index, lattice, a) for a in chosen])
+        per_anchor = by_precision[model.config.model.covariance_precision]
         problems = anchor_problems(model, index, lattice, chosen)
         lookup = cpu_per_anchor([lambda a=a: anchor_problems(model, index, lattice, [a])
                                  for a in chosen])
@@ -173,10 +182,12 @@ def anchor_cost(ctx: Context) -> Result:
                                  for c, (_, cross, prior), p in zip(factors, systems, problems,
                                                                     strict=True)])
     result = Result()
-    result.add(Table(("anchors with support", "timed", "CPU ms per anchor",
+    own = model.config.model.covariance_precision
+    result.add(Table(("local systems", "anchors with support", "timed", "CPU ms per anchor",
                       "x anchors: CPU s"),
-                     [[str(len(anchors)), str(len(chosen)), f"{1e3 * per_anchor:.2f}",
-                       f"{per_anchor * len(anchors):.1f}"]]))
+                     [[f"{precision}{' (this model)' if precision == own else ''}",
+                       str(len(anchors)), str(len(chosen)), f"{1e3 * t:.2f}",
+                       f"{t * len(anchors):.1f}"] for precision, t in by_precision.items()]))
     n = np.mean([len(p.samples) for p in problems])
     nq = np.mean([len(q) for q in queries])
     parts = [("neighbour look-up", lookup),

@@ -25,6 +25,9 @@
  * The exported functions' prototypes are declared once more, for ctypes, in
  * gpocc/compiled.py (DECLARATIONS); tests/gp/test_compiled.py checks that they match.
  *
+ * A map's local systems may run their product-rule and cross-covariance sums in single
+ * precision (model.covariance_precision): converted here, inputs and outputs float64.
+ *
  * Array layouts (row-major, as numpy's C order):
  *   u (3, M): scaled nodes, coordinate-major (z = u_a . u_b is the kernel's arcsin
  *   argument); weights (M,) per-node quadrature weights; starts (N + 1,) node offsets of
@@ -89,6 +92,41 @@ static inline double clip1(double z)
 {
     z = z < 1.0 ? z : 1.0;
     return z > -1.0 ? z : -1.0;
+}
+
+/* fdlibm e_asinf.c (FreeBSD) coefficients: asin(x) = x + x R(x^2) on [0, 0.5] in
+ * single precision. */
+#define PS0F 1.6666586697e-01f
+#define PS1F -4.2743422091e-02f
+#define PS2F -8.6563630030e-03f
+#define QS1F -7.0662963390e-01f
+#define PIO2F 1.5707963268e+00f
+
+/* arcsin(z) in single precision for z = u . v of two scaled rows, branch-free as
+ * asin_fast. ``far`` is (1 - |z|) / 2 computed without cancellation
+ * (:c:func:`half_gap`): near |z| = 1, where the arcsine is steepest, (1 - |z|) / 2
+ * formed from a single-precision z would lose most of its digits. */
+static inline float asin_single(float z, float far)
+{
+    float az = fabsf(z);
+    int big = az >= 0.5f;
+    float t = big ? far : az * az;
+    float p = t * (PS0F + t * (PS1F + t * PS2F));
+    float q = 1.0f + t * QS1F;
+    float r = p / q;
+    float s = sqrtf(t);
+    float v = big ? PIO2F - 2.0f * (s + s * r) : az + az * r;
+    return z >= 0.0f ? v : -v;
+}
+
+/* (1 - |u . v|) / 2 for scaled rows u, v with gaps e_u = 1 - |u|^2, e_v = 1 - |v|^2:
+ * 1 -+ u . v = (|u -+ v|^2 + e_u + e_v) / 2, a sum of non-negative terms. */
+static inline float half_gap(float z, float u0, float u1, float u2, float eu, float v0,
+                             float v1, float v2, float ev)
+{
+    float sv = z >= 0.0f ? 1.0f : -1.0f;
+    float d0 = u0 - sv * v0, d1 = u1 - sv * v1, d2 = u2 - sv * v2;
+    return 0.25f * (d0 * d0 + d1 * d1 + d2 * d2 + eu + ev);
 }
 
 /* u = (1, x, y) sqrt(2 S) / sqrt(1 + 2 (1, x, y)' S (1, x, y)) and the normaliser. */
@@ -766,6 +804,134 @@ EXPORT i64 gpocc_correlated_pairs(const double *restrict cov, const i64 *restric
     return k;
 }
 
+/* nn_matrix_uniform_from in single precision (u (4, L N) the scaled rows and their
+ * gaps, as nn_cross_uniform_single): the upper triangle i < j, rows i leaving out their
+ * entries i < j < first[i] in whole vectors of eight, then the lower triangle copied;
+ * diagonal untouched. */
+static CLONES int nn_matrix_uniform_single(const float *restrict u,
+                                           const float *restrict weights, i64 size, i64 n,
+                                           double scale, const i64 *restrict first,
+                                           double *restrict out)
+{
+    i64 total = size * n;
+    float *restrict acc = malloc((size_t)(total > 0 ? total : 1) * sizeof(float));
+    if (!acc)
+        return -1;
+    const float *U0 = u, *U1 = u + total, *U2 = u + 2 * total, *U3 = u + 3 * total;
+    for (i64 i = 0; i < n; i++) {
+        i64 from = first ? i + 1 + ((first[i] - i - 1) & ~(i64)7) : i + 1;
+        if (size == 4) {
+            /* Point i's four nodes held in registers through each pass over a slot. */
+            float p[4][4], w[4];
+            for (i64 k = 0; k < 4; k++) {
+                p[k][0] = U0[k * n + i]; p[k][1] = U1[k * n + i];
+                p[k][2] = U2[k * n + i]; p[k][3] = U3[k * n + i];
+                w[k] = weights[k];
+            }
+            for (i64 slot = 0; slot < 4; slot++) {
+                i64 lo = slot * n + from;
+                const float *restrict v0 = U0 + lo, *restrict v1 = U1 + lo;
+                const float *restrict v2 = U2 + lo, *restrict v3 = U3 + lo;
+                float *restrict row = acc + lo;
+                for (i64 j = 0; j < n - from; j++) {
+                    float y0 = v0[j], y1 = v1[j], y2 = v2[j], y3 = v3[j];
+                    float t = 0.0f;
+                    for (i64 k = 0; k < 4; k++) {
+                        float z = p[k][0] * y0 + p[k][1] * y1 + p[k][2] * y2;
+                        t += w[k] * asin_single(z, half_gap(z, p[k][0], p[k][1], p[k][2],
+                                                            p[k][3], y0, y1, y2, y3));
+                    }
+                    row[j] = t;
+                }
+            }
+        } else {
+        for (i64 slot = 0; slot < size; slot++)
+            for (i64 j = from; j < n; j++)
+                acc[slot * n + j] = 0.0f;
+        for (i64 k = 0; k < size; k++) {
+            float x0 = U0[k * n + i], x1 = U1[k * n + i], x2 = U2[k * n + i];
+            float x3 = U3[k * n + i];
+            float wa = weights[k];
+            for (i64 slot = 0; slot < size; slot++) {
+                i64 lo = slot * n + from;
+                const float *restrict v0 = U0 + lo, *restrict v1 = U1 + lo;
+                const float *restrict v2 = U2 + lo, *restrict v3 = U3 + lo;
+                float *restrict row = acc + lo;
+                for (i64 j = 0; j < n - from; j++) {
+                    float z = x0 * v0[j] + x1 * v1[j] + x2 * v2[j];
+                    float far = half_gap(z, x0, x1, x2, x3, v0[j], v1[j], v2[j], v3[j]);
+                    row[j] += wa * asin_single(z, far);
+                }
+            }
+        }
+        }
+        for (i64 j = from; j < n; j++) {
+            float value = 0.0f;
+            for (i64 slot = 0; slot < size; slot++)
+                value += acc[slot * n + j] * weights[slot];
+            out[i * n + j] = scale * (double)value;
+        }
+    }
+    for (i64 i = 0; i < n; i++)
+        for (i64 j = 0; j < i; j++)
+            out[i * n + j] = out[j * n + i];
+    free(acc);
+    return 0;
+}
+
+/* gpocc_nn_cross_uniform in single precision: q (4, Q) and u (4, L N) hold the scaled
+ * rows and their gaps 1 - |row|^2 (row 3), node-major as there; weights (L,); out
+ * (Q, N) in double. Returns -1 if out of memory. */
+static CLONES int nn_cross_uniform_single(const float *restrict q, i64 nq,
+                                          const float *restrict u,
+                                          const float *restrict weights, i64 size, i64 n,
+                                          double scale, double *restrict out)
+{
+    i64 total = size * n;
+    const float *U0 = u, *U1 = u + total, *U2 = u + 2 * total, *U3 = u + 3 * total;
+    if (size == 4) { /* level 2, the default: the four nodes summed in registers */
+        for (i64 r = 0; r < nq; r++) {
+            float x0 = q[r], x1 = q[nq + r], x2 = q[2 * nq + r], x3 = q[3 * nq + r];
+            double *restrict dst = out + r * n;
+            for (i64 i = 0; i < n; i++) {
+                float t = 0.0f;
+                for (i64 k = 0; k < 4; k++) {
+                    i64 c = k * n + i;
+                    float v0 = U0[c], v1 = U1[c], v2 = U2[c], v3 = U3[c];
+                    float z = x0 * v0 + x1 * v1 + x2 * v2;
+                    t += weights[k] * asin_single(z, half_gap(z, x0, x1, x2, x3, v0, v1, v2,
+                                                              v3));
+                }
+                dst[i] = scale * (double)t;
+            }
+        }
+        return 0;
+    }
+    float *restrict row = malloc((size_t)(n > 0 ? n : 1) * sizeof(float));
+    if (!row)
+        return -1;
+    for (i64 r = 0; r < nq; r++) {
+        float x0 = q[r], x1 = q[nq + r], x2 = q[2 * nq + r], x3 = q[3 * nq + r];
+        for (i64 i = 0; i < n; i++)
+            row[i] = 0.0f;
+        for (i64 k = 0; k < size; k++) {
+            float wk = weights[k];
+            const float *restrict v0 = U0 + k * n, *restrict v1 = U1 + k * n;
+            const float *restrict v2 = U2 + k * n, *restrict v3 = U3 + k * n;
+            for (i64 i = 0; i < n; i++) {
+                float z = x0 * v0[i] + x1 * v1[i] + x2 * v2[i];
+                row[i] += wk * asin_single(z, half_gap(z, x0, x1, x2, x3, v0[i], v1[i], v2[i],
+                                                       v3[i]));
+            }
+        }
+        double *restrict dst = out + r * n;
+        for (i64 i = 0; i < n; i++)
+            dst[i] = scale * (double)row[i];
+    }
+    free(row);
+    return 0;
+}
+
 /* Every covariance one local GP problem needs, in one call, for N points that all share
  * one 2-D rule (unit (L, 2), weights (L,)):
  *   k_out (N, N): the expected training matrix (product rule; same-scan pairs by the 4-D
@@ -773,6 +939,9 @@ EXPORT i64 gpocc_correlated_pairs(const double *restrict cov, const i64 *restric
  *   ``diagonal`` on the diagonal;
  *   cross_out (Q, N): expected cross-covariances of the exact (Q, 2) queries;
  *   prior_out (Q,): k(q, q).
+ * With ``single``, the product-rule part of k_out and cross_out are computed in single
+ * precision (nn_matrix_uniform_single, nn_cross_uniform_single: about 1e-6 of the
+ * kernel's scale), the diagonal, the same-scan pairs and prior_out in double.
  * Returns -1 if out of memory. */
 EXPORT int gpocc_nn_local_system(const double *restrict means, const double *restrict cov,
                                  const i64 *restrict scan_ids, const double *restrict pf,
@@ -782,30 +951,43 @@ EXPORT int gpocc_nn_local_system(const double *restrict means, const double *res
                                  const double *restrict weights4, i64 size4,
                                  const double *restrict root, double scale, double diagonal,
                                  int correlated, double pose_share_min, double zero_variance,
-                                 double *restrict k_out, double *restrict cross_out,
-                                 double *restrict prior_out)
+                                 int single, double *restrict k_out,
+                                 double *restrict cross_out, double *restrict prior_out)
 {
     i64 total = n * size;
     size_t cells = (size_t)(total > 0 ? total : 1);
+    size_t queries_cells = (size_t)(nq > 0 ? nq : 1);
     double *nodes = malloc(2 * cells * sizeof(double));
     double *u = malloc(3 * cells * sizeof(double));
-    double *q = malloc((size_t)(3 * (nq > 0 ? nq : 1)) * sizeof(double));
+    double *q = single ? NULL : malloc(3 * queries_cells * sizeof(double));
+    /* Single precision: rows (4, .) of the scaled rows and their gaps 1 - |row|^2. */
+    float *us = single ? malloc(4 * cells * sizeof(float)) : NULL;
+    float *qs = single ? malloc(4 * queries_cells * sizeof(float)) : NULL;
+    float ws[64];
     i64 *pair_index = NULL;
     i64 *first = NULL;
     double *values = NULL;
     int status = -1;
-    if (!nodes || !u || !q)
+    if (!nodes || !u || (single ? !us || !qs || size > 64 : !q))
         goto done;
     gpocc_gaussian_nodes_2d(means, cov, n, unit, size, nodes);
     /* Node-major scaled rows (node k of point i in column k N + i). */
     for (i64 i = 0; i < n; i++) {
         for (i64 k = 0; k < size; k++) {
-            i64 m = i * size + k;
+            i64 m = i * size + k, c = k * n + i;
             double inv;
-            scaled_row(nodes[m], nodes[total + m], root, &u[k * n + i], &u[total + k * n + i],
-                       &u[2 * total + k * n + i], &inv);
+            scaled_row(nodes[m], nodes[total + m], root, &u[c], &u[total + c],
+                       &u[2 * total + c], &inv);
+            if (single) {
+                us[c] = (float)u[c];
+                us[total + c] = (float)u[total + c];
+                us[2 * total + c] = (float)u[2 * total + c];
+                us[3 * total + c] = (float)(inv * inv); /* 1 - |u|^2 = inv^2 exactly */
+            }
         }
     }
+    for (i64 k = 0; single && k < size; k++)
+        ws[k] = (float)weights[k];
     i64 pairs = 0;
     if (correlated && size > 1) {
         pairs = gpocc_correlated_pairs(cov, scan_ids, pf, n, pose_share_min, zero_variance,
@@ -831,8 +1013,11 @@ EXPORT int gpocc_nn_local_system(const double *restrict means, const double *res
             }
         }
     }
-    if (nn_matrix_uniform_from(u, weights, size, n, scale, first, k_out) != 0)
+    if ((single ? nn_matrix_uniform_single(us, ws, size, n, scale, first, k_out)
+                : nn_matrix_uniform_from(u, weights, size, n, scale, first, k_out)) != 0)
         goto done;
+    /* The diagonal and the priors in double precision: each is one arcsine of a row
+     * with itself, and the variances subtract from them. */
     for (i64 i = 0; i < n; i++) {
         double acc = 0.0;
         for (i64 k = 0; k < size; k++) {
@@ -856,17 +1041,31 @@ EXPORT int gpocc_nn_local_system(const double *restrict means, const double *res
     for (i64 r = 0; r < nq; r++) {
         double q0, q1, q2, inv;
         scaled_row(queries[2 * r], queries[2 * r + 1], root, &q0, &q1, &q2, &inv);
-        q[r] = q0;
-        q[nq + r] = q1;
-        q[2 * nq + r] = q2;
+        if (single) {
+            qs[r] = (float)q0;
+            qs[nq + r] = (float)q1;
+            qs[2 * nq + r] = (float)q2;
+            qs[3 * nq + r] = (float)(inv * inv);
+        } else {
+            q[r] = q0;
+            q[nq + r] = q1;
+            q[2 * nq + r] = q2;
+        }
         prior_out[r] = scale * asin_fast(clip1(q0 * q0 + q1 * q1 + q2 * q2));
     }
-    gpocc_nn_cross_uniform(q, nq, u, weights, size, n, scale, cross_out);
+    if (single) {
+        if (nn_cross_uniform_single(qs, nq, us, ws, size, n, scale, cross_out) != 0)
+            goto done;
+    } else {
+        gpocc_nn_cross_uniform(q, nq, u, weights, size, n, scale, cross_out);
+    }
     status = 0;
 done:
     free(nodes);
     free(u);
     free(q);
+    free(us);
+    free(qs);
     free(pair_index);
     free(first);
     free(values);

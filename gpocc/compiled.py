@@ -59,8 +59,8 @@ int gpocc_nn_local_system(const double *means, const double *cov, const i64 *sca
                           const double *unit, const double *weights, i64 size,
                           const double *unit4, const double *weights4, i64 size4,
                           const double *root, double scale, double diagonal, int correlated,
-                          double pose_share_min, double zero_variance, double *k_out,
-                          double *cross_out, double *prior_out);
+                          double pose_share_min, double zero_variance, int single,
+                          double *k_out, double *cross_out, double *prior_out);
 void gpocc_beam_unscented(const double *dist, const double *bearing, const double *range_sd,
                           double bearing_sd, const i64 *scan, i64 n, const double *poses,
                           const double *pose_root, const double *pose_map,
@@ -471,12 +471,13 @@ def nn_local_system(means: np.ndarray, covariances: np.ndarray, scan_ids: np.nda
                     pose_factors: np.ndarray, queries: np.ndarray, unit: np.ndarray,
                     weights: np.ndarray, unit4: np.ndarray, weights4: np.ndarray,
                     root: np.ndarray, scale: float, diagonal: float, correlated: bool,
-                    pose_share_min: float, zero_variance: float, k_out: np.ndarray,
-                    cross_out: np.ndarray, prior_out: np.ndarray) -> None:
+                    pose_share_min: float, zero_variance: float, single: bool,
+                    k_out: np.ndarray, cross_out: np.ndarray, prior_out: np.ndarray) -> None:
     """Every covariance one local GP problem needs (N points sharing one 2-D rule):
     k_out (N, N) the expected training matrix plus ``diagonal`` on its diagonal,
     cross_out (Q, N) the cross-covariances of the exact (Q, 2) ``queries``, prior_out
-    (Q,) k(q, q). See ``gpocc.gp.expected.expected_local_system``."""
+    (Q,) k(q, q); with ``single`` the product-rule part of k_out and cross_out in single
+    precision. See ``gpocc.gp.expected.expected_local_system``."""
     means, covariances, pose_factors = _in(means), _in(covariances), _in(pose_factors)
     scan_ids, queries = _in(scan_ids, np.int64), _in(queries)
     unit, weights, unit4, weights4, root = (_in(unit), _in(weights), _in(unit4),
@@ -492,7 +493,7 @@ def nn_local_system(means: np.ndarray, covariances: np.ndarray, scan_ids: np.nda
         queries=queries, nq=nq, unit=unit, weights=weights, size=weights.shape[0],
         unit4=unit4, weights4=weights4, size4=weights4.shape[0], root=root, scale=scale,
         diagonal=diagonal, correlated=bool(correlated), pose_share_min=pose_share_min,
-        zero_variance=zero_variance, k_out=_out(k_out, (n, n)),
+        zero_variance=zero_variance, single=bool(single), k_out=_out(k_out, (n, n)),
         cross_out=_out(cross_out, (nq, n)), prior_out=_out(prior_out, (nq,))))
 
 

@@ -116,8 +116,10 @@ class GPModel:
     @property
     def backend(self) -> str | backends.Choice:
         """``backend=`` of every expected-kernel call: ``model.backend`` with
-        ``model.diagonal`` (:func:`gpocc.gp.backends.choose`)."""
-        return backends.choose(self.config.model.backend, self.config.model.diagonal)
+        ``model.diagonal`` and ``model.covariance_precision``
+        (:func:`gpocc.gp.backends.choose`)."""
+        m = self.config.model
+        return backends.choose(m.backend, m.diagonal, m.covariance_precision)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -175,7 +177,8 @@ def build_model(
     if not model_cfg.input_noise:
         samples = samples.without_input_noise()
     kernel = make_kernel(model_cfg.kernel, model_cfg.hyperparameters)
-    backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
+    backend = backends.choose(model_cfg.backend, model_cfg.diagonal,
+                              model_cfg.covariance_precision)
     # One tree of the sample means for the likelihood's patches and the classifier's.
     index = NeighbourIndex(samples)
     start = None if warm_start is None else TrainingResult(
@@ -257,7 +260,8 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     ``index``: a neighbour index of samples with the same means, for its patches."""
     model_cfg = config.model
     training = model_cfg.training
-    backend = backends.choose(model_cfg.backend, model_cfg.diagonal)
+    backend = backends.choose(model_cfg.backend, model_cfg.diagonal,
+                              model_cfg.covariance_precision)
     # Fresh patches (another seed) for the classifier: a and b fitted on the very
     # neighbourhoods whose likelihood chose the hyperparameters would be optimistic.
     patches = make_patches(samples, training, config.seed + 1, index)

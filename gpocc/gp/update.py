@@ -224,7 +224,8 @@ def kept_fit(model: GPModel, samples: SampleSet, config: Config) -> tuple[float,
             -negative_log_likelihood(
                 np.append(kernel.theta, math.log(noise)), kernel, patches,
                 model_cfg.quadrature_level, with_gradient=False, input_scale=scale,
-                backend=backends.choose(model_cfg.backend, model_cfg.diagonal),
+                backend=backends.choose(model_cfg.backend, model_cfg.diagonal,
+                                        model_cfg.covariance_precision),
                 scale_part=model_cfg.training.input_noise_scale_part)[0]
             for kernel, noise, scale in (
                 (model.kernel, model.noise_variance, model.input_noise_scale),

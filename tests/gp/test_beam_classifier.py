@@ -169,7 +169,7 @@ def test_model_refits_its_offset_on_the_heldout_beams():
     assert model.kernel == plain.kernel  # the same GP; only the offset differs
     mean, var, labels = beam_holdout_predictions(
         model.kernel, model.noise_variance, model.samples, calib, model.level, 64, 1.0, 20,
-        np.random.default_rng(config.seed + 2))
+        np.random.default_rng(config.seed + 2), backend=model.backend)
     assert model.training["classifier_points"] == labels.size > 0
     bound = offset_bound(mean, config.model.training.classifier_offset_range)
     assert model.classifier == fit_offset(mean, var, labels, plain.classifier.extra_variance,
@@ -252,7 +252,7 @@ def test_with_a_beam_temperature_the_offset_is_fitted_with_it(offset_range):
     plain = build_model(samples, _training("holdout"))
     mean, var, labels = beam_holdout_predictions(
         model.kernel, model.noise_variance, model.samples, calib, model.level, 64, 1.0, 20,
-        np.random.default_rng(config.seed + 2))
+        np.random.default_rng(config.seed + 2), backend=model.backend)
     assert model.training["classifier_offset"] == "beams"
     bound = 100.0 if offset_range == "wide" else float(np.max(np.abs(mean)))
     assert model.classifier == fit_offset_and_temperature(

@@ -639,12 +639,14 @@ def test_local_system_in_one_call_matches_the_separate_calls(level, case):
     np.testing.assert_allclose(prior, kernel.diag(queries), rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("single", [False, True])
 @pytest.mark.parametrize("level", [2, 3])
-def test_the_skipped_same_scan_runs_are_written_and_the_rest_is_bit_identical(level):
+def test_the_skipped_same_scan_runs_are_written_and_the_rest_is_bit_identical(level, single):
     """A map problem's product rule skips the runs of consecutive same-scan points, whose
     entries the 4-D rule then writes: into a NaN-filled matrix every entry is written,
     and every entry outside the same-scan pairs is bit for bit the product rule's without
-    skipping (``correlated`` off), whatever the loops leave to their scalar remainders."""
+    skipping (``correlated`` off), whatever the loops leave to their scalar remainders;
+    in double and in single precision."""
     from gpocc import compiled as fused
 
     means, covs, scan_ids, factors = _scan_runs_problem()
@@ -657,7 +659,8 @@ def test_the_skipped_same_scan_runs_are_written_and_the_rest_is_bit_identical(le
         fused.nn_local_system(means, covs, scan_ids, factors, np.zeros((1, 2)), unit,
                               weights, unit4, weights4, kernel.root_two_s,
                               kernel.arcsin_scale, 0.125, correlated, ex.POSE_SHARE_MIN,
-                              ex.ZERO_VARIANCE_M2, k, np.empty((1, 36)), np.empty(1))
+                              ex.ZERO_VARIANCE_M2, single, k, np.empty((1, 36)),
+                              np.empty(1))
         return k
 
     first, second = ex.same_scan_pairs(covs, scan_ids, factors)
@@ -703,3 +706,46 @@ def test_backends_serve_the_kernels_they_register():
         closed = expected_se_closed_form(SE, means, covs, means, covs)
         off = ~np.eye(12, dtype=bool)
         np.testing.assert_allclose(k[off], closed[off], rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("level", [1, 2, 3])
+def test_single_precision_local_systems_are_within_a_millionth_of_the_kernel_scale(level):
+    """``model.covariance_precision: single``: the product-rule part of K and the
+    cross-covariances in single precision, against the double loops (themselves checked
+    against Monte Carlo above). The kernel is as sharp as the learned ones (weight
+    variance 500 / m^2) and the points lie centimetres apart and a few metres out, where
+    arcsine arguments come within 1e-5 of 1 and a single-precision 1 - z would keep
+    hardly a digit. Diagonal, same-scan pairs and priors are double, bit for bit."""
+    from gpocc.gp import backends
+
+    rng = np.random.default_rng(11 + level)
+    kernel = NeuralNetworkKernel(3.0, 400.0, (500.0, 500.0))
+    cluster = rng.uniform(2.0, 3.0, 2) + rng.normal(0.0, 0.03, (40, 2))
+    spread = rng.uniform(-4.0, 4.0, (40, 2))
+    means = np.concatenate([cluster, spread])
+    covs = _covariances(rng, 80, 0.02)
+    scan_ids = np.repeat(np.arange(8), 10)
+    factors = rng.normal(0.0, 0.01, (80, 2, 3))
+    queries = np.concatenate([cluster[:20] + rng.normal(0.0, 0.01, (20, 2)),
+                              rng.uniform(-4.0, 4.0, (60, 2))])
+    double = ex.expected_local_system(kernel, means, covs, queries, level, 0.1,
+                                      scan_ids=scan_ids, pose_factors=factors,
+                                      backend="compiled")
+    single = ex.expected_local_system(
+        kernel, means, covs, queries, level, 0.1, scan_ids=scan_ids, pose_factors=factors,
+        backend=backends.choose("compiled", precision="single"))
+    scale = kernel.arcsin_scale
+    k_double, cross_double, prior_double = double
+    k_single, cross_single, prior_single = single
+    off = ~np.eye(80, dtype=bool)
+    assert np.abs(k_single - k_double)[off].max() < 1e-6 * scale
+    assert np.abs(cross_single - cross_double).max() < 1e-6 * scale
+    assert (k_single != k_double)[off].any()  # single precision did run
+    np.testing.assert_array_equal(np.diag(k_single), np.diag(k_double))
+    np.testing.assert_array_equal(prior_single, prior_double)
+    np.testing.assert_array_equal(k_single, k_single.T)
+    # Some arguments come that close to 1: the case the cancellation-free gap is for.
+    u = kernel.scaled_columns(queries[:20])
+    v = kernel.scaled_columns(means[:40])
+    assert (1.0 - (u.T @ v)).min() < 1e-4
+

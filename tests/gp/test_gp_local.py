@@ -264,7 +264,10 @@ def test_a_backend_gets_a_whole_batch_of_local_problems():
 
     class ObservedBackend(CompiledBackend):
         name = "observed"
-        served = {NeuralNetworkKernel: ObservedLoops()}
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.served = {NeuralNetworkKernel: ObservedLoops()}
 
     rng = np.random.default_rng(8)
     samples = room_samples(rng, 300)
@@ -308,3 +311,26 @@ def test_an_index_over_samples_of_the_same_means_gives_their_own_problems():
                       pose_factors=samples.pose_factors, sensor_ids=samples.sensor_ids)
     with pytest.raises(ValueError, match="other means"):
         NeighbourIndex(samples).over(moved)
+
+
+def test_a_model_maps_alike_in_single_and_double_precision():
+    """The same model's predictions through predict_locals with single- and double-
+    precision local systems: latent means and variances agree to 1e-5 of the prior
+    variance; the numpy backend (double only) ignores the setting."""
+    from gpocc.gp import backends
+    from gpocc.gp.local import predict_locals
+
+    rng = np.random.default_rng(21)
+    samples = room_samples(rng, 400)
+    kernel = NeuralNetworkKernel(3.0, 100.0, (200.0, 200.0))
+    centres = rng.uniform(-2.0, 2.0, (6, 2))
+    problems = NeighbourIndex(samples).problems(centres, 96)
+    queries = [c + rng.uniform(-0.5, 0.5, (50, 2)) for c in centres]
+    runs = {p: predict_locals(kernel, 0.1, problems, queries, 2,
+                              backend=backends.choose("compiled", precision=p))
+            for p in backends.PRECISIONS}
+    for single, double in zip(runs["single"], runs["double"], strict=True):
+        tolerance = 1e-5 * double.prior_variance.max()
+        assert np.abs(single.mean - double.mean).max() < tolerance
+        assert np.abs(single.variance - double.variance).max() < tolerance
+    assert backends.get("numpy").in_precision("single") is backends.get("numpy")

@@ -196,7 +196,8 @@ def test_cli_trains_and_maps_with_the_two_draw_diagonal(tmp_path):
     assert result.exit_code == 0, result.output
     model = load_model(model_path)
     assert model.config.model.diagonal == "two-draw"
-    assert model.backend == backends.Choice(model.config.model.backend, "two-draw")
+    assert model.backend == backends.Choice(model.config.model.backend, "two-draw",
+                                            model.config.model.covariance_precision)
     result = runner.invoke(app, ["map", str(model_path), "--out", str(tmp_path / "map"),
                                  "--resolution", "0.2", "--workers", "1"])
     assert result.exit_code == 0, result.output

@@ -12,10 +12,13 @@ C loops of ``gpocc/_kernels.c`` for the kernels they serve) or ``auto`` (compile
 built). Adding a backend is a module here with a ``BACKEND`` and one entry in
 :data:`MODULES`.
 
-``model.diagonal`` (:data:`DIAGONALS`) travels with the backend: :func:`choose` gives the
-backend's name for the default ``one-point`` and otherwise a :class:`Choice`, which
-:func:`get` turns into the backend wrapped by :mod:`gpocc.gp.backends.diagonal`; every
-function that takes ``backend=`` then builds its training covariances with that diagonal.
+``model.diagonal`` (:data:`DIAGONALS`) and ``model.covariance_precision``
+(:data:`PRECISIONS`) travel with the backend: :func:`choose` gives the backend's name for
+``one-point`` in double precision and otherwise a :class:`Choice`, which :func:`get` turns
+into the backend in that precision (``Backend.in_precision``), wrapped by
+:mod:`gpocc.gp.backends.diagonal` for another diagonal; every function that takes
+``backend=`` then builds its training covariances with that diagonal, and a map's local
+systems in that precision.
 """
 
 from __future__ import annotations
@@ -47,23 +50,35 @@ _AUTO_ORDER = ("compiled", "numpy")
 
 #: The values of ``model.diagonal`` (the first is the default).
 DIAGONALS: tuple[str, ...] = ("one-point", "two-draw")
+#: The values of ``model.covariance_precision`` (the first is the default): the
+#: arithmetic of a map's local systems (``KernelLoops.local_system``); training's
+#: likelihoods and gradients are always double.
+PRECISIONS: tuple[str, ...] = ("single", "double")
 
 
 @dataclass(frozen=True)
 class Choice:
-    """A backend's name with a diagonal other than ``one-point`` (plain data: it crosses
-    process pools and Dask as the name alone does)."""
+    """A backend's name with a diagonal other than ``one-point`` or a precision other than
+    ``double`` (plain data: it crosses process pools and Dask as the name alone does)."""
 
     backend: str
-    diagonal: str
+    diagonal: str = DIAGONALS[0]
+    precision: str = "double"
 
 
-def choose(backend: str, diagonal: str = "one-point") -> str | Choice:
-    """What to pass as ``backend=`` for ``model.backend`` and ``model.diagonal``: the name
-    itself for ``one-point`` (the default path is untouched), else a :class:`Choice`."""
+def choose(backend: str, diagonal: str = DIAGONALS[0], precision: str = "double"
+           ) -> str | Choice:
+    """What to pass as ``backend=`` for ``model.backend``, ``model.diagonal`` and
+    ``model.covariance_precision``: the name itself for ``one-point`` in ``double``, else
+    a :class:`Choice`."""
     if diagonal not in DIAGONALS:
         raise ValueError(f"diagonal must be one of {', '.join(DIAGONALS)}, got {diagonal!r}")
-    return backend if diagonal == DIAGONALS[0] else Choice(backend, diagonal)
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got "
+                         f"{precision!r}")
+    if diagonal == DIAGONALS[0] and precision == "double":
+        return backend
+    return Choice(backend, diagonal, precision)
 
 
 def diagonal_of(backend: str | Choice | Backend) -> str:
@@ -155,6 +170,11 @@ class Backend(Protocol):
         rule), or None: the numpy path lists them."""
         ...
 
+    def in_precision(self, precision: str) -> Backend:
+        """This backend with its local systems in ``precision`` (:data:`PRECISIONS`), or
+        itself where it has one precision only (numpy: double)."""
+        ...
+
 
 @functools.cache
 def _load(name: str) -> Backend:
@@ -166,9 +186,9 @@ def get(backend: str | Choice | Backend = "auto") -> Backend:
 
     ``auto`` is the compiled backend where its library loads, else numpy; ``compiled``
     without a built library raises the loader's ImportError (how to build it). A
-    :class:`Choice` gives its backend with its diagonal."""
+    :class:`Choice` gives its backend in its precision with its diagonal."""
     if isinstance(backend, Choice):
-        return _with_diagonal(backend)
+        return _chosen(backend)
     if not isinstance(backend, str):
         return backend
     if backend == "auto":
@@ -189,7 +209,10 @@ def _auto() -> Backend:
 
 
 @functools.cache
-def _with_diagonal(choice: Choice) -> Backend:
+def _chosen(choice: Choice) -> Backend:
+    base = get(choice.backend).in_precision(choice.precision)
+    if choice.diagonal == DIAGONALS[0]:
+        return base
     from gpocc.gp.backends.diagonal import DiagonalBackend  # it imports gp.expected
 
-    return DiagonalBackend(choice, get(choice.backend))
+    return DiagonalBackend(choice, base)

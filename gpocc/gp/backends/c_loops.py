@@ -54,10 +54,15 @@ def _node_major(u: np.ndarray, size: int) -> np.ndarray:
 
 
 class NeuralNetworkLoops(Quadrature):
-    """The NN kernel's expectations in C; the cross-covariance's gradient in numpy."""
+    """The NN kernel's expectations in C; the cross-covariance's gradient in numpy.
+    ``single``: :meth:`local_system` computes the product-rule part of K and the
+    cross-covariances in single precision (``model.covariance_precision``)."""
 
     scale_gradient = True
     symmetric = True  # the loops and the pair scatter write both triangles with one value
+
+    def __init__(self, single: bool = False) -> None:
+        self.single = single
 
     def matrix(self, kernel: NeuralNetworkKernel, ex: _Expansion, means: np.ndarray,
                k: np.ndarray, dk: np.ndarray | None, with_scale_gradient: bool
@@ -132,16 +137,27 @@ class NeuralNetworkLoops(Quadrature):
         compiled.nn_local_system(
             means, covariances, scan_ids, pose_factors, queries, unit, weights, unit4,
             weights4, kernel.root_two_s, kernel.arcsin_scale, float(diagonal), correlated,
-            POSE_SHARE_MIN, ZERO_VARIANCE_M2, k, cross, prior)
+            POSE_SHARE_MIN, ZERO_VARIANCE_M2, self.single, k, cross, prior)
         return k, cross, prior
 
 
 class CompiledBackend:
-    """The C loops for the kernels in :attr:`served`; numpy quadrature for the others."""
+    """The C loops for the kernels in :attr:`served`; numpy quadrature for the others.
+    ``precision``: that of the local systems (:data:`gpocc.gp.backends.PRECISIONS`)."""
 
     name = "compiled"
-    #: kernel class -> its compiled loops.
-    served: dict[type, Quadrature] = {NeuralNetworkKernel: NeuralNetworkLoops()}
+
+    def __init__(self, precision: str = "double") -> None:
+        self.precision = precision
+        #: kernel class -> its compiled loops.
+        self.served: dict[type, Quadrature] = {
+            NeuralNetworkKernel: NeuralNetworkLoops(single=precision == "single")}
+
+    def __reduce__(self) -> tuple:
+        return _in_precision, (self.precision,)
+
+    def in_precision(self, precision: str) -> CompiledBackend:
+        return _in_precision(precision)
 
     def loops(self, kernel: Kernel) -> Quadrature:
         return self.served.get(type(kernel), QUADRATURE)
@@ -162,3 +178,11 @@ class CompiledBackend:
 
 
 BACKEND = CompiledBackend()
+_SINGLE = CompiledBackend("single")
+
+
+def _in_precision(precision: str) -> CompiledBackend:
+    """The module's backend in ``precision`` (one object each: pickles restore them)."""
+    if precision not in ("single", "double"):
+        raise ValueError(f"precision must be single or double, got {precision!r}")
+    return _SINGLE if precision == "single" else BACKEND

@@ -99,3 +99,8 @@ class DiagonalBackend:
     def same_scan_pairs(self, covariances: np.ndarray, scan_ids: np.ndarray,
                         pose_factors: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         return self.base.same_scan_pairs(covariances, scan_ids, pose_factors)
+
+    def in_precision(self, precision: str) -> Backend:
+        from gpocc.gp import backends
+
+        return backends.get(Choice(self.choice.backend, self.diagonal, precision))
