@@ -73,6 +73,8 @@ def test_changed_settings_keep_what_differs_and_drop_what_does_not():
         ("seed: 0\nsensorz: []\n", "unknown key 'sensorz'"),
         ("model:\n  neighbours: many\n", "'model.neighbours' must be an integer"),
         ("model:\n  input_noise: 1\n", "'model.input_noise' must be true or false"),
+        ("model:\n  covariance_precision: half\n",
+         "'model.covariance_precision' must be one of single, double"),
         ("sensors:\n  - range_variance_m2: -0.1\n", "'sensors[0].range_variance_m2' must not"),
         ("sensors:\n  - max_tilt_deg: 0\n", "'sensors[0].max_tilt_deg' must be in (0, 90]"),
         ("sensors:\n  - max_tilt_deg: 95\n", "'sensors[0].max_tilt_deg' must be in (0, 90]"),
