@@ -212,7 +212,8 @@ def profile(knob: str, case: str, seed: int) -> dict:
     g = float(m.input_noise_scale)
     stated = scale_input_noise(m.samples, 1.0 / g)
     patches = make_patches(stated, cfg.training, m.config.seed)
-    level, backend = cfg.quadrature_level, backends.choose(cfg.backend, cfg.diagonal)
+    level, backend = cfg.quadrature_level, backends.choose(cfg.backend, cfg.diagonal,
+                                                          cfg.covariance_precision)
     params = [*m.kernel.theta, math.log(m.noise_variance)]
 
     def lml(noise: float, scale: float) -> float:

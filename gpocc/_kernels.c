@@ -963,12 +963,12 @@ EXPORT int gpocc_nn_local_system(const double *restrict means, const double *res
     /* Single precision: rows (4, .) of the scaled rows and their gaps 1 - |row|^2. */
     float *us = single ? malloc(4 * cells * sizeof(float)) : NULL;
     float *qs = single ? malloc(4 * queries_cells * sizeof(float)) : NULL;
-    float ws[64];
+    float *ws = single ? malloc((size_t)(size > 0 ? size : 1) * sizeof(float)) : NULL;
     i64 *pair_index = NULL;
     i64 *first = NULL;
     double *values = NULL;
     int status = -1;
-    if (!nodes || !u || (single ? !us || !qs || size > 64 : !q))
+    if (!nodes || !u || (single ? !us || !qs || !ws : !q))
         goto done;
     gpocc_gaussian_nodes_2d(means, cov, n, unit, size, nodes);
     /* Node-major scaled rows (node k of point i in column k N + i). */
@@ -1066,6 +1066,7 @@ done:
     free(q);
     free(us);
     free(qs);
+    free(ws);
     free(pair_index);
     free(first);
     free(values);

@@ -8,11 +8,11 @@ lattice of bearings, ``step`` apart, ``step`` the finest increment of any scan (
 that together cover a full turn, the lattice is one turn of the nearest whole number of
 steps not longer than that): each beam goes to the lattice bearing nearest its own (at
 most ``step / 2`` away), bearings no beam of a scan fell on hold NaN (no measurement) in
-that scan. Since no scan's beams are closer than ``step``, two beams of a scan share a
-bearing only when they point the same way (a full turn's first and last); the first is
-kept. The mean square of the bearing
-shifts is returned, to be added to the sensor's bearing variance: the samples stage then
-widens each sample by the rounding it did not see.
+that scan; a beam half a step off takes the lower of its two. No scan's beams are closer
+than ``step``, so along a scan the bearings increase, and two beams of a scan share one
+only when they point the same way (a full turn's first and last): the first is kept.
+The mean square of the bearing shifts is returned, to be added to the sensor's bearing
+variance: the samples stage then widens each sample by the rounding it did not see.
 """
 
 from __future__ import annotations
@@ -27,6 +27,10 @@ from gpocc.errors import GpoccError
 #: A lattice longer than this many times the longest scan means the layouts are not one
 #: sensor's jitter (a second laser on the topic, a driver's mode change): refused.
 MAX_LATTICE_GROWTH = 2.0
+#: Scans placed at a time (bounds the temporary arrays of a long log).
+_SCANS_PER_BLOCK = 2048
+#: Positions within this many steps of a half step round down (ties, float noise).
+_TIE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -85,12 +89,12 @@ def common_layout(where: str, ranges: list[np.ndarray],
                          "(the beams turn both ways); fix the driver's angle settings")
     sign = float(signs[0])
     step = float(np.abs(increment[several]).min())
-    k = np.arange(int(counts.max()))
-    valid = k[None, :] < counts[:, None]  # (S, K)
-    # Every scan's bearings measured along the scans' direction from the lattice's start.
-    along = sign * (first[:, None] + k[None, :] * np.where(several, increment, 0.0)[:, None])
-    start = float(along[valid].min())
-    turn = float(along[valid].max()) - start + step > 2 * math.pi - 1e-9
+    increment = np.where(several, increment, 0.0)
+    # Each scan's bearings measured along the scans' direction: its first and last.
+    lows = sign * first
+    start = float(lows.min())
+    end = float((lows + sign * (counts - 1) * increment).max())
+    turn = end - start + step > 2 * math.pi - 1e-9
     if turn:
         # A 360-degree scanner whose first angle moves: bearings a turn apart are one
         # direction, so the lattice is one turn of whole steps (no longer than the finest
@@ -98,34 +102,59 @@ def common_layout(where: str, ranges: list[np.ndarray],
         # (Within float32 rounding of the message fields: 2 pi / 180 may come out 180.00001.)
         size = math.ceil(2 * math.pi / step * (1.0 - 1e-6))
         step = 2 * math.pi / size
-    position = (along - start) / step
-    slot = np.rint(position).astype(np.int64)
-    shift = (slot - position) * step
-    if turn:
-        slot %= size
     else:
-        size = int(slot[valid].max()) + 1
-        if size > MAX_LATTICE_GROWTH * counts.max() + 1:
-            raise GpoccError(
-                f"{where}: the scans' beam layouts ({counts.min()}-{counts.max()} beams, "
-                f"angle_min {math.degrees(first.min()):.1f}..{math.degrees(first.max()):.1f} "
-                f"deg, finest increment {math.degrees(step):.3g} deg) do not fit one layout "
-                f"of at most {MAX_LATTICE_GROWTH:g} times the longest scan; split the bag "
-                "where the layout changes, or give each laser its own topic")
-    padded = np.full(slot.shape, np.nan)
-    for s, r in enumerate(ranges):
-        padded[s, :r.shape[0]] = r
-    # Two beams of a scan on one bearing (a full turn's first and last, or increments
-    # within rounding of the step): the first is kept.
-    rows = np.broadcast_to(np.arange(len(ranges))[:, None], slot.shape)
-    _, kept = np.unique((rows * size + slot)[valid], return_index=True)
+        # The last scan's last beam, and one more bearing for a beam that a tie before it
+        # pushes on (below); an unused last bearing is dropped at the end.
+        size = int(math.floor((end - start) / step + 0.5)) + 2
+    if size > MAX_LATTICE_GROWTH * counts.max() + 2:
+        raise GpoccError(
+            f"{where}: the scans' beam layouts ({counts.min()}-{counts.max()} beams, "
+            f"angle_min {math.degrees(first.min()):.1f}..{math.degrees(first.max()):.1f} "
+            f"deg, finest increment {math.degrees(step):.3g} deg) do not fit one layout "
+            f"of at most {MAX_LATTICE_GROWTH:g} times the longest scan; split the bag "
+            "where the layout changes, or give each laser its own topic")
     out = np.full((len(ranges), size), np.nan)
-    out[rows[valid][kept], slot[valid][kept]] = padded[valid][kept]
-    shift = shift[valid][kept]
+    squares, kept_beams, largest = 0.0, 0, 0.0
+    # A block of scans at a time: a long log of a dense lidar has 1e8 beams.
+    for lo in range(0, len(ranges), _SCANS_PER_BLOCK):
+        hi = min(len(ranges), lo + _SCANS_PER_BLOCK)
+        k = np.arange(int(counts[lo:hi].max()))
+        valid = k[None, :] < counts[lo:hi, None]
+        position = (lows[lo:hi, None] + k[None, :] * np.abs(increment[lo:hi, None])
+                    - start) / step
+        # Nearest bearings, a tie (half a step) to the lower one, alike for every beam of a
+        # scan whatever the float noise (rint's half to even would put two beams on one
+        # bearing); floor(p + c) grows by at least one per step, so along a scan they
+        # increase. A turn's step may exceed an increment by float32 rounding: a beam
+        # whose bearing would still repeat its predecessor's takes the next one.
+        slot = np.floor(position + (0.5 - _TIE)).astype(np.int64)
+        slot = k[None, :] + np.maximum.accumulate(np.where(valid, slot - k[None, :],
+                                                           np.iinfo(np.int64).min), axis=1)
+        shift = (slot - position) * step
+        rows = np.broadcast_to(np.arange(lo, hi)[:, None], slot.shape)
+        if turn:
+            slot %= size
+            # A full turn's first and last beams point the same way: the first is kept.
+            _, keep = np.unique((rows * size + slot)[valid], return_index=True)
+            chosen = np.zeros(int(valid.sum()), dtype=bool)
+            chosen[keep] = True
+            kept = np.zeros(valid.shape, dtype=bool)
+            kept[valid] = chosen
+        else:
+            kept = valid
+        padded = np.full(slot.shape, np.nan)
+        for s in range(lo, hi):
+            padded[s - lo, :ranges[s].shape[0]] = ranges[s]
+        out[rows[kept], slot[kept]] = padded[kept]
+        squares += float(np.sum(shift[kept] ** 2))
+        kept_beams += int(kept.sum())
+        largest = max(largest, float(np.abs(shift[kept]).max(initial=0.0)))
+    if not turn and np.isnan(out[:, -1]).all():
+        out, size = out[:, :-1], size - 1
     return CommonLayout(
         angles=sign * (start + np.arange(size) * step),
         ranges=out,
-        shift_variance_rad2=float(np.mean(shift ** 2)) if shift.size else 0.0,
-        max_shift_rad=float(np.abs(shift).max()) if shift.size else 0.0,
+        shift_variance_rad2=squares / kept_beams if kept_beams else 0.0,
+        max_shift_rad=largest,
         beam_counts=counts,
     )

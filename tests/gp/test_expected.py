@@ -749,3 +749,19 @@ def test_single_precision_local_systems_are_within_a_millionth_of_the_kernel_sca
     v = kernel.scaled_columns(means[:40])
     assert (1.0 - (u.T @ v)).min() < 1e-4
 
+
+def test_single_precision_takes_any_quadrature_level():
+    """Levels up to 10 (100 nodes a point) in single precision too, as in double."""
+    from gpocc.gp import backends
+
+    rng = np.random.default_rng(4)
+    means, covs = rng.uniform(-1.0, 1.0, (20, 2)), _covariances(rng, 20, 0.1)
+    queries = rng.uniform(-1.0, 1.0, (5, 2))
+    kernel = NeuralNetworkKernel(1.0, 10.0, (20.0, 20.0))
+    for level in (9, 10):
+        double = ex.expected_local_system(kernel, means, covs, queries, level, 0.1,
+                                          backend="compiled")
+        single = ex.expected_local_system(
+            kernel, means, covs, queries, level, 0.1,
+            backend=backends.choose("compiled", precision="single"))
+        assert np.abs(single[1] - double[1]).max() < 1e-6 * kernel.arcsin_scale

@@ -53,6 +53,7 @@ def test_each_beam_lands_on_the_nearest_lattice_bearing(sign: float) -> None:
         others = np.ones(common.angles.size, dtype=bool)
         others[nearest] = False
         assert np.isnan(common.ranges[s, others]).all()
+        assert np.count_nonzero(~np.isnan(common.ranges[s])) == n  # every beam kept
         shifts.append(distance.min(axis=1))
     shifts = np.concatenate(shifts)
     assert shifts.max() <= step / 2 + 1e-12
@@ -79,19 +80,56 @@ def test_scans_turning_both_ways_are_refused() -> None:
         common_layout("bag: topic /scan", [np.ones(10), np.ones(10)], layouts)
 
 
-def test_layouts_too_far_apart_to_be_one_laser_are_refused() -> None:
+@pytest.mark.parametrize("layouts", [
     # A second laser's sector on the same topic: the lattice would be three times longer.
-    layouts = [(10, 0.0, 0.1), (10, 2.0, 0.1)]
+    [(10, 0.0, 0.1), (10, 2.0, 0.1)],
+    # Full turns, and a few beams a milliradian apart: a turn of 6284 bearings.
+    [(360, 0.0, 2 * math.pi / 360), (360, 0.01, 2 * math.pi / 360), (5, 0.0, 0.001)],
+])
+def test_layouts_too_far_apart_to_be_one_laser_are_refused(layouts) -> None:
+    ranges = [np.ones(n) for n, _, _ in layouts]
     with pytest.raises(GpoccError, match=r"do not fit one layout.*split the bag"):
-        common_layout("bag: topic /scan", [np.ones(10), np.ones(10)], layouts)
+        common_layout("bag: topic /scan", ranges, layouts)
 
 
 def test_a_full_turn_whose_last_beam_repeats_the_first_keeps_the_first() -> None:
-    # 361 beams a degree apart: the last points where the first does.
+    # 361 beams a degree apart: the last points where the first does. The second scan
+    # lies half a degree off: each of its beams ties between two bearings, and rounding
+    # half to even would put two beams on one bearing and lose a third of them.
     inc = math.radians(1.0)
     layouts = [(361, 0.0, inc), (360, 0.5 * inc, inc)]
     ranges = [np.arange(361, dtype=float), np.arange(360, dtype=float) + 1000.0]
     common = common_layout("bag: topic /scan", ranges, layouts)
     assert common.angles.size == 360
     np.testing.assert_array_equal(common.ranges[0], np.arange(360.0))
+    assert np.count_nonzero(~np.isnan(common.ranges[1])) == 360
+    # In order around the turn, each half a degree from its own bearing.
+    start = int(np.flatnonzero(common.ranges[1] == 1000.0)[0])
+    np.testing.assert_array_equal(np.roll(common.ranges[1], -start), ranges[1])
     assert common.max_shift_rad == pytest.approx(0.5 * inc)
+
+
+def test_scans_half_a_step_apart_keep_every_beam() -> None:
+    inc = math.radians(0.5)
+    layouts = [(100, 0.0, inc), (100, 0.5 * inc, inc), (99, 1.5 * inc, inc)]
+    ranges = [np.full(n, 1.0 + s) for s, (n, _, _) in enumerate(layouts)]
+    common = common_layout("bag: topic /scan", ranges, layouts)
+    for s, (n, _, _) in enumerate(layouts):
+        row = common.ranges[s]
+        assert np.count_nonzero(~np.isnan(row)) == n and (row[~np.isnan(row)] == 1.0 + s).all()
+    assert common.max_shift_rad == pytest.approx(0.5 * inc, rel=1e-9)
+    assert common.angles.size == 100  # ties take the lower bearing
+
+
+def test_blocks_of_scans_give_the_layout_of_all_at_once(monkeypatch) -> None:
+    from gpocc.io import layouts
+
+    rng = np.random.default_rng(9)
+    ranges, scans = _rplidar_scans(rng, 30, 120, 1.0)
+    whole = common_layout("bag: topic /scan", ranges, scans)
+    monkeypatch.setattr(layouts, "_SCANS_PER_BLOCK", 7)
+    blocks = common_layout("bag: topic /scan", ranges, scans)
+    np.testing.assert_array_equal(blocks.ranges, whole.ranges)
+    np.testing.assert_array_equal(blocks.angles, whole.angles)
+    assert blocks.shift_variance_rad2 == pytest.approx(whole.shift_variance_rad2, rel=1e-12)
+    assert blocks.max_shift_rad == whole.max_shift_rad
