@@ -12,6 +12,7 @@ SLAM front end (``intel.gfs.log``) have a few out-of-order stamps, so they get l
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -21,7 +22,9 @@ import numpy as np
 
 from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
+from gpocc.io.layouts import CommonLayout, common_layout
 from gpocc.io.scans import MAX_POSITION_M, ScanBatch, position_in_range
+from gpocc.progress import log
 
 #: Readings at or above this are CARMEN's "no return" code (81.83 m, 81.91 m in practice).
 NO_RETURN_M = 81.8
@@ -214,7 +217,10 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
     ``FLASER`` lines are used; a log without them falls back to ``ROBOTLASER1`` (whose
     laser pose, beam fan and maximum range are read from the line). Ranges at or above
     81.8 m (FLASER) or the line's maximum range (ROBOTLASER1) become ``+inf`` (no
-    return); ``range_max`` is that value unless the config sets ``range_max_m``.
+    return); ``range_max`` is that value unless the config sets ``range_max_m``. Scans
+    of several layouts (FLASER beam counts, ROBOTLASER1 fans) are placed on one, their
+    bearing shifts added to the bearing variance (:mod:`gpocc.io.layouts`; the batch's
+    ``sensor_config``).
 
     Args:
         path: the log file.
@@ -225,7 +231,7 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
 
     Raises:
         GpoccError: empty or binary file, a malformed scan line (its line number), no
-            scans, or scans of different beam counts.
+            scans, or scan layouts that do not fit one laser (:mod:`gpocc.io.layouts`).
     """
     path = Path(path)
     lines = _lines(path)
@@ -246,6 +252,12 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
     n_scans = len(table.linenos)
     stamps = logger if monotonic else np.arange(n_scans, dtype=float)
     covariance = np.broadcast_to(sensor.pose_covariance_matrix, (n_scans, 3, 3)).copy()
+    resolved = None
+    if table.layout is not None:
+        log(f"note: {path}: {table.layout.describe()}")
+        resolved = dataclasses.replace(
+            sensor, bearing_variance_deg2=sensor.bearing_variance_deg2
+            + table.layout.shift_variance_rad2 * (180.0 / math.pi) ** 2)
     return ScanBatch(
         sensor=sensor.name,
         source=str(path),
@@ -259,6 +271,8 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
         range_max=sensor.range_max_m if sensor.range_max_m is not None else table.no_return_m,
         has_pose_covariance=False,
         skipped_scans=0,
+        # The bearing variance grown by the layouts' rounding (None: the entry as given).
+        sensor_config=resolved,
     )
 
 
@@ -273,6 +287,8 @@ class _ScanTable:
     poses: np.ndarray
     logger_stamps: np.ndarray
     no_return_m: float
+    # The scans' several layouts placed on one (None: they share one).
+    layout: CommonLayout | None = None
 
 
 def _flaser_table(lines: list[str]) -> _ScanTable | None:
@@ -341,25 +357,18 @@ def _scan_table(path: Path, lines: list[str]) -> _ScanTable:
             f"{path}: no FLASER or ROBOTLASER1 lines, so no laser scans; pass a CARMEN log "
             "with laser data"
         )
-    widths = {s.ranges.shape[0] for s in scans}
-    if len(widths) > 1:
-        first = scans[0].ranges.shape[0]
-        odd = next(s for s in scans if s.ranges.shape[0] != first)
-        raise GpoccError(
-            f"{path}: line {odd.lineno}: scan has {odd.ranges.shape[0]} beams but earlier ones "
-            f"have {first}; split the log so that each part has one beam count"
-        )
-    if not flaser:
-        # ROBOTLASER1 lines state their own bearings (FLASER's are fixed): one table
-        # holds one layout, as a LaserScan topic must.
-        angles = np.stack([s.angles for s in scans])
-        off = np.flatnonzero(np.abs(angles - angles[0]).max(axis=1) > 1e-9)
-        if off.size:
-            raise GpoccError(
-                f"{path}: line {scans[int(off[0])].lineno}: ROBOTLASER1 bearings (start "
-                f"angle, angular resolution) differ from line {scans[0].lineno}'s; split the "
-                "log so that each part has one beam layout")
-    return _ScanTable([s.lineno for s in scans], np.stack([s.ranges for s in scans]),
-                      scans[0].angles, np.stack([s.pose for s in scans]),
+    # FLASER's bearings follow from the beam count; ROBOTLASER1 lines state their own.
+    # Scans of several layouts (beam counts, or ROBOTLASER1 resolutions) go on one
+    # (gpocc.io.layouts).
+    first = scans[0].angles
+    same = all(s.angles.shape == first.shape and np.abs(s.angles - first).max() <= 1e-9
+               for s in scans)
+    layout = None if same else common_layout(
+        str(path), [s.ranges for s in scans],
+        [(s.angles.shape[0], float(s.angles[0]),
+          float(s.angles[1] - s.angles[0]) if s.angles.shape[0] > 1 else 0.0) for s in scans])
+    return _ScanTable([s.lineno for s in scans],
+                      np.stack([s.ranges for s in scans]) if same else layout.ranges,
+                      first if same else layout.angles, np.stack([s.pose for s in scans]),
                       np.array([s.logger_stamp for s in scans]),
-                      min(s.no_return_m for s in scans))
+                      min(s.no_return_m for s in scans), layout)

@@ -31,6 +31,8 @@ MAX_LATTICE_GROWTH = 2.0
 _SCANS_PER_BLOCK = 2048
 #: Positions within this many steps of a half step round down (ties, float noise).
 _TIE = 1e-6
+#: Shifts below this (radians) are float rounding: the beams kept their bearings.
+_EXACT_RAD = 1e-9
 
 
 @dataclass(frozen=True)
@@ -56,11 +58,14 @@ class CommonLayout:
         low, high = int(self.beam_counts.min()), int(self.beam_counts.max())
         counts = f"{low}" if low == high else f"{low}-{high}"
         step = abs(float(self.angles[1] - self.angles[0])) if self.angles.size > 1 else 0.0
-        return (f"the beam layout varies from scan to scan ({counts} beams): beams placed on "
-                f"one layout of {self.angles.size} bearings {math.degrees(step):.3g} deg apart, "
-                f"each moved at most {math.degrees(self.max_shift_rad):.2g} deg; the shifts' "
-                f"mean square ({math.degrees(math.sqrt(self.shift_variance_rad2)):.2g} deg "
-                "rms) is added to the bearing variance")
+        placed = (f"the beam layout varies from scan to scan ({counts} beams): beams placed on "
+                  f"one layout of {self.angles.size} bearings {math.degrees(step):.3g} deg "
+                  "apart")
+        if self.max_shift_rad < _EXACT_RAD:
+            return placed + ", each on its own bearing"
+        return (f"{placed}, each moved at most {math.degrees(self.max_shift_rad):.2g} deg; the "
+                f"shifts' mean square ({math.degrees(math.sqrt(self.shift_variance_rad2)):.2g} "
+                "deg rms) is added to the bearing variance")
 
 
 def common_layout(where: str, ranges: list[np.ndarray],
@@ -68,7 +73,7 @@ def common_layout(where: str, ranges: list[np.ndarray],
     """Place scans of differing layouts on one lattice (see the module docstring).
 
     Args:
-        where: ``"file: topic name"`` for messages.
+        where: the file (and topic) for messages.
         ranges: S arrays of metres, the n_s ranges of each scan as recorded.
         layouts: S tuples (n_s, angle_min rad, angle_increment rad), already checked
             (finite, nonzero increment where n_s > 1, agreeing with the ranges).
@@ -111,8 +116,8 @@ def common_layout(where: str, ranges: list[np.ndarray],
             f"{where}: the scans' beam layouts ({counts.min()}-{counts.max()} beams, "
             f"angle_min {math.degrees(first.min()):.1f}..{math.degrees(first.max()):.1f} "
             f"deg, finest increment {math.degrees(step):.3g} deg) do not fit one layout "
-            f"of at most {MAX_LATTICE_GROWTH:g} times the longest scan; split the bag "
-            "where the layout changes, or give each laser its own topic")
+            f"of at most {MAX_LATTICE_GROWTH:g} times the longest scan; split the recording "
+            "where the layout changes, or give each laser its own topic or log")
     out = np.full((len(ranges), size), np.nan)
     squares, kept_beams, largest = 0.0, 0, 0.0
     # A block of scans at a time: a long log of a dense lidar has 1e8 beams.

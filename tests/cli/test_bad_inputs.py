@@ -81,12 +81,14 @@ def corpus(tmp_path_factory) -> Path:
         "model:\n  hyperparameters:\n    signal_variance: 1.0e+300\n")
     # ROBOTLASER1: type start fov res max_range accuracy mode n r.. m rem.. laser pose,
     # robot pose, tv rv, safety x2, turn axis, ipc stamp, host, logger stamp.
-    line = ("ROBOTLASER1 0 -1.57 3.14 {res} 81.9 0.01 0 5 1 1 1 1 1 0 "
+    line = ("ROBOTLASER1 0 {start} 3.14 {res} 81.9 0.01 0 5 1 1 1 1 1 0 "
             "0 0 0 0 0 0 0 0 0.1 0.1 0.1 {t} host {t}\n")
     (root / "angles_nan.log").write_text(
-        "".join(line.format(res="nan", t=100 + i) for i in range(5)))
+        "".join(line.format(start=-1.57, res="nan", t=100 + i) for i in range(5)))
+    # A second laser's fan from line 4 on, 2 rad round: no one layout holds both.
     (root / "angles_change.log").write_text(
-        "".join(line.format(res=0.01 if i < 3 else 0.02, t=100 + i) for i in range(5)))
+        "".join(line.format(start=-1.57 if i < 3 else 0.5, res=0.01, t=100 + i)
+                for i in range(5)))
     (root / "neighbours_huge.yaml").write_text("model:\n  neighbours: 100000\n")
     with np.load(root / "good.npz") as data:  # metadata nested deeper than json recurses
         arrays = {k: data[k] for k in data.files}
@@ -218,10 +220,11 @@ CASES = [
     ("train-robotlaser-nan-resolution", ["train", "{root}/angles_nan.log",
                                          "--out", "{root}/out.npz"], "angles_nan.log`line 1",
      "out.npz"),
-    # Each line states its bearings: the first line's were used for every scan.
+    # Each line states its bearings: the first line's were used for every scan. Fans that
+    # change are placed on one layout (gpocc.io.layouts) unless they cannot be one laser's.
     ("train-robotlaser-layout-changes", ["train", "{root}/angles_change.log",
                                          "--out", "{root}/out.npz"],
-     "angles_change.log`line 4`beam layout", "out.npz"),
+     "angles_change.log`do not fit one layout", "out.npz"),
     # Local problems of the whole model: minutes per block instead of an error.
     ("config-neighbours-100000", ["config", "{root}/neighbours_huge.yaml"],
      "neighbours_huge.yaml`model.neighbours", None),

@@ -97,6 +97,55 @@ def test_config_range_limits_and_odd_beam_count(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.degrees(batch.angles[[0, 90, 180]]), [-90, 0, 90])
 
 
+def _robotlaser(start: float, res: float, ranges: list[float], stamp: float) -> str:
+    """A ROBOTLASER1 line of ``ranges`` from ``start`` every ``res`` rad, at the origin."""
+    values = " ".join(str(r) for r in ranges)
+    # ... n ranges, m = 0 remissions, laser pose, robot pose, tv rv fwd side turn, stamps
+    return (f"ROBOTLASER1 0 {start} {res * (len(ranges) - 1)} {res} 20.0 0.01 0 "
+            f"{len(ranges)} {values} 0 0 0 0 0 0 0 0 0 0 0 0 {stamp} host {stamp}")
+
+
+def test_flaser_beam_counts_that_change_share_one_layout(tmp_path: Path, capfd) -> None:
+    """181 beams a degree apart and 360 half a degree apart (both fans from -90 degrees):
+    one layout of 361 bearings half a degree apart, each beam on its own bearing exactly,
+    so the bearing variance is unchanged; a note says so."""
+    first, second = 1.0 + 0.01 * np.arange(181), 5.0 + 0.01 * np.arange(360)
+    lines = [_flaser(list(first), (0, 0, 0), 1.0), _flaser(list(second), (0, 0, 0), 2.0)]
+    batch = read_carmen(_write(tmp_path, lines), SENSOR)
+    np.testing.assert_allclose(batch.angles, np.radians(-90.0 + 0.5 * np.arange(361)),
+                               atol=1e-12)
+    np.testing.assert_array_equal(batch.ranges[0, ::2], first)
+    assert np.isnan(batch.ranges[0, 1::2]).all()
+    np.testing.assert_array_equal(batch.ranges[1, :360], second)
+    assert np.isnan(batch.ranges[1, 360])
+    assert batch.sensor_config.bearing_variance_deg2 == pytest.approx(
+        SENSOR.bearing_variance_deg2, abs=1e-20)
+    assert "(181-360 beams): beams placed on one layout of 361 bearings 0.5 deg apart, each " \
+        "on its own bearing\n" in capfd.readouterr().err
+
+
+def test_robotlaser1_fans_that_change_share_one_layout(tmp_path: Path, capfd) -> None:
+    """Resolutions 0.5 and 0.3 rad from -1 rad: the finer step, each beam on the nearest
+    bearing (brute force), and the shifts' mean square added to the bearing variance."""
+    lines = [_robotlaser(-1.0, 0.5, [1.0, 2.0, 3.0, 4.0, 5.0], 1.0),
+             _robotlaser(-1.0, 0.3, [6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0], 2.0)]
+    batch = read_carmen(_write(tmp_path, lines, "fans.clf"), SENSOR)
+    np.testing.assert_allclose(np.diff(batch.angles), 0.3)
+    shifts = []
+    for row, (start, res, values) in enumerate([(-1.0, 0.5, [1.0, 2.0, 3.0, 4.0, 5.0]),
+                                                (-1.0, 0.3, [6.0 + k for k in range(7)])]):
+        bearings = start + res * np.arange(len(values))
+        nearest = np.abs(bearings[:, None] - batch.angles[None, :]).argmin(axis=1)
+        np.testing.assert_array_equal(batch.ranges[row, nearest], values)
+        assert np.count_nonzero(~np.isnan(batch.ranges[row])) == len(values)
+        shifts.append(bearings - batch.angles[nearest])
+    grown = SENSOR.bearing_variance_deg2 + np.degrees(1.0) ** 2 * np.mean(
+        np.concatenate(shifts) ** 2)
+    assert batch.sensor_config.bearing_variance_deg2 == pytest.approx(grown)
+    assert "fans.clf: the beam layout varies from scan to scan (5-7 beams)" in (
+        capfd.readouterr().err)
+
+
 def test_robotlaser1(tmp_path: Path) -> None:
     # type start fov res max_range accuracy remission_mode n ranges m remissions
     # laser pose, robot pose, tv rv fwd side turn, ipc_ts host logger_ts
@@ -136,8 +185,9 @@ def test_unusable_files(tmp_path: Path) -> None:
         "blank.log": b"\n  \n",
         "binary.log": bytes(range(256)),
         "odom_only.log": b"ODOM 0 0 0 0 0 0 0.1 pippo 0.1\n",
-        "mixed.log": (_flaser([1.0] * 4, (0, 0, 0), 1) + "\n"
-                      + _flaser([1.0] * 8, (0, 0, 0), 2) + "\n").encode(),
+        # A second laser's fan 2 rad on, with a finer resolution: no common layout.
+        "two_lasers.clf": (_robotlaser(-1.0, 0.5, [1.0] * 5, 1) + "\n"
+                           + _robotlaser(2.0, 0.25, [1.0] * 5, 2) + "\n").encode(),
     }
     for name, data in cases.items():
         (tmp_path / name).write_bytes(data)

@@ -88,7 +88,7 @@ def test_scans_turning_both_ways_are_refused() -> None:
 ])
 def test_layouts_too_far_apart_to_be_one_laser_are_refused(layouts) -> None:
     ranges = [np.ones(n) for n, _, _ in layouts]
-    with pytest.raises(GpoccError, match=r"do not fit one layout.*split the bag"):
+    with pytest.raises(GpoccError, match=r"do not fit one layout.*split the recording"):
         common_layout("bag: topic /scan", ranges, layouts)
 
 
