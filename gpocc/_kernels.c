@@ -845,25 +845,25 @@ static CLONES int nn_matrix_uniform_single(const float *restrict u,
                 }
             }
         } else {
-        for (i64 slot = 0; slot < size; slot++)
-            for (i64 j = from; j < n; j++)
-                acc[slot * n + j] = 0.0f;
-        for (i64 k = 0; k < size; k++) {
-            float x0 = U0[k * n + i], x1 = U1[k * n + i], x2 = U2[k * n + i];
-            float x3 = U3[k * n + i];
-            float wa = weights[k];
-            for (i64 slot = 0; slot < size; slot++) {
-                i64 lo = slot * n + from;
-                const float *restrict v0 = U0 + lo, *restrict v1 = U1 + lo;
-                const float *restrict v2 = U2 + lo, *restrict v3 = U3 + lo;
-                float *restrict row = acc + lo;
-                for (i64 j = 0; j < n - from; j++) {
-                    float z = x0 * v0[j] + x1 * v1[j] + x2 * v2[j];
-                    float far = half_gap(z, x0, x1, x2, x3, v0[j], v1[j], v2[j], v3[j]);
-                    row[j] += wa * asin_single(z, far);
+            for (i64 slot = 0; slot < size; slot++)
+                for (i64 j = from; j < n; j++)
+                    acc[slot * n + j] = 0.0f;
+            for (i64 k = 0; k < size; k++) {
+                float x0 = U0[k * n + i], x1 = U1[k * n + i], x2 = U2[k * n + i];
+                float x3 = U3[k * n + i];
+                float wa = weights[k];
+                for (i64 slot = 0; slot < size; slot++) {
+                    i64 lo = slot * n + from;
+                    const float *restrict v0 = U0 + lo, *restrict v1 = U1 + lo;
+                    const float *restrict v2 = U2 + lo, *restrict v3 = U3 + lo;
+                    float *restrict row = acc + lo;
+                    for (i64 j = 0; j < n - from; j++) {
+                        float z = x0 * v0[j] + x1 * v1[j] + x2 * v2[j];
+                        row[j] += wa * asin_single(z, half_gap(z, x0, x1, x2, x3, v0[j], v1[j],
+                                                               v2[j], v3[j]));
+                    }
                 }
             }
-        }
         }
         for (i64 j = from; j < n; j++) {
             float value = 0.0f;

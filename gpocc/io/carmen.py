@@ -12,7 +12,6 @@ SLAM front end (``intel.gfs.log``) have a few out-of-order stamps, so they get l
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -255,9 +254,7 @@ def read_carmen(path: str | Path, sensor: SensorConfig) -> ScanBatch:
     resolved = None
     if table.layout is not None:
         log(f"note: {path}: {table.layout.describe()}")
-        resolved = dataclasses.replace(
-            sensor, bearing_variance_deg2=sensor.bearing_variance_deg2
-            + table.layout.shift_variance_rad2 * (180.0 / math.pi) ** 2)
+        resolved = table.layout.widened(sensor)
     return ScanBatch(
         sensor=sensor.name,
         source=str(path),

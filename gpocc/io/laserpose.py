@@ -375,9 +375,7 @@ def assemble(path: Path, sensor: SensorConfig, scans: ScanTopic, tf: TfBuffer | 
         common = common_layout(f"{path}: topic {scan_topic}", scans.ranges, scans.layouts)
         ranges, angles = common.ranges[order], common.angles
         layout_note = common.describe()
-        sensor = dataclasses.replace(
-            sensor, bearing_variance_deg2=sensor.bearing_variance_deg2
-            + common.shift_variance_rad2 * (180.0 / math.pi) ** 2)
+        sensor = common.widened(sensor)
 
     chain, why = (find_chain(tf, sensor, scans.frame_id)
                   if tf and sensor.position_from_tf and scans.frame_id else (None, ""))

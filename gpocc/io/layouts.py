@@ -17,11 +17,13 @@ variance: the samples stage then widens each sample by the rounding it did not s
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from gpocc.config import SensorConfig
 from gpocc.errors import GpoccError
 
 #: A lattice longer than this many times the longest scan means the layouts are not one
@@ -52,6 +54,12 @@ class CommonLayout:
     shift_variance_rad2: float
     max_shift_rad: float
     beam_counts: np.ndarray
+
+    def widened(self, sensor: SensorConfig) -> SensorConfig:
+        """``sensor`` with the shifts' mean square added to its bearing variance."""
+        return dataclasses.replace(
+            sensor, bearing_variance_deg2=sensor.bearing_variance_deg2
+            + self.shift_variance_rad2 * (180.0 / math.pi) ** 2)
 
     def describe(self) -> str:
         """One line for the batch's notes."""

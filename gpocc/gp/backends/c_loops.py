@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from gpocc import compiled
+from gpocc.gp.backends import PRECISIONS
 from gpocc.gp.backends.quadrature import QUADRATURE, Quadrature
 from gpocc.gp.expected import (
     POSE_SHARE_MIN,
@@ -183,6 +184,7 @@ _SINGLE = CompiledBackend("single")
 
 def _in_precision(precision: str) -> CompiledBackend:
     """The module's backend in ``precision`` (one object each: pickles restore them)."""
-    if precision not in ("single", "double"):
-        raise ValueError(f"precision must be single or double, got {precision!r}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got "
+                         f"{precision!r}")
     return _SINGLE if precision == "single" else BACKEND
