@@ -548,10 +548,13 @@ def test_a_variants_real_log_step_maps_with_the_gp_with_input_noise_alone(tmp_pa
                         lambda maps, truth, out: {"union": {m: {} for m in maps}})
     monkeypatch.setattr(experiment, "free_by_wall_distance", lambda truth, maps: {})
     monkeypatch.setattr(experiment, "learned_values", lambda model: {})
+    monkeypatch.setattr(experiment, "moved_anchors",
+                        lambda vdir, heldout, truth: made.append("moved anchors") or {})
     cases = experiment.run_real(tmp_path, "fixed-bias", experiment.real_logs([], True), 0,
                                 as_logged=True, all_methods=all_methods)
     if all_methods:
-        assert made == ["split", "grid", "bhm", "train", "map", "train", "map"]
+        assert made == ["split", "grid", "bhm", "train", "map", "train", "map",
+                        "moved anchors"]
         assert sorted(cases[0]["scores"]["union"]) == ["bhm", "gp-input-noise",
                                                         "gp-no-input-noise", "grid"]
     else:
@@ -684,3 +687,80 @@ def test_contradicted_share_counts_labels_the_truth_raster_contradicts(tmp_path)
     # Counted by hand: 5 points on labelled cells, 2 contradicted ((1.5, 1.5) stated 1 on
     # a free cell, (2.5, 0.5) stated 0 on an occupied one).
     assert share == pytest.approx(2 / 5)
+
+
+def test_anchor_placement_table_gives_each_case_and_the_differences():
+    def case(name, union, cells, moved_union, moved_cells):
+        page, moved = {"union": union}, {"union": moved_union}
+        if cells is not None:
+            page["cells"], moved["cells"] = cells, moved_cells
+        return {"case": name, "scores": {},
+                "moved_anchors": {"shift_m": 0.5, "page": page, "moved": moved}}
+
+    cases = [case("w", {"auc": 0.95, "brier": 0.05}, {"auc": 0.97, "brier": 0.02},
+                  {"auc": 0.94, "brier": 0.06}, {"auc": 0.965, "brier": 0.03}),
+             case("log", {"auc": 0.90, "brier": 0.08}, None,
+                  {"auc": 0.92, "brier": 0.07}, None),
+             {"case": "variant run", "scores": {}}]
+    lines = experiment.moved_anchors_table(cases)
+    assert lines[2] == "| w | 0.9500 | 0.9400 | 0.0500 | 0.0600 | 0.9700 | 0.9650 |"
+    assert lines[3] == "| log | 0.9000 | 0.9200 | 0.0800 | 0.0700 |  |  |"
+    summary = {line.split(" | ")[0]: line for line in lines[5:]}
+    # union AUC: -0.01 and +0.02: mean +0.005, mean abs 0.015, largest 0.02.
+    assert summary["| union AUC"] == "| union AUC | 2 | +0.0050 | 0.0150 | 0.0200 |"
+    assert summary["| cells AUC"] == "| cells AUC | 1 | -0.0050 | 0.0050 | 0.0050 |"
+    assert experiment.moved_anchors_table([{"case": "x", "scores": {}}]) == []
+
+
+def test_moved_anchors_moves_the_lattice_half_a_spacing_on_the_same_cells(tmp_path,
+                                                                         monkeypatch):
+    from gpocc.gridspec import GridSpec
+    from gpocc.mapping.blocks import Anchor, AnchorLattice
+
+    vdir = tmp_path / "v"
+    main = vdir / "gp-input-noise"
+    main.mkdir(parents=True)
+    bounds = [-13.02143854931841, -26.51194820983702, 21.378561450681588, 13.788051790162985]
+    (main / "metadata.json").write_text(json.dumps(
+        {"anchor_spacing_m": 1.0, "resolution_m": 0.1, "bounds_m": bounds}))
+    heldout = tmp_path / "heldout.csv"
+    heldout.write_text("x,y,label,kind\n0.5,0.5,1,hit\n1.0,0.5,0,free\n"
+                       "21.5,0.5,1,hit\n0.5,-26.6,0,near-wall\n")
+    commands, evaluated = [], []
+
+    def fake_gpocc(cmd: list[str]) -> str:
+        commands.append(cmd)
+        Path(cmd[cmd.index("--out") + 1]).mkdir(parents=True, exist_ok=True)
+        return ""
+
+    def fake_evaluate(maps, truth, out):
+        evaluated.append((dict(maps), Path(truth).read_text() if truth.suffix == ".csv"
+                          else truth))
+        return {"union": {m: {"auc": 0.9} for m in maps},
+                "all": {m: {"auc": 0.8} for m in maps}}
+
+    monkeypatch.setattr(experiment, "run_gpocc", fake_gpocc)
+    monkeypatch.setattr(experiment, "COMMANDS", [])
+    monkeypatch.setattr(experiment, "evaluate", fake_evaluate)
+    result = experiment.moved_anchors(vdir, heldout, tmp_path / "truth.tif")
+    assert result == {"shift_m": 0.5, "page": {"union": {"auc": 0.9}, "cells": {"auc": 0.8}},
+                      "moved": {"union": {"auc": 0.9}, "cells": {"auc": 0.8}}}
+    (cmd,) = commands
+    at = cmd.index("--bounds")
+    moved = GridSpec.from_bounds(*map(float, cmd[at + 1:at + 5]), 0.1)
+    page = GridSpec.from_bounds(*bounds, 0.1)
+    # Five cells more west and north; every cell of the page's map keeps its centre.
+    assert (moved.width, moved.height) == (page.width + 5, page.height + 5)
+    rows, cols = np.array([0, 17, page.height - 1]), np.array([0, 9, page.width - 1])
+    np.testing.assert_allclose(np.column_stack(page.cell_centres_at(rows, cols)),
+                               np.column_stack(moved.cell_centres_at(rows + 5, cols + 5)),
+                               rtol=0, atol=1e-9)
+    # The lattice hangs from the north-west corner: its anchors moved half a spacing.
+    np.testing.assert_allclose(AnchorLattice(moved, 10).centre(Anchor(0, 0))
+                               - AnchorLattice(page, 10).centre(Anchor(0, 0)),
+                               [-0.5, 0.5], rtol=0, atol=1e-9)
+    # Both maps are scored on the same points: those inside the page's map.
+    (maps, text), (_, truth) = evaluated
+    assert maps == {"page": main, "moved": vdir / "gp-input-noise-anchors-moved"}
+    assert text.splitlines() == ["x,y,label,kind", "0.5,0.5,1,hit", "1.0,0.5,0,free"]
+    assert truth == tmp_path / "truth.tif"
