@@ -373,7 +373,7 @@ def moved_anchors(vdir: Path, heldout: Path, truth: Path | None) -> dict:
     ``truth``, per cell: what the placement of the anchors alone changes (the page's
     "Anchor placement"). Returns the shift (m) and each map's scores (``page``,
     ``moved``) per protocol."""
-    from gpocc.evaluation.truth import load_truth_kinds
+    from gpocc.evaluation.truth import load_truth_kinds, write_points
 
     main = vdir / "gp-input-noise"
     meta = json.loads((main / "metadata.json").read_text())
@@ -391,11 +391,7 @@ def moved_anchors(vdir: Path, heldout: Path, truth: Path | None) -> dict:
     inside = ((points[:, 0] >= x0) & (points[:, 0] < x1) & (points[:, 1] >= y0)
               & (points[:, 1] < y1))
     kept = vdir / "heldout-inside-map.csv"
-    with kept.open("w") as fh:
-        fh.write("x,y,label,kind\n")
-        for (x, y), label, kind in zip(points[inside], labels[inside], kinds[inside],
-                                       strict=True):
-            fh.write(f"{float(x)!r},{float(y)!r},{int(label)},{kind}\n")
+    write_points(kept, points[inside], labels[inside], kinds[inside])
     maps = {"page": main, "moved": folder}
     union = evaluate(maps, kept, vdir / "evaluation-heldout-anchors-moved")["union"]
     scored = {name: {"union": union[name]} for name in maps}

@@ -17,6 +17,7 @@ from gpocc.evaluation.split import (
     topic_prefix,
     train_config,
 )
+from gpocc.evaluation.truth import write_points
 from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.bags import write_bag
 from gpocc.io.inputs import read_inputs
@@ -131,10 +132,7 @@ def split(
             + yaml.safe_dump(changed_settings(new_config), sort_keys=False,
                              default_flow_style=None)
         )
-        with (tmp / "heldout.csv").open("w") as fh:
-            fh.write("x,y,label,kind\n")
-            fh.writelines(f"{x:.4f},{y:.4f},{lab:d},{kind}\n" for (x, y), lab, kind
-                          in zip(all_points, all_labels, all_kinds, strict=True))
+        write_points(tmp / "heldout.csv", all_points, all_labels, all_kinds)
 
     n_occupied = int(np.count_nonzero(all_labels == 1))
     typer.echo(f"sensors:          {len(batches)}")

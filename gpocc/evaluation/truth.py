@@ -157,6 +157,18 @@ def _truth_from_map_server(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return labelled_cell_centres(*_read_map_server_labels(path), str(path))
 
 
+def write_points(path: str | Path, points: np.ndarray, labels: np.ndarray,
+                 kinds: np.ndarray) -> None:
+    """Write labelled points as the point file :func:`load_truth_kinds` reads (``gpocc
+    split``'s ``heldout.csv``): the header ``x,y,label,kind``, then one row per point,
+    metres to 0.1 mm. ``points`` (N, 2) metres; ``labels`` (N,) 1 occupied, 0 free;
+    ``kinds`` (N,) str."""
+    with Path(path).open("w") as fh:
+        fh.write("x,y,label,kind\n")
+        fh.writelines(f"{x:.4f},{y:.4f},{int(label):d},{kind}\n" for (x, y), label, kind
+                      in zip(points, labels, kinds, strict=True))
+
+
 def _read_map_server_labels(path: Path) -> tuple[np.ndarray, GridSpec, int]:
     """A map_server map as a truth raster: its classes, grid and no-data value."""
     classes, spec = read_map_server(path)

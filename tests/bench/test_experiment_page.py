@@ -762,5 +762,6 @@ def test_moved_anchors_moves_the_lattice_half_a_spacing_on_the_same_cells(tmp_pa
     # Both maps are scored on the same points: those inside the page's map.
     (maps, text), (_, truth) = evaluated
     assert maps == {"page": main, "moved": vdir / "gp-input-noise-anchors-moved"}
-    assert text.splitlines() == ["x,y,label,kind", "0.5,0.5,1,hit", "1.0,0.5,0,free"]
+    assert text.splitlines() == ["x,y,label,kind", "0.5000,0.5000,1,hit",
+                                 "1.0000,0.5000,0,free"]
     assert truth == tmp_path / "truth.tif"

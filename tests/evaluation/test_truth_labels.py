@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from gpocc.cli import app
 from gpocc.errors import GpoccError
-from gpocc.evaluation.truth import labels_at
+from gpocc.evaluation.truth import labels_at, load_truth_kinds, write_points
 from gpocc.gridspec import GridSpec
 from gpocc.io.rasters import write_geotiff
 
@@ -187,3 +187,15 @@ def test_labels_at_reads_a_map_server_map_by_its_image_rows(tmp_path):
     pixel[inside] = pgm[rows[inside], cols[inside]]
     np.testing.assert_array_equal(known, pixel != 205)
     np.testing.assert_array_equal(labels[known], (pixel[known] == 0).astype(int))
+
+
+def test_written_points_read_back_with_their_labels_and_kinds(tmp_path):
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-50.0, 50.0, (40, 2))
+    labels = rng.integers(0, 2, 40)
+    kinds = np.where(labels == 1, "hit", rng.choice(["free", "near-wall"], 40))
+    write_points(tmp_path / "points.csv", points, labels, kinds)
+    got_points, got_labels, got_kinds = load_truth_kinds(tmp_path / "points.csv")
+    np.testing.assert_allclose(got_points, points, rtol=0, atol=5e-5)  # 0.1 mm
+    np.testing.assert_array_equal(got_labels, labels)
+    np.testing.assert_array_equal(got_kinds, kinds)
