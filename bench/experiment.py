@@ -55,6 +55,7 @@ import datetime
 import json
 import math
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -64,6 +65,7 @@ import numpy as np
 import yaml
 
 from gpocc.constants import RESULTS_FILE
+from gpocc.gridspec import GridSpec
 
 from .paths import CARMEN, CONFIGS, ROOT
 from .stamp import commit, machine
@@ -365,14 +367,40 @@ def gp_map(inputs: list[Path], config: Path, noise: str, folder: Path,
     return time.perf_counter() - started
 
 
+def moved_whole(frame: GridSpec, shift_cells: int) -> GridSpec:
+    """``frame`` (a map's lattice frame, :func:`gpocc.mapping.mapper.map_frame`) grown by
+    ``shift_cells`` cells west and north: its lattice, which hangs from the north-west
+    corner, moves that much, and every cell of ``frame`` keeps its centre."""
+    res = frame.resolution
+    return GridSpec(frame.x0 - shift_cells * res, frame.y0, res, frame.width + shift_cells,
+                    frame.height + shift_cells)
+
+
+def moved_map(model_path: Path, like: Path, folder: Path, shift_m: float) -> None:
+    """The map of ``model_path`` on the cells of the map folder ``like``, with the anchor
+    lattice of ``like`` moved by ``shift_m`` (whole cells) west and north, into
+    ``folder`` (replaced)."""
+    from gpocc.commands.map import write_map
+    from gpocc.gp.model import load_model
+    from gpocc.io.atomic import atomic_directory
+    from gpocc.io.rasters import read_raster
+    from gpocc.mapping.mapper import map_frame
+
+    model = load_model(model_path)
+    _, spec, _ = read_raster(like / "probability.tif")
+    frame, _, _ = map_frame(model, spec)
+    whole = moved_whole(frame, round(shift_m / spec.resolution))
+    with atomic_directory(folder, force=True) as tmp:
+        write_map(model, str(model_path), spec, tmp, None, None, whole=whole)
+
+
 def moved_anchors(vdir: Path, heldout: Path, truth: Path | None) -> dict:
     """The GP with input noise's model of ``vdir`` mapped again with its anchor lattice
-    moved by half a spacing west and north (the lattice starts at a map's north-west
-    corner: the window grows by that much there, on the same cells), both maps scored on
-    the points of ``heldout`` inside the first map's bounds (``union`` protocol) and, with
-    ``truth``, per cell: what the placement of the anchors alone changes (the page's
-    "Anchor placement"). Returns the shift (m) and each map's scores (``page``,
-    ``moved``) per protocol."""
+    moved by half a spacing west and north on the same cells (:func:`moved_map`), both
+    maps scored on the points of ``heldout`` inside the first map's bounds (``union``
+    protocol) and, with ``truth``, per cell: what the placement of the anchors alone
+    changes (the page's "Anchor placement"). Returns the shift (m) and each map's scores
+    (``page``, ``moved``) per protocol."""
     from gpocc.evaluation.truth import load_truth_kinds, write_points
 
     main = vdir / "gp-input-noise"
@@ -383,10 +411,11 @@ def moved_anchors(vdir: Path, heldout: Path, truth: Path | None) -> dict:
                          "the moved map's cells would not be the page's")
     x0, y0, x1, y1 = meta["bounds_m"]
     folder = vdir / "gp-input-noise-anchors-moved"
-    gpocc("map", main.with_suffix(".npz"), "--resolution", RESOLUTION, "--out", folder,
-          "--force", "--bounds", *(repr(v) for v in (x0 - half, y0, x1, y1 + half)))
-    # The moved map covers a strip more: points there would score 0.5 on the page's map
-    # (outside it) and a prediction on the moved one.
+    # Made again from this run's model, always.
+    shutil.rmtree(folder, ignore_errors=True)
+    library_step(f"bench/experiment.py moved_map of {main.with_suffix('.npz')} on the "
+                 f"cells of {main}, anchors {half:g} m west and north", folder)
+    moved_map(main.with_suffix(".npz"), main, folder, half)
     points, labels, kinds = load_truth_kinds(heldout)
     inside = ((points[:, 0] >= x0) & (points[:, 0] < x1) & (points[:, 1] >= y0)
               & (points[:, 1] < y1))
@@ -1216,14 +1245,13 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
         "Each local problem of a map is centred on its anchor (the NN kernel is not "
         "translation invariant), and its predictions are sharpest near that centre. Here "
         "each case's GP with input noise (the same model file) is mapped again with its "
-        "anchor lattice moved by half a spacing west and north (`--bounds` grown by that "
-        "much on those sides: the lattice starts at a map's north-west corner; the cells "
-        "stay where they were), and both maps are scored on the held-out points inside "
+        "anchor lattice moved by half a spacing west and north (the library call "
+        "`moved_map` below: the cells stay where they were), and both maps are scored "
+        "on the held-out points inside "
         "the page's map (`union`) and per cell: the difference is what the placement of "
         "the anchors alone changes, at no change of the model. The page's maps have "
-        "their anchors half a spacing inside the map's north-west corner: on the "
-        "simulated worlds, mapped from x = -0.5 m, at whole metres of x (the worlds' "
-        "west walls stand at x = 0).",
+        "the anchors of the model's whole map (its samples' extent plus `map.margin_m`), "
+        "half a spacing inside that map's north-west corner.",
         moved_anchors_table(cases))
     lines += section(
         "By world family",

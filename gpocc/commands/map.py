@@ -27,9 +27,14 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.atomic import atomic_directory, prepare_output
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.limits import check_cells, max_cells
-from gpocc.mapping.blocks import block_cells, plan_blocks
 from gpocc.mapping.folder import write_metadata
-from gpocc.mapping.mapper import MapSummary, default_spec, make_map, map_metadata
+from gpocc.mapping.mapper import (
+    MapSummary,
+    block_count,
+    default_spec,
+    make_map,
+    map_metadata,
+)
 from gpocc.parallel import default_workers
 from gpocc.progress import debug, log, progress_bar
 
@@ -132,18 +137,19 @@ def local_workers(workers: int | None) -> int:
 
 def write_map(model: GPModel, model_name: str, spec: GridSpec, folder: Path,
               workers: int | None, scheduler: str | None,
-              while_writing: Callable[[], None] | None = None) -> MapSummary:
+              while_writing: Callable[[], None] | None = None,
+              whole: GridSpec | None = None) -> MapSummary:
     """Map ``model`` over ``spec`` into ``folder`` (private to this run) with its
     metadata, which names the model ``model_name``; ``while_writing()``: other work of
-    the caller, done beside the map's own writing (:func:`gpocc.mapping.mapper.make_map`)."""
+    the caller, done beside the map's own writing; ``whole``: the whole map whose local
+    problems to use (:func:`gpocc.mapping.mapper.make_map`)."""
     n_workers = local_workers(workers) if not scheduler else (workers or default_workers())
-    cells = block_cells(model.config.model.block_size_m, spec.resolution)
-    total = len(plan_blocks(spec, cells))
+    total = block_count(model, spec, whole)
     log(f"mapping {spec.width} x {spec.height} cells at {spec.resolution} m in {total} "
         f"blocks ({'dask ' + scheduler if scheduler else f'{n_workers} worker(s)'})")
     with scheduler_errors(), progress_bar(total, "blocks") as advance:
         summary = make_map(model, spec, folder, n_workers, scheduler, advance,
-                           while_writing=while_writing)
+                           while_writing=while_writing, whole=whole)
     write_metadata(folder, map_metadata(model_name, model, summary,
                                         workers=n_workers, scheduler=scheduler))
     return summary

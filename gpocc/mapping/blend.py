@@ -88,7 +88,9 @@ class _TileSupport:
     def __init__(self, lattice: AnchorLattice, support: Support, tile: Block) -> None:
         spec, cells = lattice.spec, lattice.cells
         self.lattice, self.support, self.tile = lattice, support, tile
-        self.r0, self.c0 = max(0, tile.row0 - 2 * cells), max(0, tile.col0 - 2 * cells)
+        # From whole blocks of the map (Support.mask's groups), wherever the tile starts.
+        self.r0 = max(0, (tile.row0 // cells - 2) * cells)
+        self.c0 = max(0, (tile.col0 // cells - 2) * cells)
         self.r1 = min(spec.height, tile.row0 + tile.rows + 2 * cells)
         self.c1 = min(spec.width, tile.col0 + tile.cols + 2 * cells)
         self.mask = np.zeros((self.r1 - self.r0, self.c1 - self.c0), dtype=bool)

@@ -11,8 +11,12 @@ Along each axis an anchor's weight is a trapezoid in the distance d (in blocks) 
 overlap (``model.blend_overlap``). With o = 1 this is the bilinear tent, positive on the
 cells less than one block away; with o < 1 a block's centre is predicted by its own
 anchor alone and each cell by (1 + o)^2 anchors on average. The band is never narrower
-than two cells (:attr:`AnchorLattice.blend`). Along the map's edges the weights are
+than two cells (:attr:`AnchorLattice.blend`). Along the lattice's edges the weights are
 clamped, so edge cells keep full weight.
+
+A lattice covers the grid it is made on (its ``spec``). A map window is computed on the
+lattice of the model's whole map, as part of that grid
+(:func:`gpocc.mapping.mapper.lattice_frame`), so it holds the whole map's values.
 """
 
 from __future__ import annotations
@@ -72,15 +76,6 @@ class AnchorResult:
 def block_cells(block_size_m: float, resolution: float) -> int:
     """Cells per block side for a block of about ``block_size_m`` metres (at least 1)."""
     return max(1, int(math.floor(block_size_m / resolution + 1e-9)))
-
-
-def plan_blocks(spec: GridSpec, cells: int) -> list[Block]:
-    """Cover ``spec`` with blocks of ``cells`` x ``cells`` (smaller at the east/south edges)."""
-    return [
-        Block(r, c, min(cells, spec.height - r), min(cells, spec.width - c))
-        for r in range(0, spec.height, cells)
-        for c in range(0, spec.width, cells)
-    ]
 
 
 @functools.lru_cache(maxsize=4096)

@@ -26,7 +26,7 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.io.rasters import prepare_writer
 from gpocc.mapping.blend import predict_tile
-from gpocc.mapping.blocks import AnchorLattice
+from gpocc.mapping.blocks import AnchorLattice, Block, block_cells
 from gpocc.mapping.executors import anchor_executor
 from gpocc.mapping.folder import MapFolder, folder_metadata
 from gpocc.mapping.folder import wait_through_interrupts as _wait_through_interrupts
@@ -38,6 +38,7 @@ from gpocc.mapping.support import model_support
 class MapSummary:
     """What ``make_map`` wrote: grid, tiles, timings (seconds) and class counts.
 
+    ``frame``: the grid whose anchor lattice made the map (:func:`lattice_frame`).
     ``stage_seconds``: wall seconds of ``predict`` (local problems and blending, all
     tiles, with what the map process does meanwhile: loading the writers, the caller's
     ``while_running``), ``write`` (tile rasters) and ``finish`` (mosaics, map_server
@@ -46,6 +47,7 @@ class MapSummary:
     """
 
     spec: GridSpec
+    frame: GridSpec
     tiles: int
     blocks: int
     seconds: float
@@ -58,6 +60,58 @@ def default_spec(model: GPModel, resolution: float, margin: float) -> GridSpec:
     """The samples' extent plus ``margin`` metres, at ``resolution`` metres."""
     x0, y0, x1, y1 = model.extent
     return GridSpec.from_bounds(x0 - margin, y0 - margin, x1 + margin, y1 + margin, resolution)
+
+
+def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> tuple[GridSpec, int, int]:
+    """The grid whose anchor lattice (:class:`AnchorLattice`, ``cells`` a block) maps
+    ``spec``, and the row and column of ``spec``'s first cell on it.
+
+    ``whole`` is the model's whole map at ``spec``'s resolution (:func:`default_spec`).
+    A window on ``whole``'s cells and inside it is mapped on ``whole`` itself, so it
+    holds exactly the whole map's values there; one off those cells, on ``whole`` moved
+    by less than half a cell onto its own. A window reaching beyond ``whole`` grows the
+    grid by whole blocks to the west and north (the anchors stay where they are) and by
+    cells to the east and south.
+    """
+    res = spec.resolution
+    cols = (spec.x0 - whole.x0) / res
+    rows = (whole.y1 - spec.y1) / res
+    col0, row0 = round(cols), round(rows)
+    frame = whole
+    if abs(cols - col0) > 1e-6 or abs(rows - row0) > 1e-6:
+        frame = GridSpec(whole.x0 + (cols - col0) * res, whole.y0 - (rows - row0) * res, res,
+                         whole.width, whole.height)
+    west = -(-max(0, -col0) // cells) * cells
+    north = -(-max(0, -row0) // cells) * cells
+    col0, row0 = col0 + west, row0 + north
+    width = max(frame.width + west, col0 + spec.width)
+    height = max(frame.height + north, row0 + spec.height)
+    if (width, height) != (frame.width, frame.height):
+        top = frame.y1 + north * res
+        frame = GridSpec(frame.x0 - west * res, top - height * res, res, width, height)
+    return frame, row0, col0
+
+
+def map_frame(model: GPModel, spec: GridSpec, whole: GridSpec | None = None
+              ) -> tuple[GridSpec, int, int]:
+    """:func:`lattice_frame` of a map of ``model`` over ``spec``, within ``whole``
+    (default: the model's whole map at ``spec``'s resolution)."""
+    config = model.config
+    if whole is None:
+        whole = default_spec(model, spec.resolution, config.map.margin_m)
+    return lattice_frame(whole, spec, block_cells(config.model.block_size_m, spec.resolution))
+
+
+def block_count(model: GPModel, spec: GridSpec, whole: GridSpec | None = None) -> int:
+    """The blocks of a map of ``model`` over ``spec`` (:func:`make_map`'s ``progress``
+    counts them): the anchors of its lattice whose block's north-west cell is in it."""
+    _, row0, col0 = map_frame(model, spec, whole)
+    cells = block_cells(model.config.model.block_size_m, spec.resolution)
+
+    def on_axis(first: int, length: int) -> int:
+        return len(range(-(-first // cells) * cells, first + length, cells))
+
+    return on_axis(row0, spec.height) * on_axis(col0, spec.width)
 
 
 def last_scan_stamp(model: GPModel) -> float | None:
@@ -109,6 +163,7 @@ def make_map(
     progress: Callable[[int], None] | None = None,
     while_running: Callable[[], None] | None = None,
     while_writing: Callable[[], None] | None = None,
+    whole: GridSpec | None = None,
 ) -> MapSummary:
     """Compute the map of ``model`` over ``spec`` and write its layers into ``out_dir``
     (:class:`gpocc.mapping.folder.MapFolder`; ``metadata.json`` is the caller's).
@@ -120,12 +175,17 @@ def make_map(
     they are collected, and nothing overlaps. ``while_writing()`` runs on a thread of
     this process while the last tile's rasters and the mosaics, map_server files and
     preview are written, when a core is free (``gpocc build`` writes its model file
-    there); its error, if any, is raised after them."""
+    there); its error, if any, is raised after them.
+
+    The local problems are those of the whole map, ``whole`` (default: the model's at
+    ``spec``'s resolution, :func:`default_spec`): a ``spec`` that is a window of it holds
+    its values there (:func:`lattice_frame`)."""
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
     check_map_server_size(spec, config.map.max_pgm_pixels)  # before any work
-    lattice = AnchorLattice.of_model(spec, config.model)
+    frame, frame_row, frame_col = map_frame(model, spec, whole)
+    lattice = AnchorLattice.of_model(frame, config.model)
     cells = lattice.cells
     support = model_support(model)
     # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
@@ -138,12 +198,12 @@ def make_map(
 
     # One set of workers for every tile, started before the first tile is laid out: they
     # load the compiled kernels meanwhile.
-    rows, cols = lattice.shape
+    anchors = len(lattice.anchors_over(Block(frame_row, frame_col, spec.height, spec.width)))
     tick = time.perf_counter()
     beside: Future | None = None
     written: Future | None = None  # the tile being written while the next one is computed
     with contextlib.ExitStack() as helper:
-        with anchor_executor(model, workers, scheduler, rows * cols) as executor:
+        with anchor_executor(model, workers, scheduler, anchors) as executor:
             # A tile's rasters are written on this thread while the workers compute the
             # next tile (before, they waited: 4 tiles of a 500 m city at 0.1 m, 2-3 s
             # each). One tile is in flight at a time, written in order, so the folder
@@ -159,7 +219,8 @@ def make_map(
             stages["predict"] += time.perf_counter() - tick
             for row0, col0, window in windows:
                 tick = time.perf_counter()
-                layers = predict_tile(model, lattice, row0, col0, window, support,
+                layers = predict_tile(model, lattice, frame_row + row0, frame_col + col0,
+                                      window, support,
                                       progress=progress, executor=executor,
                                       while_running=side)
                 stages["predict"] += time.perf_counter() - tick
@@ -198,7 +259,7 @@ def make_map(
         if beside is not None:
             beside.result()
         stages["finish"] = time.perf_counter() - tick
-    return MapSummary(spec=spec, tiles=len(windows), blocks=n_blocks,
+    return MapSummary(spec=spec, frame=frame, tiles=len(windows), blocks=n_blocks,
                       seconds=time.perf_counter() - started, class_counts=counts,
                       stage_seconds=stages, ros_outputs=folder.ros_outputs)
 
@@ -227,6 +288,9 @@ def map_metadata(model_path: str, model: GPModel, summary: MapSummary,
         # The anchors' spacing on this map: block_size_m rounded down to whole cells, so
         # maps of one model at two resolutions can differ where it does.
         anchor_spacing_m=round(lattice.cells * summary.spec.resolution, 9),
+        # The north-west corner of the first anchor's block: anchors sit at its east and
+        # south by half a spacing plus whole spacings.
+        anchor_origin_m=[summary.frame.x0, summary.frame.y1],
         blend_overlap=lattice.blend,
         tiles=summary.tiles,
         blocks=summary.blocks,

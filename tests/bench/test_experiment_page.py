@@ -712,44 +712,14 @@ def test_anchor_placement_table_gives_each_case_and_the_differences():
     assert experiment.moved_anchors_table([{"case": "x", "scores": {}}]) == []
 
 
-def test_moved_anchors_moves_the_lattice_half_a_spacing_on_the_same_cells(tmp_path,
-                                                                         monkeypatch):
+def test_moved_whole_moves_the_lattice_half_a_spacing_on_the_same_cells():
     from gpocc.gridspec import GridSpec
     from gpocc.mapping.blocks import Anchor, AnchorLattice
 
-    vdir = tmp_path / "v"
-    main = vdir / "gp-input-noise"
-    main.mkdir(parents=True)
-    bounds = [-13.02143854931841, -26.51194820983702, 21.378561450681588, 13.788051790162985]
-    (main / "metadata.json").write_text(json.dumps(
-        {"anchor_spacing_m": 1.0, "resolution_m": 0.1, "bounds_m": bounds}))
-    heldout = tmp_path / "heldout.csv"
-    heldout.write_text("x,y,label,kind\n0.5,0.5,1,hit\n1.0,0.5,0,free\n"
-                       "21.5,0.5,1,hit\n0.5,-26.6,0,near-wall\n")
-    commands, evaluated = [], []
-
-    def fake_gpocc(cmd: list[str]) -> str:
-        commands.append(cmd)
-        Path(cmd[cmd.index("--out") + 1]).mkdir(parents=True, exist_ok=True)
-        return ""
-
-    def fake_evaluate(maps, truth, out):
-        evaluated.append((dict(maps), Path(truth).read_text() if truth.suffix == ".csv"
-                          else truth))
-        return {"union": {m: {"auc": 0.9} for m in maps},
-                "all": {m: {"auc": 0.8} for m in maps}}
-
-    monkeypatch.setattr(experiment, "run_gpocc", fake_gpocc)
-    monkeypatch.setattr(experiment, "COMMANDS", [])
-    monkeypatch.setattr(experiment, "evaluate", fake_evaluate)
-    result = experiment.moved_anchors(vdir, heldout, tmp_path / "truth.tif")
-    assert result == {"shift_m": 0.5, "page": {"union": {"auc": 0.9}, "cells": {"auc": 0.8}},
-                      "moved": {"union": {"auc": 0.9}, "cells": {"auc": 0.8}}}
-    (cmd,) = commands
-    at = cmd.index("--bounds")
-    moved = GridSpec.from_bounds(*map(float, cmd[at + 1:at + 5]), 0.1)
-    page = GridSpec.from_bounds(*bounds, 0.1)
-    # Five cells more west and north; every cell of the page's map keeps its centre.
+    page = GridSpec.from_bounds(-13.02143854931841, -26.51194820983702, 21.378561450681588,
+                                13.788051790162985, 0.1)
+    moved = experiment.moved_whole(page, 5)
+    # Five cells more west and north; every cell of the page's frame keeps its centre.
     assert (moved.width, moved.height) == (page.width + 5, page.height + 5)
     rows, cols = np.array([0, 17, page.height - 1]), np.array([0, 9, page.width - 1])
     np.testing.assert_allclose(np.column_stack(page.cell_centres_at(rows, cols)),
@@ -759,9 +729,80 @@ def test_moved_anchors_moves_the_lattice_half_a_spacing_on_the_same_cells(tmp_pa
     np.testing.assert_allclose(AnchorLattice(moved, 10).centre(Anchor(0, 0))
                                - AnchorLattice(page, 10).centre(Anchor(0, 0)),
                                [-0.5, 0.5], rtol=0, atol=1e-9)
+
+
+def test_moved_map_has_the_page_maps_cells_and_moved_anchors(tmp_path):
+    from typer.testing import CliRunner
+
+    from gpocc.cli import app
+    from gpocc.config import Config, ModelConfig, TrainingConfig
+    from gpocc.gp.model import build_model, save_model
+    from gpocc.samples.sampleset import SampleSet
+
+    rng = np.random.default_rng(0)
+    walls = np.array([(x, y) for x in np.arange(-2, 2, 0.1) for y in (-1.5, 1.5)]
+                     + [(x, y) for x in (-2, 2) for y in np.arange(-1.5, 1.5, 0.1)])
+    free = rng.uniform([-1.8, -1.3], [1.8, 1.3], size=(200, 2))
+    means = np.vstack([walls, free])
+    n = len(means)
+    samples = SampleSet(means, np.einsum("n,ij->nij", rng.uniform(0.001, 0.003, n), np.eye(2)),
+                        np.r_[np.ones(len(walls)), -np.ones(len(free))],
+                        rng.integers(0, 20, n), rng.normal(0, 0.01, (n, 2, 3)),
+                        np.zeros(n, dtype=np.int16))
+    config = Config(model=ModelConfig(neighbours=60, training=TrainingConfig(
+        patches=2, patch_size=60, anneal_maxfun=5, lbfgs_maxiter=5)))
+    model_path = tmp_path / "gp-input-noise.npz"
+    save_model(build_model(samples, config), model_path)
+    page = tmp_path / "gp-input-noise"
+    # The page's map is a window (as the simulated worlds' are): not the model's whole map.
+    result = CliRunner().invoke(app, ["map", str(model_path), "--resolution", "0.1", "--out",
+                                      str(page), "--bounds", "-2.23", "-1.71", "2.41", "1.87"])
+    assert result.exit_code == 0, result.output
+    experiment.moved_map(model_path, page, tmp_path / "moved", 0.5)
+    page_meta = json.loads((page / "metadata.json").read_text())
+    moved_meta = json.loads((tmp_path / "moved" / "metadata.json").read_text())
+    assert moved_meta["bounds_m"] == page_meta["bounds_m"]
+    np.testing.assert_allclose(np.subtract(moved_meta["anchor_origin_m"],
+                                           page_meta["anchor_origin_m"]), [-0.5, 0.5],
+                               rtol=0, atol=1e-9)
+
+
+def test_moved_anchors_scores_both_maps_on_the_points_inside_the_page_map(tmp_path,
+                                                                          monkeypatch):
+    vdir = tmp_path / "v"
+    main = vdir / "gp-input-noise"
+    main.mkdir(parents=True)
+    bounds = [-13.02143854931841, -26.51194820983702, 21.378561450681588, 13.788051790162985]
+    (main / "metadata.json").write_text(json.dumps(
+        {"anchor_spacing_m": 1.0, "resolution_m": 0.1, "bounds_m": bounds}))
+    heldout = tmp_path / "heldout.csv"
+    heldout.write_text("x,y,label,kind\n0.5,0.5,1,hit\n1.0,0.5,0,free\n"
+                       "21.5,0.5,1,hit\n0.5,-26.6,0,near-wall\n")
+    moved, evaluated = [], []
+
+    def fake_moved_map(model_path, like, folder, shift_m):
+        moved.append((model_path, like, folder, shift_m))
+        folder.mkdir()
+
+    def fake_evaluate(maps, truth, out):
+        evaluated.append((dict(maps), Path(truth).read_text() if truth.suffix == ".csv"
+                          else truth))
+        return {"union": {m: {"auc": 0.9} for m in maps},
+                "all": {m: {"auc": 0.8} for m in maps}}
+
+    monkeypatch.setattr(experiment, "moved_map", fake_moved_map)
+    monkeypatch.setattr(experiment, "COMMANDS", [])
+    monkeypatch.setattr(experiment, "evaluate", fake_evaluate)
+    (vdir / "gp-input-noise-anchors-moved").mkdir()  # from an earlier run: made again
+    result = experiment.moved_anchors(vdir, heldout, tmp_path / "truth.tif")
+    assert result == {"shift_m": 0.5, "page": {"union": {"auc": 0.9}, "cells": {"auc": 0.8}},
+                      "moved": {"union": {"auc": 0.9}, "cells": {"auc": 0.8}}}
+    folder = vdir / "gp-input-noise-anchors-moved"
+    assert moved == [(main.with_suffix(".npz"), main, folder, 0.5)]
+    assert [c["reused"] for c in experiment.COMMANDS] == [False]
     # Both maps are scored on the same points: those inside the page's map.
     (maps, text), (_, truth) = evaluated
-    assert maps == {"page": main, "moved": vdir / "gp-input-noise-anchors-moved"}
+    assert maps == {"page": main, "moved": folder}
     assert text.splitlines() == ["x,y,label,kind", "0.5000,0.5000,1,hit",
                                  "1.0000,0.5000,0,free"]
     assert truth == tmp_path / "truth.tif"

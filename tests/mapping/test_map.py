@@ -324,8 +324,7 @@ def test_writing_side_work_runs_once_on_a_thread_after_the_last_anchor(model_pat
     # anchor is in (no busy worker to slow down), before make_map returns.
     import threading
 
-    from gpocc.mapping.blocks import AnchorLattice
-    from gpocc.mapping.mapper import make_map
+    from gpocc.mapping.mapper import block_count, make_map
 
     model = load_model(model_path)
     model = dataclasses.replace(model, config=dataclasses.replace(
@@ -338,9 +337,8 @@ def test_writing_side_work_runs_once_on_a_thread_after_the_last_anchor(model_pat
 
     summary = make_map(model, spec, tmp_path, workers=2, progress=done.append,
                        while_writing=while_writing)
-    blocks = AnchorLattice.of_model(spec, model.config.model).shape
     assert (summary.tiles > 1) == (tile_pixels == 12)
-    assert calls == [(False, blocks[0] * blocks[1])]
+    assert calls == [(False, block_count(model, spec))]
 
 
 def test_bounds_and_grid_geometry(model_path, tmp_path):
@@ -667,3 +665,112 @@ def test_a_failed_export_stops_the_map_once_the_other_exports_are_done(model_pat
         make_map(model, spec, folder, workers=1)
     assert mcap_done.is_set()
     assert list(tmp_path.iterdir()) == []
+
+
+def _read_layers(folder) -> tuple[dict[str, np.ndarray], rasterio.coords.BoundingBox]:
+    layers = {}
+    for name in ("probability", "variance", "class"):
+        with rasterio.open(folder / f"{name}.tif") as ds:
+            layers[name], bounds = ds.read(1), ds.bounds
+    return layers, bounds
+
+
+def test_windows_on_the_whole_maps_cells_are_its_crops_and_join_without_seams(model_path,
+                                                                              tmp_path):
+    # The model's whole map; windows of it at offsets that are not whole anchor blocks
+    # (6 cells of 0.1 m) must hold exactly its values: a window maps with the whole map's
+    # local problems, not a lattice of its own.
+    whole_folder = run_map(model_path, tmp_path / "whole", "--resolution", "0.1")
+    whole, wb = _read_layers(whole_folder)
+    assert np.isfinite(whole["probability"]).sum() > 500
+
+    def window(name, row0, col0, rows, cols):
+        x0, top = wb.left + col0 * 0.1, wb.top - row0 * 0.1
+        folder = run_map(model_path, tmp_path / name, "--resolution", "0.1", "--bounds",
+                         repr(x0), repr(top - rows * 0.1), repr(x0 + cols * 0.1), repr(top))
+        layers, bounds = _read_layers(folder)
+        assert layers["probability"].shape == (rows, cols)
+        assert bounds.left == pytest.approx(x0, abs=1e-9)
+        assert bounds.top == pytest.approx(top, abs=1e-9)
+        return layers
+
+    height, width = whole["probability"].shape
+    split = width // 2 + 1  # not a multiple of the block
+    west = window("west", 7, 3, height - 11, split - 3)
+    assert np.isfinite(west["probability"]).sum() > 200
+    east = window("east", 7, split, height - 11, width - split - 2)
+    for name in whole:
+        joined = np.hstack([west[name], east[name]])
+        np.testing.assert_array_equal(joined, whole[name][7:height - 4, 3:width - 2])
+
+
+def test_a_window_beyond_the_whole_map_keeps_its_anchors(model_path, tmp_path):
+    whole_folder = run_map(model_path, tmp_path / "whole", "--resolution", "0.1")
+    whole, wb = _read_layers(whole_folder)
+    origin = np.array(json.loads((whole_folder / "metadata.json").read_text())
+                      ["anchor_origin_m"])
+    spacing = 0.6  # the fixture's block_size_m
+    # 14 cells beyond the west and north edges: the lattice grows by whole spacings there.
+    folder = run_map(model_path, tmp_path / "beyond", "--resolution", "0.1", "--bounds",
+                     repr(wb.left - 1.4), repr(wb.bottom + 1.0), repr(wb.left + 2.0),
+                     repr(wb.top + 1.4))
+    meta = json.loads((folder / "metadata.json").read_text())
+    moved = (np.array(meta["anchor_origin_m"]) - origin) / spacing
+    np.testing.assert_allclose(moved, np.round(moved), atol=1e-9)
+    assert np.round(moved).tolist() == [-3.0, 3.0]  # ceil(14 / 6) spacings
+    layers, _ = _read_layers(folder)
+    # Away from the whole map's edges (more than half a spacing inside) the values are its
+    # own: the same local problems with the same weights.
+    inner = layers["probability"][14 + 3:, 14 + 3:]
+    ref = whole["probability"][3:3 + inner.shape[0], 3:3 + inner.shape[1]]
+    assert np.isfinite(inner).sum() > 100
+    np.testing.assert_array_equal(inner, ref)
+
+
+def test_lattice_frame_against_brute_force():
+    from gpocc.mapping.mapper import lattice_frame
+
+    whole = GridSpec(-3.217, -2.481, 0.1, 57, 43)
+    cells = 6
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        col0, row0 = rng.integers(-40, 70, 2)
+        width, height = rng.integers(1, 60, 2)
+        shift = rng.uniform(-0.45, 0.45, 2) * (rng.random() < 0.5)
+        x0 = whole.x0 + (col0 + shift[0]) * 0.1
+        top = whole.y1 - (row0 + shift[1]) * 0.1
+        spec = GridSpec(x0, top - height * 0.1, 0.1, int(width), int(height))
+        frame, r, c = lattice_frame(whole, spec, cells)
+        # The window is frame's cells [r, r + height) x [c, c + width), centre for centre.
+        rows, cols = np.arange(spec.height), np.arange(spec.width)
+        np.testing.assert_allclose(frame.cell_centres_at(rows + r, cols + c)[0],
+                                   spec.cell_centres_at(rows, cols)[0], atol=1e-9)
+        np.testing.assert_allclose(frame.cell_centres_at(rows + r, cols + c)[1],
+                                   spec.cell_centres_at(rows, cols)[1], atol=1e-9)
+        assert 0 <= r and r + height <= frame.height and 0 <= c and c + width <= frame.width
+        # The lattice's corner moved by whole blocks plus the shift onto spec's cells,
+        # which is less than half a cell.
+        blocks = np.array([(whole.x0 - frame.x0) / 0.1, (frame.y1 - whole.y1) / 0.1])
+        off_cells = blocks - np.round(blocks)
+        assert np.all(np.abs(off_cells) < 0.5 + 1e-9)
+        np.testing.assert_allclose(off_cells, -shift * np.array([1, 1]), atol=1e-6)
+        assert np.all(np.round(blocks) % cells == 0) and np.all(np.round(blocks) >= 0)
+        if not shift.any() and col0 >= 0 and row0 >= 0 and col0 + width <= whole.width \
+                and row0 + height <= whole.height:
+            assert frame == whole and (r, c) == (row0, col0)
+
+
+def test_block_count_is_the_anchors_whose_block_corner_is_in_the_map(model_path):
+    from gpocc.mapping.blocks import block_cells
+    from gpocc.mapping.mapper import block_count, default_spec, map_frame
+
+    model = load_model(model_path)
+    whole = default_spec(model, 0.1, model.config.map.margin_m)
+    cells = block_cells(model.config.model.block_size_m, 0.1)
+    for bounds in [whole.bounds, (-1.03, -0.7, 1.5, 1.1), (whole.x0 - 2, -1, 0.3, whole.y1 + 2)]:
+        spec = GridSpec.from_bounds(*bounds, 0.1)
+        frame, r, c = map_frame(model, spec)
+        brute = sum(r <= row < r + spec.height and c <= col < c + spec.width
+                    for row in range(0, frame.height, cells)
+                    for col in range(0, frame.width, cells))
+        assert block_count(model, spec) == brute
