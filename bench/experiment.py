@@ -1187,7 +1187,7 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
                   "settings of each variant's overrides changed (each made with "
                   "`.venv/bin/python -m bench.experiment "
                   "sim real clean --variant NAME`, on the same worlds, logs and held-out points): "
-                  "how the defaults were chosen. Wins count the cases where this run is "
+                  "each variant against the defaults. Wins count the cases where this run is "
                   "better; differences are this run minus the variant. A variant whose "
                   "`compared with` is another variant changes one setting of that one "
                   "(its overrides include that variant's) and is compared with that "

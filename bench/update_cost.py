@@ -36,8 +36,8 @@ CONFIGS = {"intel.gfs.log": "carmen_intel.yaml",
 STEMS = {"intel.gfs.log": "intel", "freiburg-079-corrected.log": "freiburg"}
 GPOCC = [sys.executable, "-m", "gpocc"]
 #: Where each log is cut (share of its scans in A): several splits, since one split's
-#: difference between update and train is one draw of the learning's own spread. Issue
-#: 33 asks about halves (0.5); the others show a small and a large second part.
+#: difference between update and train is one draw of the learning's own spread. Halves
+#: (0.5) are the usual case; the others show a small and a large second part.
 CUTS = (0.2, 0.35, 0.5, 0.65, 0.8)
 
 
@@ -134,12 +134,12 @@ def case(work: Path, log: Path, share: float, repeats: int, every: int = 10) -> 
 @benchmark("update-cost", "Updating a model against training on all logs")
 def update_cost(ctx: Context) -> Result:
     """`gpocc update A.npz B` against `gpocc train A B` for each CARMEN log cut in two
-    parts by lines at 20%, 35%, 50%, 65% and 80% of its scans (A the first part; issue
-    33 asks about halves, 50%), each part split
+    parts by lines at 20%, 35%, 50%, 65% and 80% of its scans (A the first part),
+    each part split
     with `gpocc split --every 10`: median wall and CPU seconds of the interleaved repeats
     (1, Intel cut at 50% only, in a quick run), and AUC and Brier of both models' maps at
     0.1 m on the held-out points of both parts, per protocol, with the largest absolute
-    difference update - train of AUC and Brier (issue 33 asks for at most 0.002). A
+    difference update - train of AUC and Brier (the target: at most 0.002). A
     second table gives, for the last repeat of each command, its start-up, its printed
     stages and its likelihood evaluations."""
     logs = [INTEL] if ctx.quick else [INTEL, FREIBURG]

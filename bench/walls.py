@@ -326,7 +326,7 @@ def page(rows: list[dict]) -> str:
         " `samples.hit_gap_m: 0.25`, `model.training.classifier_variance: label`,"
         " `model.training.classifier_temperature: none` and"
         " `model.training.classifier_offset: holdout`,"
-        " gpocc's defaults when these were measured; `hit_gap=0.15` is today's default)."
+        " a baseline that differs from gpocc's defaults, whose `samples.hit_gap_m` is 0.15)."
         " Real logs: `gpocc split --every 10 --seed S`, the"
         " training scans' poses perturbed by stretch as in `bench/experiment.py` (seed S);"
         " the held-out points use the recorded poses. Worlds: `gpocc simulate --world W"
