@@ -381,13 +381,14 @@ def moved_map(model_path: Path, like: Path, folder: Path, shift_m: float) -> Non
     lattice of ``like`` moved by ``shift_m`` (whole cells) west and north, into
     ``folder`` (replaced)."""
     from gpocc.commands.map import write_map
+    from gpocc.evaluation.report import probability_raster
     from gpocc.gp.model import load_model
     from gpocc.io.atomic import atomic_directory
     from gpocc.io.rasters import read_raster
     from gpocc.mapping.mapper import map_frame
 
     model = load_model(model_path)
-    _, spec, _ = read_raster(like / "probability.tif")
+    _, spec, _ = read_raster(probability_raster(like)[1])  # a GeoTIFF or a tiled map's VRT
     frame, _, _ = map_frame(model, spec)
     whole = moved_whole(frame, round(shift_m / spec.resolution))
     with atomic_directory(folder, force=True) as tmp:
@@ -500,7 +501,12 @@ def run_methods(inputs: list[Path], base_config: Path, variant: str, vdir: Path,
         maps = {"grid": shared / "grid", "bhm": shared / "bhm"}
         if octomap_row(inputs, base_config, shared / "octomap", shared / "grid"):
             maps["octomap"] = shared / "octomap"
-    config = with_overrides(base_config, VARIANTS[variant], vdir / "config.yaml", settings)
+    overrides = dict(VARIANTS[variant])
+    if bounds is not None:
+        # Every variant's GPs on one anchor lattice, from the bounds' north-west corner:
+        # a comparison of settings is not one of anchor placements too.
+        overrides.setdefault("map.anchor_origin_m", [float(bounds[0]), float(bounds[3])])
+    config = with_overrides(base_config, overrides, vdir / "config.yaml", settings)
     seconds = {}
     gps = (("off", "gp-no-input-noise"), ("on", "gp-input-noise"))
     for noise, name in gps if all_methods else gps[1:]:
@@ -1249,9 +1255,12 @@ def page(run: dict, variants: dict[str, list[dict]] | None = None,
         "`moved_map` below: the cells stay where they were), and both maps are scored "
         "on the held-out points inside "
         "the page's map (`union`) and per cell: the difference is what the placement of "
-        "the anchors alone changes, at no change of the model. The page's maps have "
-        "the anchors of the model's whole map (its samples' extent plus `map.margin_m`), "
-        "half a spacing inside that map's north-west corner.",
+        "the anchors alone changes, at no change of the model. On the real logs the "
+        "page's maps have the anchors of the model's whole map (its samples' extent plus "
+        "`map.margin_m`), half a spacing inside its north-west corner; on the simulated "
+        "worlds every variant's config pins them (`map.anchor_origin_m`) to the world "
+        "map's north-west corner, x = -0.5 m, so they fall on whole metres of x (the "
+        "worlds' west walls stand at x = 0).",
         moved_anchors_table(cases))
     lines += section(
         "By world family",

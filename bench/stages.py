@@ -109,12 +109,12 @@ def anchor_cost(ctx: Context) -> Result:
     from gpocc.gp.model import load_model
     from gpocc.mapping.blend import supported_anchors
     from gpocc.mapping.blocks import Anchor, AnchorLattice, anchor_problems, predict_anchor
-    from gpocc.mapping.mapper import default_spec
+    from gpocc.mapping.mapper import whole_map
     from gpocc.mapping.support import model_support
 
     require(INTEL)
     model = load_model(ctx.intel_model())
-    spec = default_spec(model, 0.1, model.config.map.margin_m)
+    spec = whole_map(model, 0.1)
     lattice = AnchorLattice.of_model(spec, model.config.model)
     rows_, cols = lattice.shape
     every = [Anchor(r, c) for r in range(rows_) for c in range(cols)]

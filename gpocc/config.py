@@ -457,10 +457,17 @@ class MapConfig:
     nodata.
     ``max_cells``: the largest raster (map, grid, truth) a command may make; larger
     requests are refused before allocating (see :mod:`gpocc.limits`).
+    ``anchor_origin_m``: [x, y] metres, a north-west corner of the GP map's anchor blocks
+    (the local problems sit half a spacing east and south of it, then every
+    ``model.block_size_m``). Maps of several models with the same value share their
+    anchors, so they differ only by the models; the whole map then starts on that
+    lattice. Null (default): the north-west corner of the model's whole map (the
+    samples' extent plus ``margin_m``, at ``resolution_m``).
     """
 
     resolution_m: float = 0.1
     margin_m: float = 1.0
+    anchor_origin_m: tuple[float, float] | None = None
     georef: GeorefConfig | None = None
     epsg: int | None = None
     tile_pixels: int = 4096
@@ -897,6 +904,11 @@ def _validate(config: Config, source: str) -> Config:
     if not 0.0 < config.model.blend_overlap <= 1.0:
         raise GpoccError(f"{source}: key 'model.blend_overlap' must be above 0 and at most 1 "
                          f"(1: bilinear across whole blocks), got {config.model.blend_overlap}")
+    origin = config.map.anchor_origin_m
+    if origin is not None and max(abs(v) for v in origin) > _MAX_TRANSLATION_M:
+        raise GpoccError(f"{source}: key 'map.anchor_origin_m' must lie within "
+                         f"{_MAX_TRANSLATION_M:g} m of the map frame's origin, got "
+                         f"{list(origin)}; check its units (metres)")
     if config.map.margin_m > _MAX_MARGIN_M:
         raise GpoccError(f"{source}: key 'map.margin_m' must be at most {_MAX_MARGIN_M:g} m (the "
                          f"border around the data), got {config.map.margin_m:g}; check its "

@@ -31,9 +31,9 @@ from gpocc.mapping.folder import write_metadata
 from gpocc.mapping.mapper import (
     MapSummary,
     block_count,
-    default_spec,
     make_map,
     map_metadata,
+    whole_map,
 )
 from gpocc.parallel import default_workers
 from gpocc.progress import debug, log, progress_bar
@@ -105,7 +105,7 @@ def map_spec(model: GPModel, resolution: float, bounds: tuple[float, ...] | None
     if bounds is not None:
         spec = GridSpec.from_bounds(*bounds, resolution)
     else:
-        spec = default_spec(model, resolution, model.config.map.margin_m)
+        spec = whole_map(model, resolution)
     check_map_size(spec, model.config, what, configurable)
     return spec
 

@@ -115,6 +115,12 @@ class AnchorLattice:
     spec: GridSpec
     cells: int
     overlap: float = 1.0
+    #: Where the anchors' positions are measured from when ``spec`` grew from another grid
+    #: by whole blocks: that grid's north-west corner (x, y metres) and the blocks ``spec``
+    #: added to its north and west. The same anchor then has, bit for bit, the centre it
+    #: has on that grid (its neighbours do not depend on the growth). None: ``spec``'s.
+    origin: tuple[float, float] | None = None
+    shift: tuple[int, int] = (0, 0)
 
     @property
     def blend(self) -> float:
@@ -137,8 +143,10 @@ class AnchorLattice:
         """(2,) metres: the centre of the anchor's (full-size) block."""
         half = self.cells / 2.0
         res = self.spec.resolution
-        return np.array([self.spec.x0 + (anchor.col * self.cells + half) * res,
-                         self.spec.y1 - (anchor.row * self.cells + half) * res])
+        x0, y1 = (self.spec.x0, self.spec.y1) if self.origin is None else self.origin
+        row, col = anchor.row - self.shift[0], anchor.col - self.shift[1]
+        return np.array([x0 + (col * self.cells + half) * res,
+                         y1 - (row * self.cells + half) * res])
 
     def footprint(self, anchor: Anchor) -> tuple[Block, np.ndarray]:
         """The cells where ``anchor``'s weight is positive, and the (rows, cols) weights."""

@@ -10,15 +10,17 @@ done, so no process ever holds the whole map.
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from gpocc.config import ModelConfig
 from gpocc.gp.classify import classify
 from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters
@@ -66,40 +68,97 @@ def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> tuple[GridSpec
     """The grid whose anchor lattice (:class:`AnchorLattice`, ``cells`` a block) maps
     ``spec``, and the row and column of ``spec``'s first cell on it.
 
-    ``whole`` is the model's whole map at ``spec``'s resolution (:func:`default_spec`).
+    ``whole`` is the model's whole map at ``spec``'s resolution (:func:`whole_map`).
     A window on ``whole``'s cells and inside it is mapped on ``whole`` itself, so it
     holds exactly the whole map's values there; one off those cells, on ``whole`` moved
-    by less than half a cell onto its own. A window reaching beyond ``whole`` grows the
-    grid by whole blocks to the west and north (the anchors stay where they are) and by
-    cells to the east and south.
+    by at most half a cell onto its own. A window reaching beyond ``whole`` on a side
+    grows the grid there by whole blocks (the anchors stay where they are) to a block
+    past the window, so that no cell of the window lies where the lattice's edge weights
+    are clamped: windows beyond the whole map join without a seam, and within half a
+    spacing of the whole map's edge on that side they differ from it (its edge cells
+    take their edge anchors' weight whole).
     """
     res = spec.resolution
     cols = (spec.x0 - whole.x0) / res
     rows = (whole.y1 - spec.y1) / res
-    col0, row0 = round(cols), round(rows)
+    # Halves round up, whatever the floating-point noise: windows on the same cells get
+    # the same grid.
+    col0, row0 = math.floor(cols + 0.5 + 1e-9), math.floor(rows + 0.5 + 1e-9)
     frame = whole
     if abs(cols - col0) > 1e-6 or abs(rows - row0) > 1e-6:
         frame = GridSpec(whole.x0 + (cols - col0) * res, whole.y0 - (rows - row0) * res, res,
                          whole.width, whole.height)
-    west = -(-max(0, -col0) // cells) * cells
-    north = -(-max(0, -row0) // cells) * cells
-    col0, row0 = col0 + west, row0 + north
-    width = max(frame.width + west, col0 + spec.width)
-    height = max(frame.height + north, row0 + spec.height)
-    if (width, height) != (frame.width, frame.height):
+
+    def grown(start: int, length: int, size: int) -> tuple[int, int]:
+        """Cells added before and after ``size`` along an axis for ``[start, start +
+        length)``: none on a side the window stays within, else whole blocks to a block
+        past it."""
+        before = (math.ceil(-start / cells) + 1) * cells if start < 0 else 0
+        end = start + before + length
+        after = 0
+        if end > size + before:
+            after = (math.ceil(end / cells) + 1) * cells - size - before
+        return before, after
+
+    west, east = grown(col0, spec.width, frame.width)
+    north, south = grown(row0, spec.height, frame.height)
+    if west or east or north or south:
+        width, height = frame.width + west + east, frame.height + north + south
         top = frame.y1 + north * res
         frame = GridSpec(frame.x0 - west * res, top - height * res, res, width, height)
-    return frame, row0, col0
+    return frame, row0 + north, col0 + west
+
+
+def whole_map(model: GPModel, resolution: float) -> GridSpec:
+    """The grid of the model's whole map, whose anchor lattice every map of the model
+    uses, in cells of ``resolution`` metres: the samples' extent plus ``map.margin_m`` at
+    the config's ``map.resolution_m`` (grown to the lattice of ``map.anchor_origin_m``
+    when set), and at another resolution a grid from the same north-west corner that
+    covers it. So maps at resolutions that divide the anchor
+    spacing (``model.block_size_m``) have the same anchors, and their cells nest."""
+    config = model.config.map
+    base = default_spec(model, config.resolution_m, config.margin_m)
+    if config.anchor_origin_m is not None:
+        # The lattice's corner nearest north-west of the whole map that covers it.
+        spacing = block_cells(model.config.model.block_size_m, base.resolution) \
+            * base.resolution
+        ox, oy = config.anchor_origin_m
+        x0 = ox + math.floor((base.x0 - ox) / spacing + 1e-9) * spacing
+        top = oy - math.floor((oy - base.y1) / spacing + 1e-9) * spacing
+        res = base.resolution
+        width = max(1, math.ceil((base.x1 - x0) / res - 1e-9))
+        height = max(1, math.ceil((top - base.y0) / res - 1e-9))
+        base = GridSpec(x0, top - height * res, res, width, height)
+    if resolution == base.resolution:
+        return base
+    width = max(1, math.ceil(base.width * base.resolution / resolution - 1e-9))
+    height = max(1, math.ceil(base.height * base.resolution / resolution - 1e-9))
+    return GridSpec(base.x0, base.y1 - height * resolution, resolution, width, height)
+
+
+def frame_lattice(whole: GridSpec, frame: GridSpec, model: ModelConfig) -> AnchorLattice:
+    """The anchor lattice of ``frame`` (:func:`lattice_frame` of ``whole``): where
+    ``frame`` grew from ``whole`` by whole blocks, its anchors keep ``whole``'s centres
+    bit for bit."""
+    lattice = AnchorLattice.of_model(frame, model)
+    res, cells = frame.resolution, lattice.cells
+    west, north = (whole.x0 - frame.x0) / res, (frame.y1 - whole.y1) / res
+    blocks = round(west / cells), round(north / cells)
+    if (west, north) == (0, 0) or abs(west - blocks[0] * cells) > 1e-6 \
+            or abs(north - blocks[1] * cells) > 1e-6:
+        return lattice
+    return replace(lattice, origin=(whole.x0, whole.y1),
+                               shift=(blocks[1], blocks[0]))
 
 
 def map_frame(model: GPModel, spec: GridSpec, whole: GridSpec | None = None
               ) -> tuple[GridSpec, int, int]:
     """:func:`lattice_frame` of a map of ``model`` over ``spec``, within ``whole``
-    (default: the model's whole map at ``spec``'s resolution)."""
-    config = model.config
+    (default: :func:`whole_map` at ``spec``'s resolution)."""
     if whole is None:
-        whole = default_spec(model, spec.resolution, config.map.margin_m)
-    return lattice_frame(whole, spec, block_cells(config.model.block_size_m, spec.resolution))
+        whole = whole_map(model, spec.resolution)
+    block = model.config.model.block_size_m
+    return lattice_frame(whole, spec, block_cells(block, spec.resolution))
 
 
 def block_count(model: GPModel, spec: GridSpec, whole: GridSpec | None = None) -> int:
@@ -177,18 +236,21 @@ def make_map(
     preview are written, when a core is free (``gpocc build`` writes its model file
     there); its error, if any, is raised after them.
 
-    The local problems are those of the whole map, ``whole`` (default: the model's at
-    ``spec``'s resolution, :func:`default_spec`): a ``spec`` that is a window of it holds
-    its values there (:func:`lattice_frame`)."""
+    The local problems are those of the whole map, ``whole`` (default: the model's,
+    :func:`whole_map`): a ``spec`` that is a window of it holds its values there
+    (:func:`lattice_frame`)."""
     started = time.perf_counter()
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
     check_map_server_size(spec, config.map.max_pgm_pixels)  # before any work
+    if whole is None:
+        whole = whole_map(model, spec.resolution)
     frame, frame_row, frame_col = map_frame(model, spec, whole)
-    lattice = AnchorLattice.of_model(frame, config.model)
+    lattice = frame_lattice(whole, frame, config.model)
     cells = lattice.cells
     support = model_support(model)
-    # Tiles hold whole blocks, so block boundaries are the same however the map is tiled.
+    # Tiles of whole blocks: each tile's anchors are laid out from whole block rows. (The
+    # values never depend on the tiling: a window's tiles start where the window does.)
     tile = max(cells, (config.map.tile_pixels // cells) * cells)
     windows = _tile_windows(spec, tile)
     folder = MapFolder(out_dir, spec, config, tiled=len(windows) > 1, tile=tile,

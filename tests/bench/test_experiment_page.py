@@ -524,6 +524,27 @@ def test_a_variants_run_maps_with_the_gp_with_input_noise_alone(tmp_path, monkey
     assert experiment.every_method("seed-1", asked=True)
 
 
+def test_windowed_cases_pin_every_variants_anchors_to_the_windows_corner(tmp_path,
+                                                                          monkeypatch):
+    """With bounds (the simulated worlds), each variant's config pins the GPs' anchor
+    lattice to the bounds' north-west corner, so variants are compared on one lattice."""
+    monkeypatch.setattr(experiment, "run_gpocc",
+                        lambda cmd: Path(cmd[cmd.index("--out") + 1]).mkdir(
+                            parents=True, exist_ok=True) or "")
+    monkeypatch.setattr(experiment, "COMMANDS", [])
+    config = experiment.ROOT / "data" / "sample" / "sample.yaml"
+    bag = experiment.ROOT / "data" / "sample" / "intel_sample.mcap"
+    for variant in ("fixed-bias", "seed-1"):
+        experiment.run_methods([bag], config, variant, tmp_path / variant, tmp_path / "s",
+                               ["-0.500", "-0.500", "40.500", "25.500"], config, False)
+        written = yaml.safe_load((tmp_path / variant / "config.yaml").read_text())
+        assert written["map"]["anchor_origin_m"] == [-0.5, 25.5]
+    experiment.run_methods([bag], config, "seed-1", tmp_path / "real", tmp_path / "s", None,
+                           config, False)
+    written = yaml.safe_load((tmp_path / "real" / "config.yaml").read_text())
+    assert "anchor_origin_m" not in (written.get("map") or {})
+
+
 @pytest.mark.parametrize("all_methods", [False, True])
 def test_a_variants_real_log_step_maps_with_the_gp_with_input_noise_alone(tmp_path,
                                                                           monkeypatch,

@@ -229,3 +229,14 @@ def test_limits_hold_for_configs_but_not_for_a_model_files_stored_config(tmp_pat
         config_from_dict({"model": {"neighbours": 5000}}, "c.yaml")
     with pytest.raises(GpoccError, match="log_bounds_width' must be above 0 and at most 20"):
         config_from_dict({"model": {"training": {"log_bounds_width": 25.0}}}, "c.yaml")
+
+
+def test_anchor_origin_is_a_pair_of_metres_within_reach(tmp_path):
+    path = tmp_path / "job.yaml"
+    path.write_text("map:\n  anchor_origin_m: [-0.5, 25.5]\n")
+    assert load_config(path).map.anchor_origin_m == (-0.5, 25.5)
+    for bad, message in [("[1.0]", "must have 2 entries"), ("[0, .nan]", "must be finite"),
+                         ("[2e7, 0]", "within 1e\\+07 m"), ("3.0", "must be a list")]:
+        path.write_text(f"map:\n  anchor_origin_m: {bad}\n")
+        with pytest.raises(GpoccError, match=message):
+            load_config(path)

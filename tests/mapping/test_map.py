@@ -670,19 +670,27 @@ def test_a_failed_export_stops_the_map_once_the_other_exports_are_done(model_pat
 def _read_layers(folder) -> tuple[dict[str, np.ndarray], rasterio.coords.BoundingBox]:
     layers = {}
     for name in ("probability", "variance", "class"):
-        with rasterio.open(folder / f"{name}.tif") as ds:
+        path = folder / f"{name}.tif"
+        with rasterio.open(path if path.exists() else folder / f"{name}.vrt") as ds:
             layers[name], bounds = ds.read(1), ds.bounds
     return layers, bounds
 
 
-def test_windows_on_the_whole_maps_cells_are_its_crops_and_join_without_seams(model_path,
-                                                                              tmp_path):
+@pytest.mark.parametrize("limit,tile_pixels", [(1.5, 4096), (0.4, 12)])
+def test_windows_on_the_whole_maps_cells_are_its_crops_and_join_without_seams(
+        model_path, tmp_path, limit, tile_pixels):
     # The model's whole map; windows of it at offsets that are not whole anchor blocks
     # (6 cells of 0.1 m) must hold exactly its values: a window maps with the whole map's
-    # local problems, not a lattice of its own.
+    # local problems, not a lattice of its own. A small support limit leaves nodata cells
+    # and skipped anchors; small tiles start off the blocks.
+    arrays, meta = read_model_file(model_path)
+    meta["config"]["map"].update(max_beam_distance_m=limit, tile_pixels=tile_pixels)
+    model_path = tmp_path / "model.npz"
+    write_model_file(model_path, arrays, meta)
     whole_folder = run_map(model_path, tmp_path / "whole", "--resolution", "0.1")
     whole, wb = _read_layers(whole_folder)
     assert np.isfinite(whole["probability"]).sum() > 500
+    assert (limit > 1) or np.isnan(whole["probability"]).sum() > 500
 
     def window(name, row0, col0, rows, cols):
         x0, top = wb.left + col0 * 0.1, wb.top - row0 * 0.1
@@ -704,27 +712,53 @@ def test_windows_on_the_whole_maps_cells_are_its_crops_and_join_without_seams(mo
         np.testing.assert_array_equal(joined, whole[name][7:height - 4, 3:width - 2])
 
 
-def test_a_window_beyond_the_whole_map_keeps_its_anchors(model_path, tmp_path):
+@pytest.mark.parametrize("side", ["north-west", "south-east"])
+def test_windows_beyond_the_whole_map_keep_its_anchors_and_join(model_path, tmp_path, side):
+    # A wide support limit: the cells beyond the whole map's edges have values too.
+    arrays, meta = read_model_file(model_path)
+    meta["config"]["map"]["max_beam_distance_m"] = 5.0
+    model_path = tmp_path / "model.npz"
+    write_model_file(model_path, arrays, meta)
     whole_folder = run_map(model_path, tmp_path / "whole", "--resolution", "0.1")
     whole, wb = _read_layers(whole_folder)
     origin = np.array(json.loads((whole_folder / "metadata.json").read_text())
                       ["anchor_origin_m"])
-    spacing = 0.6  # the fixture's block_size_m
-    # 14 cells beyond the west and north edges: the lattice grows by whole spacings there.
-    folder = run_map(model_path, tmp_path / "beyond", "--resolution", "0.1", "--bounds",
-                     repr(wb.left - 1.4), repr(wb.bottom + 1.0), repr(wb.left + 2.0),
-                     repr(wb.top + 1.4))
-    meta = json.loads((folder / "metadata.json").read_text())
-    moved = (np.array(meta["anchor_origin_m"]) - origin) / spacing
-    np.testing.assert_allclose(moved, np.round(moved), atol=1e-9)
-    assert np.round(moved).tolist() == [-3.0, 3.0]  # ceil(14 / 6) spacings
-    layers, _ = _read_layers(folder)
-    # Away from the whole map's edges (more than half a spacing inside) the values are its
-    # own: the same local problems with the same weights.
-    inner = layers["probability"][14 + 3:, 14 + 3:]
-    ref = whole["probability"][3:3 + inner.shape[0], 3:3 + inner.shape[1]]
-    assert np.isfinite(inner).sum() > 100
-    np.testing.assert_array_equal(inner, ref)
+    spacing = 0.6  # the fixture's block_size_m: 6 cells
+    height, width = whole["probability"].shape
+
+    def window(name, row0, col0, rows, cols):
+        x0, top = wb.left + col0 * 0.1, wb.top - row0 * 0.1
+        folder = run_map(model_path, tmp_path / name, "--resolution", "0.1", "--bounds",
+                         repr(x0), repr(top - rows * 0.1), repr(x0 + cols * 0.1), repr(top))
+        moved = (np.array(json.loads((folder / "metadata.json").read_text())
+                          ["anchor_origin_m"]) - origin) / spacing
+        np.testing.assert_allclose(moved, np.round(moved), atol=1e-9)  # the same anchors
+        return _read_layers(folder)[0]
+
+    # c reaches 14 cells beyond the whole map's edges on one side; a and b split it, and
+    # d reaches less far (8 cells) beyond.
+    if side == "north-west":
+        row0, col0, rows, cols, split = -14, -14, height // 2 + 14, width // 2 + 14, 20
+        d = window("d", row0 + 6, col0 + 6, rows - 6, cols - 6)
+        d_at = (slice(6, None), slice(6, None))
+    else:
+        row0, col0 = height // 2, 7
+        rows, cols, split = height - row0 + 14, width - col0 + 14, 23
+        d = window("d", row0, col0, rows - 6, cols - 6)
+        d_at = (slice(0, rows - 6), slice(0, cols - 6))
+    c = window("c", row0, col0, rows, cols)
+    a = window("a", row0, col0, rows, split)
+    b = window("b", row0, col0 + split, rows, cols - split)
+    assert np.isfinite(c["probability"]).all()
+    for name in c:
+        np.testing.assert_array_equal(np.hstack([a[name], b[name]]), c[name])  # no seam
+        np.testing.assert_array_equal(d[name], c[name][d_at])  # nor where a window ends
+    # Inside the whole map, more than half a spacing from its edges: the whole map's values.
+    r_lo, r_hi = max(row0, 3), min(row0 + rows, height - 3)
+    c_lo, c_hi = max(col0, 3), min(col0 + cols, width - 3)
+    for name in c:
+        np.testing.assert_array_equal(c[name][r_lo - row0:r_hi - row0, c_lo - col0:c_hi - col0],
+                                      whole[name][r_lo:r_hi, c_lo:c_hi])
 
 
 def test_lattice_frame_against_brute_force():
@@ -774,3 +808,70 @@ def test_block_count_is_the_anchors_whose_block_corner_is_in_the_map(model_path)
                     for row in range(0, frame.height, cells)
                     for col in range(0, frame.width, cells))
         assert block_count(model, spec) == brute
+
+
+def test_a_coarser_map_samples_the_same_local_problems(model_path, tmp_path):
+    # The fixture's anchors are 0.6 m apart: 6 cells of 0.1 m, 2 of 0.3 m. Maps of the
+    # model at 0.3 m (its whole extent, or a window) have the 0.1 m map's anchors, and each
+    # 0.3 m cell centre is the centre of a 0.1 m cell: the maps agree there.
+    fine_folder = run_map(model_path, tmp_path / "fine", "--resolution", "0.1")
+    fine, fb = _read_layers(fine_folder)
+    origin = json.loads((fine_folder / "metadata.json").read_text())["anchor_origin_m"]
+    whole = run_map(model_path, tmp_path / "whole", "--resolution", "0.3")
+    window = run_map(model_path, tmp_path / "window", "--resolution", "0.3", "--bounds",
+                     repr(fb.left + 0.3), repr(fb.top - 3.6), repr(fb.left + 3.9),
+                     repr(fb.top - 0.6))
+    for folder in (whole, window):
+        coarse, cb = _read_layers(folder)
+        rows, cols = np.nonzero(np.isfinite(coarse["probability"]))
+        assert rows.size > 40
+        x = cb.left + (cols + 0.5) * 0.3
+        y = cb.top - (rows + 0.5) * 0.3
+        fine_cols = np.floor((x - fb.left) / 0.1).astype(int)
+        fine_rows = np.floor((fb.top - y) / 0.1).astype(int)
+        np.testing.assert_allclose(fb.left + (fine_cols + 0.5) * 0.1, x, atol=1e-9)
+        np.testing.assert_allclose(fb.top - (fine_rows + 0.5) * 0.1, y, atol=1e-9)
+        np.testing.assert_allclose(coarse["probability"][rows, cols],
+                                   fine["probability"][fine_rows, fine_cols], rtol=0,
+                                   atol=1e-5)
+        moved = (np.subtract(json.loads((folder / "metadata.json").read_text())
+                             ["anchor_origin_m"], origin)) / 0.6
+        np.testing.assert_allclose(moved, np.round(moved), atol=1e-9)
+
+
+def test_progress_counts_block_count_on_windows_off_the_blocks(model_path, tmp_path):
+    from gpocc.mapping.mapper import block_count, make_map
+
+    model = load_model(model_path)
+    for k, bounds in enumerate([(-1.73, -1.41, 1.12, 0.93), (-4.1, -3.3, -1.2, 2.9)]):
+        spec = GridSpec.from_bounds(*bounds, 0.1)
+        done: list[int] = []
+        make_map(model, spec, tmp_path / str(k), workers=1, progress=done.append)
+        assert sum(done) == block_count(model, spec) > 0
+
+
+def test_models_with_one_anchor_origin_share_their_anchors(tmp_path):
+    # Two models of different extents (a room and its west half), both pinned to one
+    # anchor origin: their maps' lattices coincide (origins a whole number of spacings
+    # apart), and the whole map starts on that lattice.
+    from gpocc.config import MapConfig
+
+    origin = (-0.37, 1.93)
+    samples = room_samples(3)
+    half = samples.subset(np.flatnonzero(samples.means[:, 0] < 0.3))
+    origins = []
+    for k, s in enumerate((samples, half)):
+        config = Config(model=ModelConfig(neighbours=60, block_size_m=0.5, training=TrainingConfig(
+            patches=2, patch_size=60, anneal_maxfun=5, lbfgs_maxiter=5)),
+            map=MapConfig(anchor_origin_m=origin))
+        path = tmp_path / f"m{k}.npz"
+        save_model(build_model(s, config), path)
+        folder = run_map(path, tmp_path / f"map{k}", "--resolution", "0.1")
+        meta = json.loads((folder / "metadata.json").read_text())
+        origins.append(meta["anchor_origin_m"])
+        x0, _, _, y1 = meta["bounds_m"]
+        lo = s.means.min(axis=0) - 1.0
+        assert x0 <= lo[0] + 1e-9 and y1 >= s.means[:, 1].max() + 1.0 - 1e-9
+    for o in origins:
+        steps = (np.array(o) - origin) / 0.5
+        np.testing.assert_allclose(steps, np.round(steps), atol=1e-9)
