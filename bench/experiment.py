@@ -381,14 +381,13 @@ def moved_map(model_path: Path, like: Path, folder: Path, shift_m: float) -> Non
     lattice of ``like`` moved by ``shift_m`` (whole cells) west and north, into
     ``folder`` (replaced)."""
     from gpocc.commands.map import write_map
-    from gpocc.evaluation.report import probability_raster
     from gpocc.gp.model import load_model
     from gpocc.io.atomic import atomic_directory
-    from gpocc.io.rasters import read_raster
     from gpocc.mapping.mapper import map_frame
 
     model = load_model(model_path)
-    _, spec, _ = read_raster(probability_raster(like)[1])  # a GeoTIFF or a tiled map's VRT
+    meta = json.loads((like / "metadata.json").read_text())
+    spec = GridSpec.from_bounds(*meta["bounds_m"], meta["resolution_m"])
     frame, _, _ = map_frame(model, spec)
     whole = moved_whole(frame, round(shift_m / spec.resolution))
     with atomic_directory(folder, force=True) as tmp:

@@ -458,11 +458,13 @@ class MapConfig:
     ``max_cells``: the largest raster (map, grid, truth) a command may make; larger
     requests are refused before allocating (see :mod:`gpocc.limits`).
     ``anchor_origin_m``: [x, y] metres, a north-west corner of the GP map's anchor blocks
-    (the local problems sit half a spacing east and south of it, then every
-    ``model.block_size_m``). Maps of several models with the same value share their
-    anchors, so they differ only by the models; the whole map then starts on that
-    lattice. Null (default): the north-west corner of the model's whole map (the
-    samples' extent plus ``margin_m``, at ``resolution_m``).
+    (the local problems sit half a spacing east and south of it, then every spacing:
+    ``model.block_size_m`` rounded down to whole cells). Maps of several models with the
+    same value share their anchors at resolutions that divide ``model.block_size_m``, so
+    they differ only by the models; the whole map then starts on that lattice. Null
+    (default): the north-west corner of the model's whole map (the samples' extent plus
+    ``margin_m``, at ``resolution_m``). ``gpocc update`` keeps the model's unless its
+    config states one.
     """
 
     resolution_m: float = 0.1

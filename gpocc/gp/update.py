@@ -67,7 +67,8 @@ def _differences(kept: object, given: object, stated: object, prefix: str) -> li
 def update_config(model: GPModel, given: Config | None, model_path: str | Path,
                   config_path: str | Path | None, stated: object = None) -> Config:
     """The config of an update: the model's, with ``given``'s job settings (``seed``,
-    ``sensors`` added to the model's, ``inputs``, ``classify``, ``map``, ``grid``).
+    ``sensors`` added to the model's, ``inputs``, ``classify``, ``map``, ``grid``; the
+    model's ``map.anchor_origin_m`` unless the file states one).
     ``stated``: the config file's parsed YAML (:func:`gpocc.config.read_config_mapping`):
     only the ``samples`` and ``model`` keys it states are checked against the model's,
     so that a default changed since the model was trained is no conflict (without it,
@@ -100,7 +101,13 @@ def update_config(model: GPModel, given: Config | None, model_path: str | Path,
     added = tuple(s for s in given.sensors if s.name not in sensors)
     inputs = {e.path: e for e in kept.inputs}
     inputs.update({e.path: e for e in given.inputs})
-    return dataclasses.replace(given, samples=kept.samples, model=kept.model,
+    map_cfg = given.map
+    stated_map = stated_dict.get("map")
+    if kept.map.anchor_origin_m is not None and not (
+            isinstance(stated_map, dict) and "anchor_origin_m" in stated_map):
+        # A pinned anchor lattice is what lets the model's maps and its update's agree.
+        map_cfg = dataclasses.replace(map_cfg, anchor_origin_m=kept.map.anchor_origin_m)
+    return dataclasses.replace(given, samples=kept.samples, model=kept.model, map=map_cfg,
                                sensors=kept.sensors + added, inputs=tuple(inputs.values()))
 
 

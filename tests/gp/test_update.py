@@ -718,3 +718,19 @@ def test_an_inputs_entry_matches_by_trailing_folders_and_a_stray_one_is_noted(tm
     err = capsys.readouterr().err
     assert "inputs entry 'gone.log' matches none of these inputs" in err
     assert "'o/room.log' matches none" not in err
+
+
+def test_an_update_keeps_the_models_anchor_origin_unless_its_config_states_one(logs,
+                                                                              tmp_path):
+    """A pinned anchor lattice (map.anchor_origin_m) is what lets the maps of a model and
+    of its update share their local problems' anchors."""
+    (tmp_path / "job.yaml").write_text(CONFIG + "map:\n  anchor_origin_m: [0.25, -0.75]\n")
+    gpocc("train", str(logs["a"]), "--out", str(tmp_path / "a.npz"),
+          "--config", str(tmp_path / "job.yaml"))
+    (tmp_path / "plain.yaml").write_text(CONFIG)
+    (tmp_path / "moved.yaml").write_text(CONFIG + "map:\n  anchor_origin_m: [0.5, 0.5]\n")
+    for name, config, origin in [("kept", "plain.yaml", (0.25, -0.75)),
+                                 ("moved", "moved.yaml", (0.5, 0.5))]:
+        gpocc("update", str(tmp_path / "a.npz"), str(logs["b"]), "--config",
+              str(tmp_path / config), "--out", str(tmp_path / f"{name}.npz"))
+        assert load_model(tmp_path / f"{name}.npz").config.map.anchor_origin_m == origin

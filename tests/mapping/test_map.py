@@ -735,15 +735,16 @@ def test_windows_beyond_the_whole_map_keep_its_anchors_and_join(model_path, tmp_
         np.testing.assert_allclose(moved, np.round(moved), atol=1e-9)  # the same anchors
         return _read_layers(folder)[0]
 
-    # c reaches 14 cells beyond the whole map's edges on one side; a and b split it, and
-    # d reaches less far (8 cells) beyond.
+    # c reaches 12 cells beyond the whole map's edges on one side; a and b split it, and
+    # d reaches less far (6 cells) beyond. (Whole blocks beyond: a lattice grown by just
+    # that much would put the clamped edge band inside them.)
     if side == "north-west":
-        row0, col0, rows, cols, split = -14, -14, height // 2 + 14, width // 2 + 14, 20
+        row0, col0, rows, cols, split = -12, -12, height // 2 + 12, width // 2 + 12, 20
         d = window("d", row0 + 6, col0 + 6, rows - 6, cols - 6)
         d_at = (slice(6, None), slice(6, None))
     else:
         row0, col0 = height // 2, 7
-        rows, cols, split = height - row0 + 14, width - col0 + 14, 23
+        rows, cols, split = height - row0 + 12, width - col0 + 12, 23
         d = window("d", row0, col0, rows - 6, cols - 6)
         d_at = (slice(0, rows - 6), slice(0, cols - 6))
     c = window("c", row0, col0, rows, cols)
