@@ -114,8 +114,8 @@ def whole_map(model: GPModel, resolution: float) -> GridSpec:
     uses, in cells of ``resolution`` metres: the samples' extent plus ``map.margin_m`` at
     the config's ``map.resolution_m`` (grown to the lattice of ``map.anchor_origin_m``
     when set), and at another resolution a grid from the same north-west corner that
-    covers it. So maps at resolutions that divide the anchor
-    spacing (``model.block_size_m``) have the same anchors, and their cells nest."""
+    covers it. So maps at resolutions that divide the anchor spacing
+    (``model.block_size_m``) have the same anchors, and their cells nest."""
     config = model.config.map
     base = default_spec(model, config.resolution_m, config.margin_m)
     if config.anchor_origin_m is not None:
@@ -147,8 +147,7 @@ def frame_lattice(whole: GridSpec, frame: GridSpec, model: ModelConfig) -> Ancho
     if (west, north) == (0, 0) or abs(west - blocks[0] * cells) > 1e-6 \
             or abs(north - blocks[1] * cells) > 1e-6:
         return lattice
-    return replace(lattice, origin=(whole.x0, whole.y1),
-                               shift=(blocks[1], blocks[0]))
+    return replace(lattice, origin=(whole.x0, whole.y1), shift=(blocks[1], blocks[0]))
 
 
 def map_frame(model: GPModel, spec: GridSpec, whole: GridSpec | None = None
