@@ -388,8 +388,7 @@ def moved_map(model_path: Path, like: Path, folder: Path, shift_m: float) -> Non
     model = load_model(model_path)
     meta = json.loads((like / "metadata.json").read_text())
     spec = GridSpec.from_bounds(*meta["bounds_m"], meta["resolution_m"])
-    frame, _, _ = map_frame(model, spec)
-    whole = moved_whole(frame, round(shift_m / spec.resolution))
+    whole = moved_whole(map_frame(model, spec).grid, round(shift_m / spec.resolution))
     with atomic_directory(folder, force=True) as tmp:
         write_map(model, str(model_path), spec, tmp, None, None, whole=whole)
 

@@ -28,7 +28,7 @@ from gpocc.gridspec import GridSpec
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.io.rasters import prepare_writer
 from gpocc.mapping.blend import predict_tile
-from gpocc.mapping.blocks import AnchorLattice, Block, block_cells
+from gpocc.mapping.blocks import AnchorLattice, block_cells
 from gpocc.mapping.executors import anchor_executor
 from gpocc.mapping.folder import MapFolder, folder_metadata
 from gpocc.mapping.folder import wait_through_interrupts as _wait_through_interrupts
@@ -64,19 +64,40 @@ def default_spec(model: GPModel, resolution: float, margin: float) -> GridSpec:
     return GridSpec.from_bounds(x0 - margin, y0 - margin, x1 + margin, y1 + margin, resolution)
 
 
-def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> tuple[GridSpec, int, int]:
-    """The grid whose anchor lattice (:class:`AnchorLattice`, ``cells`` a block) maps
-    ``spec``, and the row and column of ``spec``'s first cell on it.
+@dataclass(frozen=True)
+class MapFrame:
+    """Where a map's cells sit on the anchor lattice that computes them.
+
+    ``grid``: the grid the lattice is laid on; the map's first cell is its cell (``row0``,
+    ``col0``). ``origin`` and ``shift`` (:class:`AnchorLattice`'s): set when ``grid`` grew
+    from the whole map by whole blocks, so that its anchors keep the whole map's centres.
+    """
+
+    grid: GridSpec
+    row0: int
+    col0: int
+    origin: tuple[float, float] | None = None
+    shift: tuple[int, int] = (0, 0)
+
+    def lattice(self, model: ModelConfig) -> AnchorLattice:
+        """The anchor lattice under ``model``'s block size and blend overlap."""
+        return replace(AnchorLattice.of_model(self.grid, model), origin=self.origin,
+                       shift=self.shift)
+
+
+def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> MapFrame:
+    """The :class:`MapFrame` of a map over ``spec`` whose anchor lattice (``cells`` a
+    block) is that of ``whole``.
 
     ``whole`` is the model's whole map at ``spec``'s resolution (:func:`whole_map`).
     A window on ``whole``'s cells and inside it is mapped on ``whole`` itself, so it
     holds exactly the whole map's values there; one off those cells, on ``whole`` moved
     by at most half a cell onto its own. A window reaching beyond ``whole`` on a side
-    grows the grid there by whole blocks (the anchors stay where they are) to a block
-    past the window, so that no cell of the window lies where the lattice's edge weights
-    are clamped: windows beyond the whole map join without a seam, and within half a
-    spacing of the whole map's edge on that side they differ from it (its edge cells
-    take their edge anchors' weight whole).
+    grows the grid there by whole blocks (the anchors stay where they are, bit for bit)
+    to a block past the window, so that no cell of the window lies where the lattice's
+    edge weights are clamped: windows beyond the whole map join without a seam, and
+    within half a spacing of the whole map's edge on that side they differ from it (its
+    edge cells take their edge anchors' weight whole).
     """
     res = spec.resolution
     cols = (spec.x0 - whole.x0) / res
@@ -84,8 +105,9 @@ def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> tuple[GridSpec
     # Halves round up, whatever the floating-point noise: windows on the same cells get
     # the same grid.
     col0, row0 = math.floor(cols + 0.5 + 1e-9), math.floor(rows + 0.5 + 1e-9)
+    shifted = abs(cols - col0) > 1e-6 or abs(rows - row0) > 1e-6
     frame = whole
-    if abs(cols - col0) > 1e-6 or abs(rows - row0) > 1e-6:
+    if shifted:
         frame = GridSpec(whole.x0 + (cols - col0) * res, whole.y0 - (rows - row0) * res, res,
                          whole.width, whole.height)
 
@@ -102,11 +124,15 @@ def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> tuple[GridSpec
 
     west, east = grown(col0, spec.width, frame.width)
     north, south = grown(row0, spec.height, frame.height)
-    if west or east or north or south:
-        width, height = frame.width + west + east, frame.height + north + south
-        top = frame.y1 + north * res
-        frame = GridSpec(frame.x0 - west * res, top - height * res, res, width, height)
-    return frame, row0 + north, col0 + west
+    if not (west or east or north or south):
+        return MapFrame(frame, row0, col0)
+    width, height = frame.width + west + east, frame.height + north + south
+    top = frame.y1 + north * res
+    grid = GridSpec(frame.x0 - west * res, top - height * res, res, width, height)
+    # A grid moved onto the window's cells has anchors of its own anyway.
+    anchors = {} if shifted else {"origin": (whole.x0, whole.y1),
+                                  "shift": (north // cells, west // cells)}
+    return MapFrame(grid, row0 + north, col0 + west, **anchors)
 
 
 def whole_map(model: GPModel, resolution: float) -> GridSpec:
@@ -136,22 +162,7 @@ def whole_map(model: GPModel, resolution: float) -> GridSpec:
     return GridSpec(base.x0, base.y1 - height * resolution, resolution, width, height)
 
 
-def frame_lattice(whole: GridSpec, frame: GridSpec, model: ModelConfig) -> AnchorLattice:
-    """The anchor lattice of ``frame`` (:func:`lattice_frame` of ``whole``): where
-    ``frame`` grew from ``whole`` by whole blocks, its anchors keep ``whole``'s centres
-    bit for bit."""
-    lattice = AnchorLattice.of_model(frame, model)
-    res, cells = frame.resolution, lattice.cells
-    west, north = (whole.x0 - frame.x0) / res, (frame.y1 - whole.y1) / res
-    blocks = round(west / cells), round(north / cells)
-    if (west, north) == (0, 0) or abs(west - blocks[0] * cells) > 1e-6 \
-            or abs(north - blocks[1] * cells) > 1e-6:
-        return lattice
-    return replace(lattice, origin=(whole.x0, whole.y1), shift=(blocks[1], blocks[0]))
-
-
-def map_frame(model: GPModel, spec: GridSpec, whole: GridSpec | None = None
-              ) -> tuple[GridSpec, int, int]:
+def map_frame(model: GPModel, spec: GridSpec, whole: GridSpec | None = None) -> MapFrame:
     """:func:`lattice_frame` of a map of ``model`` over ``spec``, within ``whole``
     (default: :func:`whole_map` at ``spec``'s resolution)."""
     if whole is None:
@@ -163,13 +174,13 @@ def map_frame(model: GPModel, spec: GridSpec, whole: GridSpec | None = None
 def block_count(model: GPModel, spec: GridSpec, whole: GridSpec | None = None) -> int:
     """The blocks of a map of ``model`` over ``spec`` (:func:`make_map`'s ``progress``
     counts them): the anchors of its lattice whose block's north-west cell is in it."""
-    _, row0, col0 = map_frame(model, spec, whole)
+    frame = map_frame(model, spec, whole)
     cells = block_cells(model.config.model.block_size_m, spec.resolution)
 
     def on_axis(first: int, length: int) -> int:
         return len(range(-(-first // cells) * cells, first + length, cells))
 
-    return on_axis(row0, spec.height) * on_axis(col0, spec.width)
+    return on_axis(frame.row0, spec.height) * on_axis(frame.col0, spec.width)
 
 
 def last_scan_stamp(model: GPModel) -> float | None:
@@ -242,10 +253,8 @@ def make_map(
     config = model.config
     occupied, free = config.classify.occupied, config.classify.free
     check_map_server_size(spec, config.map.max_pgm_pixels)  # before any work
-    if whole is None:
-        whole = whole_map(model, spec.resolution)
-    frame, frame_row, frame_col = map_frame(model, spec, whole)
-    lattice = frame_lattice(whole, frame, config.model)
+    frame = map_frame(model, spec, whole)
+    lattice = frame.lattice(config.model)
     cells = lattice.cells
     support = model_support(model)
     # Tiles of whole blocks: each tile's anchors are laid out from whole block rows. (The
@@ -259,7 +268,8 @@ def make_map(
 
     # One set of workers for every tile, started before the first tile is laid out: they
     # load the compiled kernels meanwhile.
-    anchors = len(lattice.anchors_over(Block(frame_row, frame_col, spec.height, spec.width)))
+    # At most the anchors whose footprints meet the map (a count, not a list of them).
+    anchors = (math.ceil(spec.height / cells) + 2) * (math.ceil(spec.width / cells) + 2)
     tick = time.perf_counter()
     beside: Future | None = None
     written: Future | None = None  # the tile being written while the next one is computed
@@ -280,7 +290,7 @@ def make_map(
             stages["predict"] += time.perf_counter() - tick
             for row0, col0, window in windows:
                 tick = time.perf_counter()
-                layers = predict_tile(model, lattice, frame_row + row0, frame_col + col0,
+                layers = predict_tile(model, lattice, frame.row0 + row0, frame.col0 + col0,
                                       window, support,
                                       progress=progress, executor=executor,
                                       while_running=side)
@@ -320,7 +330,7 @@ def make_map(
         if beside is not None:
             beside.result()
         stages["finish"] = time.perf_counter() - tick
-    return MapSummary(spec=spec, frame=frame, tiles=len(windows), blocks=n_blocks,
+    return MapSummary(spec=spec, frame=frame.grid, tiles=len(windows), blocks=n_blocks,
                       seconds=time.perf_counter() - started, class_counts=counts,
                       stage_seconds=stages, ros_outputs=folder.ros_outputs)
 

@@ -775,7 +775,8 @@ def test_lattice_frame_against_brute_force():
         x0 = whole.x0 + (col0 + shift[0]) * 0.1
         top = whole.y1 - (row0 + shift[1]) * 0.1
         spec = GridSpec(x0, top - height * 0.1, 0.1, int(width), int(height))
-        frame, r, c = lattice_frame(whole, spec, cells)
+        placed = lattice_frame(whole, spec, cells)
+        frame, r, c = placed.grid, placed.row0, placed.col0
         # The window is frame's cells [r, r + height) x [c, c + width), centre for centre.
         rows, cols = np.arange(spec.height), np.arange(spec.width)
         np.testing.assert_allclose(frame.cell_centres_at(rows + r, cols + c)[0],
@@ -804,7 +805,8 @@ def test_block_count_is_the_anchors_whose_block_corner_is_in_the_map(model_path)
     cells = block_cells(model.config.model.block_size_m, 0.1)
     for bounds in [whole.bounds, (-1.03, -0.7, 1.5, 1.1), (whole.x0 - 2, -1, 0.3, whole.y1 + 2)]:
         spec = GridSpec.from_bounds(*bounds, 0.1)
-        frame, r, c = map_frame(model, spec)
+        placed = map_frame(model, spec)
+        frame, r, c = placed.grid, placed.row0, placed.col0
         brute = sum(r <= row < r + spec.height and c <= col < c + spec.width
                     for row in range(0, frame.height, cells)
                     for col in range(0, frame.width, cells))
