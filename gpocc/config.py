@@ -457,14 +457,15 @@ class MapConfig:
     nodata.
     ``max_cells``: the largest raster (map, grid, truth) a command may make; larger
     requests are refused before allocating (see :mod:`gpocc.limits`).
-    ``anchor_origin_m``: [x, y] metres, a north-west corner of the GP map's anchor blocks
-    (the local problems sit half a spacing east and south of it, then every spacing:
-    ``model.block_size_m`` rounded down to whole cells). Maps of several models with the
-    same value share their anchors at resolutions that divide ``model.block_size_m``, so
-    they differ only by the models; the whole map then starts on that lattice. Null
-    (default): the north-west corner of the model's whole map (the samples' extent plus
-    ``margin_m``, at ``resolution_m``). ``gpocc update`` keeps the model's unless its
-    config states one.
+    ``anchor_origin_m``: [x, y] metres of the map frame (not of ``georef``'s CRS), a
+    north-west corner of the GP map's anchor blocks (the local problems sit half a
+    spacing east and south of it, then every spacing: ``model.block_size_m`` rounded down
+    to whole cells). Maps of several models with the same value share their anchors at
+    resolutions that divide ``model.block_size_m``, so they differ only by the models;
+    the whole map then starts a whole number of blocks from it. Null (default): the
+    north-west corner of the model's whole map (the samples' extent plus ``margin_m``, at
+    ``resolution_m``). ``gpocc update`` keeps the model's unless its config states the
+    key (``anchor_origin_m: null`` there unpins the update).
     """
 
     resolution_m: float = 0.1

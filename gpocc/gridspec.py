@@ -9,6 +9,11 @@ import numpy as np
 
 from gpocc.errors import GpoccError
 
+#: A box edge within this share of a cell of a cell edge is on that edge: bounds printed
+#: or computed with round-off give the grid of the exact ones (the cell count here, and
+#: the window's place on a map's anchor lattice, :func:`gpocc.mapping.mapper.lattice_frame`).
+CELL_TOLERANCE = 1e-6
+
 
 @dataclass(frozen=True)
 class GridSpec:
@@ -56,8 +61,8 @@ class GridSpec:
                 f"bounds {x_min} {y_min} {x_max} {y_max} at {resolution} m give more cells "
                 f"than can be counted; use a coarser resolution or smaller bounds"
             )
-        width = max(1, int(math.ceil(across[0] - 1e-9)))
-        height = max(1, int(math.ceil(across[1] - 1e-9)))
+        width = max(1, int(math.ceil(across[0] - CELL_TOLERANCE)))
+        height = max(1, int(math.ceil(across[1] - CELL_TOLERANCE)))
         return cls(float(x_min), float(y_min), float(resolution), width, height)
 
     @property

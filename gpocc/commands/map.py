@@ -97,8 +97,8 @@ def check_map_options(resolution: float, workers: int | None) -> None:
 
 def map_spec(model: GPModel, resolution: float, bounds: tuple[float, ...] | None,
              what: str, configurable: bool = False) -> GridSpec:
-    """The raster of a map of ``model``: ``bounds`` or the data's extent plus the margin,
-    checked by :func:`check_map_size`."""
+    """The raster of a map of ``model``: ``bounds`` or the model's whole map
+    (:func:`gpocc.mapping.mapper.whole_map`), checked by :func:`check_map_size`."""
     debug(f"model: {len(model.samples)} samples from sensors "
           f"{', '.join(model.samples.sensor_names) or '(unnamed)'}; kernel "
           f"{kernel_parameters(model.kernel)}, noise variance {model.noise_variance:.6g}")

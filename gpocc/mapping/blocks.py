@@ -16,7 +16,9 @@ clamped, so edge cells keep full weight.
 
 A lattice covers the grid it is made on (its ``spec``). A map window is computed on the
 lattice of the model's whole map, as part of that grid
-(:func:`gpocc.mapping.mapper.lattice_frame`), so it holds the whole map's values.
+(:func:`gpocc.mapping.mapper.lattice_frame`): on the whole map's cells and inside it, it
+holds the whole map's values; off them, or reaching beyond the whole map, it differs
+where that function says.
 """
 
 from __future__ import annotations

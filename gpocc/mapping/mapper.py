@@ -24,7 +24,7 @@ from gpocc.config import ModelConfig
 from gpocc.gp.classify import classify
 from gpocc.gp.growth import input_listing
 from gpocc.gp.model import GPModel, kernel_parameters
-from gpocc.gridspec import GridSpec
+from gpocc.gridspec import CELL_TOLERANCE, GridSpec
 from gpocc.io.mapserver import check_map_server_size
 from gpocc.io.rasters import prepare_writer
 from gpocc.mapping.blend import predict_tile
@@ -105,7 +105,7 @@ def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> MapFrame:
     # Halves round up, whatever the floating-point noise: windows on the same cells get
     # the same grid.
     col0, row0 = math.floor(cols + 0.5 + 1e-9), math.floor(rows + 0.5 + 1e-9)
-    shifted = abs(cols - col0) > 1e-6 or abs(rows - row0) > 1e-6
+    shifted = abs(cols - col0) > CELL_TOLERANCE or abs(rows - row0) > CELL_TOLERANCE
     frame = whole
     if shifted:
         frame = GridSpec(whole.x0 + (cols - col0) * res, whole.y0 - (rows - row0) * res, res,
@@ -138,27 +138,29 @@ def lattice_frame(whole: GridSpec, spec: GridSpec, cells: int) -> MapFrame:
 def whole_map(model: GPModel, resolution: float) -> GridSpec:
     """The grid of the model's whole map, whose anchor lattice every map of the model
     uses, in cells of ``resolution`` metres: the samples' extent plus ``map.margin_m`` at
-    the config's ``map.resolution_m`` (grown to the lattice of ``map.anchor_origin_m``
-    when set), and at another resolution a grid from the same north-west corner that
-    covers it. So maps at resolutions that divide the anchor spacing
-    (``model.block_size_m``) have the same anchors, and their cells nest."""
+    the config's ``map.resolution_m`` (grown north and west to a whole number of
+    ``model.block_size_m`` from ``map.anchor_origin_m`` when set), and at another
+    resolution a grid from the same north-west corner that covers it. So maps at
+    resolutions that divide ``model.block_size_m`` have the same anchors, and their cells
+    nest."""
     config = model.config.map
     base = default_spec(model, config.resolution_m, config.margin_m)
     if config.anchor_origin_m is not None:
-        # The lattice's corner nearest north-west of the whole map that covers it.
-        spacing = block_cells(model.config.model.block_size_m, base.resolution) \
-            * base.resolution
+        # The lattice's corner nearest north-west of the whole map that covers it, whole
+        # blocks from the pin: every model pinned there then has its anchors on one lattice
+        # at each resolution that divides the block, whatever its map.resolution_m.
+        block = model.config.model.block_size_m
         ox, oy = config.anchor_origin_m
-        x0 = ox + math.floor((base.x0 - ox) / spacing + 1e-9) * spacing
-        top = oy - math.floor((oy - base.y1) / spacing + 1e-9) * spacing
+        x0 = ox + math.floor((base.x0 - ox) / block + 1e-9) * block
+        top = oy - math.floor((oy - base.y1) / block + 1e-9) * block
         res = base.resolution
-        width = max(1, math.ceil((base.x1 - x0) / res - 1e-9))
-        height = max(1, math.ceil((top - base.y0) / res - 1e-9))
+        width = max(1, math.ceil((base.x1 - x0) / res - CELL_TOLERANCE))
+        height = max(1, math.ceil((top - base.y0) / res - CELL_TOLERANCE))
         base = GridSpec(x0, top - height * res, res, width, height)
     if resolution == base.resolution:
         return base
-    width = max(1, math.ceil(base.width * base.resolution / resolution - 1e-9))
-    height = max(1, math.ceil(base.height * base.resolution / resolution - 1e-9))
+    width = max(1, math.ceil(base.width * base.resolution / resolution - CELL_TOLERANCE))
+    height = max(1, math.ceil(base.height * base.resolution / resolution - CELL_TOLERANCE))
     return GridSpec(base.x0, base.y1 - height * resolution, resolution, width, height)
 
 

@@ -853,10 +853,33 @@ def test_progress_counts_block_count_on_windows_off_the_blocks(model_path, tmp_p
         assert sum(done) == block_count(model, spec) > 0
 
 
-def test_models_with_one_anchor_origin_share_their_anchors(tmp_path):
+def test_bounds_within_round_off_of_the_cells_map_the_same_cells(model_path):
+    # Bounds a nanometre off the whole map's cells (printed or computed with round-off)
+    # give the exact bounds' grid and its place on the lattice: no extra column that
+    # would cross the whole map's edge and grow the lattice.
+    from gpocc.mapping.mapper import map_frame, whole_map
+
+    model = load_model(model_path)
+    whole = whole_map(model, 0.1)
+    exact = (whole.x0 + 2.0, whole.y0 + 0.5, whole.x1, whole.y1 - 0.3)
+    exact_spec = GridSpec.from_bounds(*exact, 0.1)
+    exact_frame = map_frame(model, exact_spec)
+    assert exact_frame.grid == whole
+    for off in (-1e-9, 1e-9, -1e-8, 1e-8):  # metres: the box widened or narrowed
+        spec = GridSpec.from_bounds(exact[0] - off, exact[1] - off, exact[2] + off,
+                                    exact[3] + off, 0.1)
+        assert (spec.width, spec.height) == (exact_spec.width, exact_spec.height)
+        frame = map_frame(model, spec)
+        assert (frame.grid, frame.row0, frame.col0) == (whole, exact_frame.row0,
+                                                        exact_frame.col0)
+
+
+@pytest.mark.parametrize("resolution_m", [0.1, 0.15])
+def test_models_with_one_anchor_origin_share_their_anchors(tmp_path, resolution_m):
     # Two models of different extents (a room and its west half), both pinned to one
-    # anchor origin: their maps' lattices coincide (origins a whole number of spacings
-    # apart), and the whole map starts on that lattice.
+    # anchor origin: their maps' lattices coincide (origins a whole number of blocks
+    # apart), and the whole map starts on that lattice; also when map.resolution_m (0.15)
+    # does not divide the block and the maps are made at one that does.
     from gpocc.config import MapConfig
 
     origin = (-0.37, 1.93)
@@ -866,7 +889,7 @@ def test_models_with_one_anchor_origin_share_their_anchors(tmp_path):
     for k, s in enumerate((samples, half)):
         config = Config(model=ModelConfig(neighbours=60, block_size_m=0.5, training=TrainingConfig(
             patches=2, patch_size=60, anneal_maxfun=5, lbfgs_maxiter=5)),
-            map=MapConfig(anchor_origin_m=origin))
+            map=MapConfig(resolution_m=resolution_m, anchor_origin_m=origin))
         path = tmp_path / f"m{k}.npz"
         save_model(build_model(s, config), path)
         folder = run_map(path, tmp_path / f"map{k}", "--resolution", "0.1")
