@@ -26,7 +26,8 @@ from gpocc.progress import log
 
 def evaluate(
     maps: list[Path] = typer.Argument(
-        ..., help="Map folders (with probability.tif), probability GeoTIFFs or map.mcap files."
+        ..., help="Map folders (with probability.tif or, tiled, probability.vrt), probability "
+        "GeoTIFFs or map.mcap files."
     ),
     ground_truth: Path = typer.Option(
         ..., "--ground-truth", help="GeoTIFF (1/0/no-data), map_server YAML, or x,y,label file."

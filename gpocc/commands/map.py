@@ -13,9 +13,9 @@ import typer
 from gpocc.commands.options import (
     Bounds,
     Force,
+    MapScheduler,
     OutFolder,
     Resolution,
-    Scheduler,
     Workers,
     check_at_least,
     check_resolution,
@@ -46,7 +46,7 @@ def map_command(
     out: OutFolder,
     bounds: Bounds = None,
     workers: Workers = None,
-    scheduler: Scheduler = None,
+    scheduler: MapScheduler = None,
     force: Force = False,
 ) -> None:
     """Sample a trained model at any resolution and write the map folder."""

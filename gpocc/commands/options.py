@@ -49,6 +49,13 @@ Scheduler = Annotated[str | None, typer.Option(
     "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute "
     "training's likelihood patches and classifier predictions and the map's local problems "
     "(output identical to a local run).")]
+TrainScheduler = Annotated[str | None, typer.Option(
+    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute "
+    "training's likelihood patches and classifier predictions (the model file is the "
+    "same as a local run's).")]
+MapScheduler = Annotated[str | None, typer.Option(
+    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute the "
+    "map's local problems (output identical to a local run).")]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
 

@@ -15,9 +15,9 @@ from gpocc.commands.options import (
     Force,
     InputNoise,
     Inputs,
-    Scheduler,
     Seed,
     Switch,
+    TrainScheduler,
     scheduler_errors,
 )
 from gpocc.config import Config, load_config
@@ -49,7 +49,7 @@ def train(
     config: ConfigFile = None,
     input_noise: InputNoise = None,
     seed: Seed = None,
-    scheduler: Scheduler = None,
+    scheduler: TrainScheduler = None,
     force: Force = False,
 ) -> None:
     """Learn a GP occupancy model (hyperparameters and classifier) from robot logs."""
