@@ -249,8 +249,16 @@ class TrainingConfig:
     the buildings at the edges are learned for all (docs/benchmarks.md, "City").
     ``patch_centres``: ``hits`` (default) draws the centres from the occupied samples, so
     every patch holds a boundary; ``samples`` from all samples, where a draw of mostly open
-    space can learn a kernel far too smooth for the walls. The classifier is fitted
-    on the same patches. Global
+    space can learn a kernel far too smooth for the walls. ``patch_offset_m``: each centre
+    is then moved by the sum of two uniform draws in [-patch_offset_m / 2, patch_offset_m
+    / 2] per axis (a tent over [-patch_offset_m, patch_offset_m], the weights a cell
+    takes from the anchors around it with ``model.blend_overlap: 1`` when it is
+    ``model.block_size_m``), and the patch is the samples nearest the moved centre: a
+    map's local problems are centred on a lattice that pays no heed to the walls, and the
+    neural-network kernel is not translation invariant (a wall far from a problem's centre
+    needs a larger bias variance to stay sharp), so patches centred on hits alone learn a
+    kernel for walls through the centre. 0 (default): the centres as drawn. The
+    classifier is fitted on the same kind of patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
     (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations;
     docs/benchmarks.md, 'Annealing budget of hyperparameter learning', re-measures it on
@@ -335,6 +343,7 @@ class TrainingConfig:
     patches_per_sensor: int = 2
     patch_size: int = 128
     patch_centres: str = "hits"
+    patch_offset_m: float = 0.0
     anneal_maxfun: int = 20
     lbfgs_maxiter: int = 40
     local_search: str = "lbfgs"
@@ -601,7 +610,7 @@ _NON_NEGATIVE_KEYS = {
     "free_clearance_m", "sample_cell_m", "stamp_tolerance_s", "calibration_near_wall",
     "min_noise_variance", "min_label_share", "max_beam_distance_m", "max_covariance_age_s",
     "range_min_m", "range_max_m", "beta", "kappa", "log_bounds_width", "hit_gap_sigmas",
-    "patches_per_sensor",
+    "patches_per_sensor", "patch_offset_m",
 }
 _POSITIVE_KEYS = {
     "free_spacing_m", "resolution_m", "block_size_m", "signal_variance", "noise_variance",

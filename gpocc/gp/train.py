@@ -112,8 +112,10 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int,
 
     ``config.patch_centres``: ``hits`` spreads the centres over the occupied samples, so
     that every patch holds a boundary (over all samples when there are fewer hits than
-    patches); ``samples`` spreads them over all samples. The Platt classifier is fitted
-    on the same patches (gpocc.gp.model).
+    patches); ``samples`` spreads them over all samples. ``config.patch_offset_m`` then
+    moves each centre by a tent-distributed offset per axis (see
+    :class:`gpocc.config.TrainingConfig`). The Platt classifier is fitted on patches made
+    the same way (gpocc.gp.model).
     """
     if len(samples) < 10:
         raise GpoccError(
@@ -128,6 +130,12 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int,
     if config.patch_centres == "hits" and hits.sum() >= count:
         centre_pool = samples.means[hits]
     centres = spread_patch_centres(centre_pool, count, rng)
+    if config.patch_offset_m > 0:
+        # Where a map cell lies from the anchors that predict it: a tent, the sum of two
+        # uniform draws.
+        half = config.patch_offset_m / 2
+        centres = (centres + rng.uniform(-half, half, centres.shape)
+                   + rng.uniform(-half, half, centres.shape))
     return [index.problem(c, config.patch_size) for c in centres]
 
 

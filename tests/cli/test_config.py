@@ -107,6 +107,8 @@ def test_changed_settings_keep_what_differs_and_drop_what_does_not():
          "    classifier_temperature: samples\n",
          "set classifier_temperature to 'beams' or 'none'"),
         ("samples:\n  free_clearance_m: -0.1\n", "free_clearance_m"),
+        ("model:\n  training:\n    patch_offset_m: -1\n",
+         "'model.training.patch_offset_m' must not be negative"),
         ("model:\n  training:\n    calibration_every: 1\n",
          "'model.training.calibration_every' must be at least 2"),
         ("model:\n  training:\n    calibration_blocks: 0\n",

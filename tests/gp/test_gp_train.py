@@ -127,6 +127,34 @@ def test_patch_centres_are_hits_or_any_samples(centres):
                                                 patch_centres=centres), seed=0)) == 12
 
 
+def test_patch_offsets_follow_the_blend_tent_and_patches_are_nearest_the_moved_centre():
+    """``patch_offset_m``: each hit centre moves by a tent-distributed offset per axis
+    (Kolmogorov-Smirnov against the triangular law on [-o, o]), the centres before the
+    move are those drawn without it (same seed), and a patch is the ``patch_size``
+    samples nearest its moved centre (brute force)."""
+    from scipy.stats import kstest, triang
+
+    rng = np.random.default_rng(5)
+    n = 6000
+    means = rng.uniform(-40, 40, (n, 2))
+    labels = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+    samples = samples_from(means, labels)
+    config = TrainingConfig(patches=1500, patch_size=12)
+    still = make_patches(samples, config, seed=2)
+    moved = make_patches(samples, dataclasses.replace(config, patch_offset_m=0.8), seed=2)
+    offsets = np.array([m.centre - s.centre for m, s in zip(moved, still, strict=True)])
+    assert np.all(np.abs(offsets) <= 0.8)
+    tent = triang(c=0.5, loc=-0.8, scale=1.6)
+    for axis in range(2):
+        assert kstest(offsets[:, axis], tent.cdf).pvalue > 1e-3
+    # A uniform law on the same interval is told apart: the test has power.
+    assert kstest(rng.uniform(-0.8, 0.8, len(offsets)), tent.cdf).pvalue < 1e-3
+    for patch in moved[:50]:
+        nearest = np.argsort(np.linalg.norm(means - patch.centre, axis=1))[:12]
+        assert set(patch.index.tolist()) == set(nearest.tolist())
+        np.testing.assert_allclose(patch.samples.means + patch.centre, means[patch.index])
+
+
 @pytest.mark.parametrize("per_sensor", [0, 1, 2])
 def test_a_site_of_many_sensors_gets_a_patch_on_every_building(per_sensor):
     """20 buildings 60 m apart, each its own sensor: with ``patches_per_sensor: k`` there
