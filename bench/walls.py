@@ -1,8 +1,10 @@
 """What blurs the walls: one knob at a time, on held-out real logs and simulated worlds.
 
 Run ``.venv/bin/python bench/walls.py run KNOB [KNOB ...] [--logs ...] [--worlds ...]
-[--seeds 0 1]`` then ``.venv/bin/python bench/walls.py report`` (writes docs/walls.md
-from every result gathered so far in ``out/walls/results.json``).
+[--seeds 0 1]`` then ``.venv/bin/python bench/walls.py report`` (writes out/walls/walls.md
+from every result gathered so far in ``out/walls/results.json``): a research tool whose
+report stays in the work folder; the knobs users set are measured on the results page
+(``make experiment``'s variants).
 
 Per real log and split seed (``gpocc split --every 10 --seed S``; the training scans'
 poses perturbed by stretch as in bench/experiment.py, seed S), the GP with input noise
@@ -35,7 +37,7 @@ ROOT = ex.ROOT
 WORK = ROOT / "out" / "walls"
 RESULTS = WORK / "results.json"
 PROFILES = WORK / "profiles.json"
-DOC = ROOT / "docs" / "walls.md"
+DOC = WORK / "walls.md"
 
 #: knob -> config overrides (dotted keys) of the GP with input noise. ``baseline`` pins
 #: the defaults the knobs were measured against (before hit_gap_m became 0.15), so that
