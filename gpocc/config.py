@@ -147,8 +147,8 @@ class SamplesConfig:
     short of the hit by ``hit_gap_m`` or ``hit_gap_sigmas`` range standard deviations,
     whichever is larger (the true surface may be that much nearer than the reading).
     The band this leaves empty before each hit is what blurs walls (the GP carries the
-    hits' +1 into it); ``make experiment``'s variant ``hit-gap-0.25`` measures a wider gap;
-    shorter gaps raise the learned label noise and smooth the whole map (docs/walls.md).
+    hits' +1 into it); ``make experiment``'s variants ``hit-gap-0.25`` and ``hit-gap-0.1``
+    measure a wider and a narrower gap.
     ``thin_cell_m`` keeps at most one sample of each label
     per square cell of that side (the most certain one), which bounds the training set by
     the mapped area instead of the log length; 0 disables thinning.
