@@ -45,17 +45,19 @@ ConfigResolution = Annotated[float | None, typer.Option(
 Workers = Annotated[int | None, typer.Option(
     "--workers", help="Local processes for the map's local problems (default and most: the "
     "cores this process may use).")]
-Scheduler = Annotated[str | None, typer.Option(
-    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute "
-    "training's likelihood patches and classifier predictions and the map's local problems "
-    "(output identical to a local run).")]
-TrainScheduler = Annotated[str | None, typer.Option(
-    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute "
-    "training's likelihood patches and classifier predictions (the model file is the "
-    "same as a local run's).")]
-MapScheduler = Annotated[str | None, typer.Option(
-    "--scheduler", help="Dask scheduler address tcp://HOST:PORT: its workers compute the "
-    "map's local problems (output identical to a local run).")]
+
+
+def _scheduler_option(work: str) -> typer.models.OptionInfo:
+    """``--scheduler``, whose workers compute ``work``."""
+    return typer.Option("--scheduler", help="Dask scheduler address tcp://HOST:PORT: its "
+                        f"workers compute {work} (output identical to a local run).")
+
+
+_TRAINING_WORK = "training's likelihood patches and classifier predictions"
+_MAP_WORK = "the map's local problems"
+Scheduler = Annotated[str | None, _scheduler_option(f"{_TRAINING_WORK} and {_MAP_WORK}")]
+TrainScheduler = Annotated[str | None, _scheduler_option(_TRAINING_WORK)]
+MapScheduler = Annotated[str | None, _scheduler_option(_MAP_WORK)]
 Inputs = Annotated[list[Path], typer.Argument(
     metavar="INPUT...", help="Bags, bag folders, .mcap files or CARMEN logs.")]
 
