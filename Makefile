@@ -71,7 +71,7 @@ bench: $(BENCH_STAMP) bytecode
 # (the variants of offset-holdout, HOLDOUT_BASED, need its run beside them).
 EXPERIMENT_COMPARE ?= hard-targets before-count learned-g no-label-weights wide-offset two-draw \
 	thin-0.1-n192-offset-beams anisotropic double-precision half-overlap blocks-0.5-n64 \
-	patch-offset hit-gap-0.1
+	no-patch-offset hit-gap-0.1
 # The defaults learned with other seeds (bench/experiment.py's SPREAD_SEEDS): the page's
 # run-to-run spread. A variant's or seed's run maps with the GP with input noise alone (all
 # the page compares); the defaults' run, last, maps with every method.

@@ -210,9 +210,10 @@ VARIANTS: dict[str, dict[str, object]] = {
     # neighbours each (four times the local problems, each a quarter the size).
     "half-overlap": {"model.blend_overlap": 0.5},
     "blocks-0.5-n64": {"model.block_size_m": 0.5, "model.neighbours": 64},
-    # Learning's patches centred where a map's anchors lie from the walls: each hit
-    # centre moved by the blend's tent over one block.
-    "patch-offset": {"model.training.patch_offset_m": 1.0},
+    # Learning's patches centred on the hits as drawn (the default before): the default
+    # moves each hit centre by the blend's tent over one block, where a map's anchors lie
+    # from the walls.
+    "no-patch-offset": {"model.training.patch_offset_m": 0.0},
     "anisotropic": {"model.training.isotropic": False},
     # The map's local systems (and the classifier's held-out predictions) in double
     # precision throughout: the single-precision default's accuracy cost.

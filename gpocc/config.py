@@ -257,7 +257,8 @@ class TrainingConfig:
     map's local problems are centred on a lattice that pays no heed to the walls, and the
     neural-network kernel is not translation invariant (a wall far from a problem's centre
     needs a larger bias variance to stay sharp), so patches centred on hits alone learn a
-    kernel for walls through the centre. 0 (default): the centres as drawn. The
+    kernel for walls through the centre. 1 (default: the default block size); 0: the
+    centres as drawn (variant ``no-patch-offset`` of ``make experiment``). The
     classifier is fitted on the same kind of patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
     (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations;
@@ -343,7 +344,7 @@ class TrainingConfig:
     patches_per_sensor: int = 2
     patch_size: int = 128
     patch_centres: str = "hits"
-    patch_offset_m: float = 0.0
+    patch_offset_m: float = 1.0
     anneal_maxfun: int = 20
     lbfgs_maxiter: int = 40
     local_search: str = "lbfgs"

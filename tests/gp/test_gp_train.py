@@ -104,14 +104,16 @@ def test_workers_holding_the_patches_give_the_serial_likelihood():
 @pytest.mark.parametrize("centres", ["hits", "samples"])
 def test_patch_centres_are_hits_or_any_samples(centres):
     """``hits``: every patch is centred on an occupied sample, so it holds a boundary;
-    ``samples``: centres come from all samples (here mostly free ones)."""
+    ``samples``: centres come from all samples (here mostly free ones). The centres as
+    drawn: no ``patch_offset_m``."""
     rng = np.random.default_rng(3)
     n = 2000
     means = rng.uniform(-10, 10, (n, 2))
     labels = np.where(rng.random(n) < 0.05, 1.0, -1.0)
     samples = samples_from(means, labels)
     patches = make_patches(samples, TrainingConfig(patches=12, patch_size=30,
-                                                   patch_centres=centres), seed=0)
+                                                   patch_centres=centres, patch_offset_m=0.0),
+                           seed=0)
     assert len(patches) == 12
     on_hit = [bool(np.any(np.all(means[labels > 0] == p.centre, axis=1))) for p in patches]
     if centres == "hits":
@@ -139,7 +141,7 @@ def test_patch_offsets_follow_the_blend_tent_and_patches_are_nearest_the_moved_c
     means = rng.uniform(-40, 40, (n, 2))
     labels = np.where(rng.random(n) < 0.5, 1.0, -1.0)
     samples = samples_from(means, labels)
-    config = TrainingConfig(patches=1500, patch_size=12)
+    config = TrainingConfig(patches=1500, patch_size=12, patch_offset_m=0.0)
     still = make_patches(samples, config, seed=2)
     moved = make_patches(samples, dataclasses.replace(config, patch_offset_m=0.8), seed=2)
     offsets = np.array([m.centre - s.centre for m, s in zip(moved, still, strict=True)])
