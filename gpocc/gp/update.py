@@ -44,8 +44,9 @@ from gpocc.samples.coverage import beam_coverage, sample_coverage, union_coverag
 from gpocc.samples.heldout import calibration_points
 from gpocc.samples.sampleset import SampleSet
 
-#: Steps of a refinement, at most (``gpocc update --refine-iterations``): Intel and
-#: Freiburg cuts took 7-14 to converge.
+#: Steps of a refinement, at most (``gpocc update --refine-iterations``): the real logs'
+#: cuts converge in fewer (docs/benchmarks.md, "Updating a model against training on all
+#: logs", counts their evaluations).
 REFINE_ITERATIONS = 20
 
 #: Config sections an update takes from the model: its samples were built and its

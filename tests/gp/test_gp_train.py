@@ -246,7 +246,9 @@ def test_a_warm_start_reaches_the_optimum_of_the_full_search(isotropic):
     refined = learn_hyperparameters(start, 0.5, samples, 1, config, seed=0, workers=1,
                                     warm_start=warm)
     assert refined.warm_started
-    np.testing.assert_allclose(refined.kernel.theta, full.kernel.theta, atol=2e-2)
+    # In value, to a few hundredths: along the signal variance's flat direction a
+    # hundredth of a nat leaves it that much room (the start is 1.4 away in log).
+    np.testing.assert_allclose(refined.kernel.theta, full.kernel.theta, atol=5e-2)
     assert refined.noise_variance == pytest.approx(full.noise_variance, rel=2e-2)
     assert refined.log_marginal_likelihood == pytest.approx(full.log_marginal_likelihood,
                                                             abs=0.01)
@@ -267,7 +269,9 @@ def test_fixed_values_stay_and_the_others_reach_a_stationary_point(fixed):
     samples = _se_draw(11, (0.7, 0.9))
     config = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=10, lbfgs_maxiter=200,
                             min_noise_variance=0.01, fixed=fixed, isotropic=False)
-    start = SquaredExponentialKernel(1.0, (1.0, 1.0))
+    # x's length scale starts well off the optimum (the truth's is 0.7): with y's held,
+    # its optimum on these patches lies near 1.0.
+    start = SquaredExponentialKernel(1.0, (1.6, 1.0))
     result = learn_hyperparameters(start, 0.2, samples, 1, config, seed=0, workers=1)
     names = [*start.parameter_names, "noise_variance"]
     initial = np.append(start.theta, math.log(0.2))

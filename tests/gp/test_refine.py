@@ -107,6 +107,29 @@ def test_scoring_reaches_an_analytic_optimum_and_stops_on_a_bound():
     assert result.value == pytest.approx(evaluate(expected)[0], abs=0.01)
 
 
+@pytest.mark.parametrize("overstated", [1.0, 2.0, 3.0, 5.0])
+@pytest.mark.parametrize("start", [1.0, 2.0, 3.0, 4.0])
+def test_scoring_stops_within_its_tolerance_of_the_optimum_when_the_fisher_overstates(
+        overstated, start):
+    """A quadratic whose Fisher information is ``overstated`` times its curvature (as
+    along a ridge of the likelihood, where the Fisher information is not the Hessian):
+    each step falls short, the decreases shrink at a constant rate, and the search must
+    still stop within :data:`TOLERANCE` nats of the analytic minimum, not where the next
+    step alone is predicted to gain less than that."""
+    from gpocc.gp.refine import TOLERANCE
+
+    curvature, optimum, floor = np.array([50.0, 2.0]), np.array([0.3, -0.4]), 7.0
+
+    def evaluate(x: np.ndarray):
+        d = x - optimum
+        return (0.5 * float(d @ (curvature * d)) + floor, curvature * d,
+                overstated * np.diag(curvature))
+    result = fisher_scoring(evaluate, np.full(2, start), np.full(2, -10.0),
+                            np.full(2, 10.0), max_evaluations=200)
+    assert result.converged
+    assert 0.0 <= result.value - floor < TOLERANCE
+
+
 def test_a_step_into_invalid_values_is_rejected_and_the_search_goes_on():
     evaluate, optimum = _variance_fit(np.array([0.5, 3.0]) * 40, 40)
     far = []
