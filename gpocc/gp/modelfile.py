@@ -220,7 +220,8 @@ _OLDER_DEFAULTS = (("samples.free_clearance_m", 0.0), ("model.training.patch_cen
                    ("model.training.classifier_offset_range", "wide"),
                    ("model.training.classifier_targets", "hard"),
                    ("model.training.isotropic", False),
-                   ("model.covariance_precision", "double"))
+                   ("model.covariance_precision", "double"),
+                   ("model.training.patch_offset_m", 0.0))
 
 
 def _with_settings_of_older_files(config: dict) -> dict:

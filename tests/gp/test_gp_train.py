@@ -426,10 +426,11 @@ def test_one_scan_patch_cannot_be_held_out():
 def test_model_files_without_the_new_keys_load_with_the_settings_they_were_trained_with(
         tmp_path):
     """A file written before ``patch_centres``, ``free_clearance_m``, ``label_weights``,
-    ``classifier_offset_range``, ``classifier_targets``, ``isotropic`` and
-    ``covariance_precision`` existed was trained with all-sample patches, no clearance,
-    unweighted labels, the wide offset range, hard targets and one weight variance per
-    axis, and mapped in double precision; a new file keeps what it states."""
+    ``classifier_offset_range``, ``classifier_targets``, ``isotropic``,
+    ``covariance_precision`` and ``patch_offset_m`` existed was trained with all-sample
+    patches, no clearance, unweighted labels, the wide offset range, hard targets, one
+    weight variance per axis and patches centred as drawn, and mapped in double
+    precision; a new file keeps what it states."""
 
     from gpocc.config import Config
     from gpocc.gp.model import GPModel, load_model, save_model
@@ -446,10 +447,10 @@ def test_model_files_without_the_new_keys_load_with_the_settings_they_were_train
         return (config.model.training.patch_centres, config.samples.free_clearance_m,
                 config.samples.label_weights, config.model.training.classifier_offset_range,
                 config.model.training.classifier_targets, config.model.training.isotropic,
-                config.model.covariance_precision)
+                config.model.covariance_precision, config.model.training.patch_offset_m)
 
     assert settings(load_model(path).config) == ("hits", 0.05, "count", "latent", "platt",
-                                                 True, "single")
+                                                 True, "single", 1.0)
     arrays, meta = read_model_file(path)
     del meta["config"]["model"]["training"]["patch_centres"]
     del meta["config"]["samples"]["free_clearance_m"]
@@ -458,13 +459,14 @@ def test_model_files_without_the_new_keys_load_with_the_settings_they_were_train
     del meta["config"]["model"]["training"]["classifier_targets"]
     del meta["config"]["model"]["training"]["isotropic"]
     del meta["config"]["model"]["covariance_precision"]
+    del meta["config"]["model"]["training"]["patch_offset_m"]
     del arrays["noise_factors"]
     # Learned per axis from unequal initial values, which the isotropic default refuses:
     # the file still loads, as it was trained.
     meta["config"]["model"]["hyperparameters"]["weight_variance"] = [20.0, 40.0]
     write_model_file(path, arrays, meta)
     assert settings(load_model(path).config) == ("samples", 0.0, "none", "wide", "hard",
-                                                 False, "double")
+                                                 False, "double", 0.0)
 
 
 def test_isotropic_learning_ties_each_axis_pair_at_a_stationary_point_of_the_tie():
