@@ -108,7 +108,8 @@ _PUBLISHED = {"model.training.classifier_holdout": "sample",
               "samples.hit_gap_m": 0.25,
               "model.training.classifier_temperature": "none",
               "model.training.classifier_offset": "holdout",
-              "samples.label_weights": "none"}
+              "samples.label_weights": "none",
+              "model.training.patch_offset_m": 0.0}
 _LEARNED = {**_PUBLISHED, "model.training.learn_input_noise_scale": True,
             "model.training.min_noise_variance": 0.1}
 _HIT_PATCHES = {**_LEARNED, "model.training.patch_centres": "hits",
@@ -183,9 +184,11 @@ VARIANTS: dict[str, dict[str, object]] = {
     # The classifier's offset fitted on left-out samples (leave-one-out, as published)
     # instead of on held-out scans' points with its temperature, with the settings of
     # before-count (the family of variants that change one of its settings, HOLDOUT_BASED).
-    # isotropic: false too, the default when this run and its variants were made.
+    # isotropic: false and no patch offset too, the defaults when this run and its
+    # variants were made.
     "offset-holdout": {**_BEFORE_COUNT, "model.training.classifier_offset": "holdout",
-                       "model.training.isotropic": False},
+                       "model.training.isotropic": False,
+                       "model.training.patch_offset_m": 0.0},
     "accurate-poses-offset-beams": {**_ACCURATE_POSES,
                                     "model.training.classifier_offset": "beams"},
     # The same with more of the finer samples per local problem, or free samples as

@@ -40,7 +40,8 @@ def update(
         None, "--refine-iterations",
         help=f"Steps of the refinement, at most, one likelihood evaluation each (L-BFGS-B "
         "iterations for a kernel whose loops give no input-noise-scale derivative); "
-        f"it stops earlier where a step gains under 0.01 nats. Default {REFINE_ITERATIONS}; "
+        "it stops earlier where the gain still to come is estimated under 0.01 nats. "
+        f"Default {REFINE_ITERATIONS}; "
         "not with --relearn or --keep."),
     force: Force = False,
 ) -> None:

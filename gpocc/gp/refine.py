@@ -7,8 +7,7 @@ covariances); the patches give that curvature directly. The Fisher information o
 Gaussian likelihood, ``F_pq = 1/2 tr(K^-1 dK_p K^-1 dK_q)``, costs a product per
 parameter beside the gradient's, and a scoring step ``-F^-1 g`` damped as
 Levenberg-Marquardt's reaches the optimum in fewer evaluations than L-BFGS-B from the
-same start (docs/benchmarks.md, "Updating a model against training on all logs", counts
-them).
+same start (docs/benchmarks.md, "Learning's local search", counts both).
 
 Bounds: a parameter on its bound whose gradient pushes outwards is held there for the
 step (an active set), and a step is clipped into the box.
@@ -26,7 +25,8 @@ import numpy as np
 #: The patches' optimum moves by far more from one draw of patches to the next.
 TOLERANCE = 0.01
 
-#: The largest rate of linear convergence taken from two steps' decreases. Where the
+#: The largest rate of linear convergence taken from two steps' decreases, and the rate
+#: assumed before two are known. Where the
 #: Fisher information is not the likelihood's curvature (along a ridge), the steps fall
 #: short and each gains a near-constant fraction of the one before, more than the
 #: quadratic model predicts: the decrease still to come is then the geometric series of
@@ -57,8 +57,8 @@ class Refinement:
         value: the objective there.
         evaluations: objective evaluations spent here (the start's when it was not
             given).
-        converged: stopped before the budget ran out: no step promised or gained the
-            tolerance, or none was accepted.
+        converged: stopped before the budget ran out: the decrease still to come was
+            estimated under the tolerance, or no step was accepted.
     """
 
     x: np.ndarray
@@ -97,7 +97,11 @@ def fisher_scoring(
     value, grad, fisher = start
     damping = _DAMPING
     rejections = 0
-    rate, gain = 0.0, 1.0
+    # The rate is the larger of the last two steps' ratios: the first ratio mixes the
+    # directions the model got right (done in one step) with those it did not. Until two
+    # ratios are known, the slowest rate is assumed.
+    ratios = [_MAX_RATE, _MAX_RATE]
+    rate, gain = _MAX_RATE, 1.0
     last_decrease = math.inf
     while evaluations < max_evaluations:
         # Converged when the model's own step (undamped), scaled by the last step's gain
@@ -133,7 +137,9 @@ def fisher_scoring(
         gain = min(max(decrease / predicted, 1.0), _MAX_GAIN)
         x = x + step
         value, grad, fisher = trial
-        rate = min(decrease / last_decrease, _MAX_RATE)
+        if math.isfinite(last_decrease):
+            ratios = [ratios[1], min(decrease / last_decrease, _MAX_RATE)]
+            rate = max(ratios)
         last_decrease = decrease
         if decrease < tolerance and decrease * rate / (1.0 - rate) < tolerance:
             return Refinement(x, value, evaluations, True)

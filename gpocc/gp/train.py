@@ -38,7 +38,10 @@ from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
 from gpocc.gp.inputscale import LOG_SCALE_STEP, scale_input_noise
 from gpocc.gp.kernels import Kernel, axis_pairs, learned_names
 from gpocc.gp.local import LocalProblem, NeighbourIndex, PatchLikelihood
+from gpocc.gp.refine import TOLERANCE as _SCORING_TOLERANCE
+from gpocc.gp.refine import fisher_scoring
 from gpocc.parallel import default_workers, wait_for, worker_pool
+from gpocc.progress import log
 from gpocc.samples.sampleset import SampleSet
 
 #: Value of hyperparameters whose training covariance is not positive definite.
@@ -599,9 +602,14 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     final, final_value = best, best_value
     for point in starts:
         if scoring:
-            found, found_value, spent = _score_from(
+            found, found_value, spent, converged = _score_from(
                 point[free], first if from_start else None, fisher, jacobian, lift,
                 free_bounds, iterations)
+            if not converged:
+                budget = ("--refine-iterations" if from_start and refine_iterations is not None
+                          else "model.training.lbfgs_maxiter")
+                log(f"Fisher scoring stopped after {iterations} steps, its budget, with more "
+                    f"than {_SCORING_TOLERANCE} nats still to gain; {budget} raises it")
         else:
             refined = minimize(
                 objective_free, point[free], args=(kernel, patches, level), jac=True,
@@ -647,13 +655,12 @@ def _score_from(
     fisher: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray] | None],
     jacobian: np.ndarray, lift: Callable[[np.ndarray], np.ndarray],
     free_bounds: list[tuple[float, float]], max_evaluations: int,
-) -> tuple[np.ndarray, float, int]:
+) -> tuple[np.ndarray, float, int, bool]:
     """Fisher scoring from ``start`` (the free parameters; ``first`` = ``fisher`` at
     ``lift(start)``, or None: evaluated here), where ``lift`` maps free parameters to all
     and ``jacobian`` (all, free) is its derivative: all the refined parameters, their
-    value and the evaluations spent after ``first``."""
-    from gpocc.gp.refine import fisher_scoring
-
+    value, the evaluations spent after ``first`` and whether it converged before its
+    budget ran out."""
     def reduced(evaluation: tuple[float, np.ndarray, np.ndarray]
                 ) -> tuple[float, np.ndarray, np.ndarray]:
         value, grad, information = evaluation
@@ -667,4 +674,4 @@ def _score_from(
     upper = np.array([hi for _, hi in free_bounds])
     refined = fisher_scoring(evaluate, start, lower, upper, max(1, max_evaluations),
                              start=None if first is None else reduced(first))
-    return lift(refined.x), refined.value, refined.evaluations
+    return lift(refined.x), refined.value, refined.evaluations, refined.converged

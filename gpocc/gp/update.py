@@ -6,8 +6,9 @@ The samples are those training on all logs at once would build. The hyperparamet
 (:mod:`gpocc.gp.refine`) starts from the model's values instead of annealing from the
 config's initial ones. Learning's optimum is mostly set by its patches, not by its
 start, so this heads where training on all logs lands (the patches, drawn from the same
-samples with the same seed, are the same) in a handful of evaluations, stopping once a step
-gains under 0.01 nats or after ``refine_iterations`` steps (:data:`REFINE_ITERATIONS`).
+samples with the same seed, are the same) in a few evaluations, stopping once the gain
+still to come is estimated under 0.01 nats (:mod:`gpocc.gp.refine`) or after
+``refine_iterations`` steps (:data:`REFINE_ITERATIONS`).
 ``kept`` keeps the model's values (cheapest; they were learned on other patches, and ten
 patches' optimum moves with the draw: Freiburg held-out AUC up to 0.008 apart);
 ``relearned`` learns them on the union as training does, which gives that model exactly.
