@@ -59,7 +59,8 @@ def test_summary_counts_wins_per_protocol_and_the_page_is_stamped():
 #: What ``offset-holdout`` and the variants of it pin, as the page lists overrides.
 PINNED = ("`samples.label_weights: none`, `model.training.learn_input_noise_scale: True`, "
           "`model.training.classifier_offset_range: wide`, "
-          "`model.training.classifier_offset: holdout`, `model.training.isotropic: False`")
+          "`model.training.classifier_offset: holdout`, `model.training.isotropic: False`, "
+          "`model.training.patch_offset_m: 0.0`")
 
 
 def test_the_page_compares_the_gp_with_each_variant_case_by_case():
