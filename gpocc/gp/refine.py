@@ -26,12 +26,11 @@ import numpy as np
 TOLERANCE = 0.01
 
 #: The largest rate of linear convergence taken from two steps' decreases, and the rate
-#: assumed before two are known. Where the
-#: Fisher information is not the likelihood's curvature (along a ridge), the steps fall
-#: short and each gains a near-constant fraction of the one before, more than the
-#: quadratic model predicts: the decrease still to come is then the geometric series of
-#: the next step's, estimated as the model's prediction times the last step's gain over
-#: its prediction, not the prediction alone.
+#: assumed before two are known. Where the Fisher information is not the likelihood's
+#: curvature (along a ridge), the steps fall short and each gains a near-constant
+#: fraction of the one before, more than the quadratic model predicts: the decrease still
+#: to come is then the geometric series of the next step's, estimated as the model's
+#: prediction times the last step's gain over its prediction, not the prediction alone.
 _MAX_RATE = 0.9
 
 #: The largest gain over its prediction taken from a step (a tiny prediction's ratio says
@@ -101,14 +100,14 @@ def fisher_scoring(
     # directions the model got right (done in one step) with those it did not. Until two
     # ratios are known, the slowest rate is assumed.
     ratios = [_MAX_RATE, _MAX_RATE]
-    rate, gain = _MAX_RATE, 1.0
+    gain = 1.0
     last_decrease = math.inf
     while evaluations < max_evaluations:
         # Converged when the model's own step (undamped), scaled by the last step's gain
         # over its prediction, and the steps after it at the rate of the last two, promise
         # under the tolerance.
         promised = _predicted(grad, fisher, _scoring_step(x, grad, fisher, 0.0, lower, upper))
-        if 0.0 <= promised * gain / (1.0 - rate) < tolerance:
+        if 0.0 <= promised * gain / (1.0 - max(ratios)) < tolerance:
             return Refinement(x, value, evaluations, True)
         step = _scoring_step(x, grad, fisher, damping, lower, upper)
         if _predicted(grad, fisher, step) <= 0.0:
@@ -139,8 +138,8 @@ def fisher_scoring(
         value, grad, fisher = trial
         if math.isfinite(last_decrease):
             ratios = [ratios[1], min(decrease / last_decrease, _MAX_RATE)]
-            rate = max(ratios)
         last_decrease = decrease
+        rate = max(ratios)
         if decrease < tolerance and decrease * rate / (1.0 - rate) < tolerance:
             return Refinement(x, value, evaluations, True)
     return Refinement(x, value, evaluations, False)

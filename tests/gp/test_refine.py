@@ -16,7 +16,7 @@ from gpocc.constants import JITTER
 from gpocc.gp.expected import expected_kernel_matrix
 from gpocc.gp.kernels import NeuralNetworkKernel, SquaredExponentialKernel
 from gpocc.gp.local import negative_log_likelihood as patch_likelihood
-from gpocc.gp.refine import fisher_scoring
+from gpocc.gp.refine import TOLERANCE, fisher_scoring
 from gpocc.gp.train import (
     START_SEPARATION,
     TrainingResult,
@@ -122,8 +122,6 @@ def test_scoring_stops_within_its_tolerance_of_the_optimum_when_the_fisher_overs
     search must still stop within :data:`TOLERANCE` nats of the analytic minimum, not
     where the next step alone is predicted to gain less than that; also from a start a
     few tolerances above it."""
-    from gpocc.gp.refine import TOLERANCE
-
     curvature, floor = np.array([50.0, 2.0]), 7.0
 
     def evaluate(x: np.ndarray):

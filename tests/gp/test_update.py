@@ -181,10 +181,9 @@ def test_refined_update_lands_on_the_optimum_of_training_on_all_logs(logs, tmp_p
     cut = runner.invoke(app, ["update", str(tmp_path / "a.npz"), str(logs["b"]),
                               "--refine-iterations", "1", "--out", str(tmp_path / "short.npz")])
     assert cut.exit_code == 0, cut.output
-    cut = cut.output
     # One step cannot reach the optimum (below): the log says so and how to go on.
-    assert "Fisher scoring stopped after 1 steps, its budget" in cut
-    assert "--refine-iterations raises it" in cut
+    assert "Fisher scoring stopped after 1 steps, its budget" in cut.output
+    assert "--refine-iterations raises it" in cut.output
     a, both, up, kept, short = (load_model(tmp_path / n)
                                 for n in ("a.npz", "ab.npz", "up.npz", "kept.npz", "short.npz"))
     assert up.training["hyperparameters"] == "refined"
