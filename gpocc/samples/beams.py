@@ -137,56 +137,125 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
         raise GpoccError("no scans to build training samples from; check the input files")
     sensor_index: dict[str, int] = {name: i for i, name in enumerate(sensor_names)}
     thin_cell = float(config.samples.thin_cell_m)
-    parts: list[SampleSet] = []
+    parts: list[_ThinnedPart] = []
     # Thinning keeps a per-cell minimum, so thinning each chunk and thinning their union
     # again equals thinning everything at the end; the union is re-thinned only when the
     # thinned chunks have grown to twice what it held, which keeps the work linear.
     thinned_size, pending = 0, 0
     votes = LabelVotes(thin_cell) if config.samples.counts_labels else None
+    raw_samples = [0] * len(batches)
 
-    def chunk(job: Callable[[], SampleSet]) -> tuple[SampleSet, int, np.ndarray | None,
-                                                     np.ndarray | None]:
+    def chunk(job: tuple[int, Callable[[], SampleSet]]
+              ) -> tuple[int, _ThinnedPart, int, np.ndarray | None, np.ndarray | None]:
         # On a helper thread: the unscented transform (compiled, GIL-free), then the
         # chunk's thinning and label counts from one sort.
-        part = job()
+        which, make = job
+        part = make()
         if thin_cell <= 0:
-            return part, len(part), None, None
-        kept, keys, counts = _thinned(part, thin_cell)
-        return part.subset(kept), len(part), keys, counts
+            return which, _ThinnedPart(part, None, None), len(part), None, None
+        thinned, keys, counts = _thinned_part(part, thin_cell)
+        return which, thinned, len(part), keys, counts
 
-    offset = scan_offset
-    for batch in batches:
-        sensor = beam_rules.sensor_config(batch, config)
-        sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
-        n_batch = 0
-        jobs = _batch_chunks(batch, sensor, config.samples, offset, sensor_id)
-        with thread_map(chunk, jobs, min(default_workers(), MAX_CHUNK_THREADS)) as chunks:
-            for part, raw, keys, counts in chunks:
-                n_batch += raw
-                if votes is not None:
-                    votes.add_counts(keys, counts)
-                if thin_cell > 0:
-                    pending += len(part)
-                    parts.append(part)
-                    if pending > max(thinned_size, CHUNK_SAMPLES):
-                        parts = [thin_samples(SampleSet.concatenate(parts), thin_cell)]
-                        thinned_size, pending = len(parts[0]), 0
-                else:
-                    parts.append(part)
-        if n_batch == 0:
-            raise GpoccError(
-                f"{batch.source}: sensor '{batch.sensor}' gave no training samples: none of "
-                f"its {batch.n_scans} scans x {batch.n_beams} beams has a usable range in "
-                f"[{batch.range_min:g}, {batch.range_max:g}) m (NaN, -inf and ranges below "
-                f"range_min are skipped); check the sensor's range_min_m / range_max_m, "
-                f"no_return_free_m and that the ranges are in metres"
-            )
-        offset += batch.n_scans
-    result = dataclasses.replace(thin_samples(SampleSet.concatenate(parts), thin_cell),
+    def jobs() -> Iterator[tuple[int, Callable[[], SampleSet]]]:
+        # One stream over every batch's chunks: the threads never wait for a batch's last
+        # chunk before the next batch starts (64 logs: a third of the stage's wall time).
+        offset = scan_offset
+        for which, batch in enumerate(batches):
+            sensor = beam_rules.sensor_config(batch, config)
+            sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
+            made = 0
+            for job in _batch_chunks(batch, sensor, config.samples, offset, sensor_id):
+                made += 1
+                yield which, job
+            if made == 0:
+                raise _no_samples(batch)
+            offset += batch.n_scans
+
+    with thread_map(chunk, jobs(), min(default_workers(), MAX_CHUNK_THREADS)) as chunks:
+        for which, part, raw, keys, counts in chunks:
+            raw_samples[which] += raw
+            if votes is not None:
+                votes.add_counts(keys, counts)
+            parts.append(part)
+            if thin_cell > 0:
+                pending += len(part.samples)
+                if pending > max(thinned_size, CHUNK_SAMPLES):
+                    parts = _thin_parts(parts, thin_cell)
+                    thinned_size, pending = sum(len(p.samples) for p in parts), 0
+    for batch, raw in zip(batches, raw_samples, strict=True):
+        if raw == 0:
+            raise _no_samples(batch)
+    if thin_cell > 0:
+        parts = _thin_parts(parts, thin_cell)
+    result = dataclasses.replace(SampleSet.concatenate([p.samples for p in parts]),
                                  sensor_names=tuple(sensor_index))
+    n_scans = scan_offset + sum(b.n_scans for b in batches)
     if votes is None:
-        return SamplePool(result, np.zeros(0, np.int64), np.zeros(0, np.int64), offset)
-    return SamplePool(result, *votes.table(), offset)
+        return SamplePool(result, np.zeros(0, np.int64), np.zeros(0, np.int64), n_scans)
+    return SamplePool(result, *votes.table(), n_scans)
+
+
+def _no_samples(batch: ScanBatch) -> GpoccError:
+    """The error of a batch none of whose beams gives a training sample."""
+    return GpoccError(
+        f"{batch.source}: sensor '{batch.sensor}' gave no training samples: none of "
+        f"its {batch.n_scans} scans x {batch.n_beams} beams has a usable range in "
+        f"[{batch.range_min:g}, {batch.range_max:g}) m (NaN, -inf and ranges below "
+        f"range_min are skipped); check the sensor's range_min_m / range_max_m, "
+        f"no_return_free_m and that the ranges are in metres"
+    )
+
+
+@dataclass(frozen=True)
+class _ThinnedPart:
+    """A chunk's thinned samples with what thinning their union needs of them: (N,)
+    int64 (cell, label) keys (None: cells past 2**30, or thinning off) and (N,) float32
+    covariance traces (:func:`_thin_keys`)."""
+
+    samples: SampleSet
+    keys: np.ndarray | None
+    trace: np.ndarray | None
+
+
+def _thinned_part(part: SampleSet, cell_m: float
+                  ) -> tuple[_ThinnedPart, np.ndarray | None, np.ndarray | None]:
+    """``part`` thinned (:func:`thin_samples`) with its kept samples' keys and traces,
+    and the (cell, label) groups' keys and counts of :func:`_thinned`."""
+    if len(part) == 0:
+        empty = np.zeros(0, np.int64)
+        return _ThinnedPart(part, empty, np.zeros(0, np.float32)), empty, empty
+    cells, keys, trace = _thin_keys(part, cell_m)
+    kept, group_keys, counts = _thinned_from(cells, keys, trace, part.labels)
+    return (_ThinnedPart(part.subset(kept), None if keys is None else keys[kept],
+                         trace[kept]), group_keys, counts)
+
+
+def _thin_parts(parts: list[_ThinnedPart], cell_m: float) -> list[_ThinnedPart]:
+    """:func:`thin_samples` of the parts' concatenation, as parts: each part's samples
+    that thinning the whole keeps (a part that keeps all is not copied). Decided on the
+    parts' keys and traces alone, without concatenating their samples."""
+    if not parts:
+        return parts
+    if any(p.keys is None or p.trace is None for p in parts):
+        return [_thinned_part(SampleSet.concatenate([p.samples for p in parts]),
+                              cell_m)[0]]
+    keys = np.concatenate([p.keys for p in parts])
+    trace = np.concatenate([p.trace for p in parts])
+    if not np.isfinite(trace).all():  # NaN never equals a group's minimum
+        return [_thinned_part(SampleSet.concatenate([p.samples for p in parts]),
+                              cell_m)[0]]
+    keep = np.zeros(len(keys), dtype=bool)
+    keep[compiled.thin_groups(keys, trace)[2]] = True
+    out, start = [], 0
+    for part in parts:
+        mine = keep[start:start + len(part.samples)]
+        start += len(part.samples)
+        if mine.all():
+            out.append(part)
+        elif mine.any():
+            out.append(_ThinnedPart(part.samples.subset(mine), part.keys[mine],
+                                    part.trace[mine]))
+    return out
 
 
 def label_noise_factors(share: np.ndarray, counts: np.ndarray | None,
@@ -204,21 +273,30 @@ def label_noise_factors(share: np.ndarray, counts: np.ndarray | None,
 def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
     """The training samples of ``pool``: ``samples.min_label_share`` (by the pool's
     votes), then ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)."""
-    result = pool.samples
+    samples = pool.samples
+    kept = np.arange(len(samples))
+    factors = None
     min_share = float(config.samples.min_label_share)
     if config.samples.counts_labels and pool.vote_keys.size:
         votes = LabelVotes(float(config.samples.thin_cell_m))
         votes.add_counts(pool.vote_keys, pool.vote_counts)
-        share, counts = votes.share_and_count(result)
+        share, counts = votes.share_and_count(samples)
         if min_share > 0:
-            keep = share >= min_share
-            result, share, counts = result.subset(keep), share[keep], counts[keep]
+            kept = np.flatnonzero(share >= min_share)
         if config.samples.weighs_labels:
             factors = label_noise_factors(
                 share, counts if config.samples.label_weights == "count" else None,
                 config.samples.label_count_power)
-            result = dataclasses.replace(result, noise_factors=factors)
-    return clear_free_near_hits(result, float(config.samples.free_clearance_m))
+    cleared = _free_near_hits(samples.means[kept], samples.labels[kept],
+                              float(config.samples.free_clearance_m))
+    if cleared is not None:
+        kept = kept[~cleared]
+    # The rules' choices are applied in one copy of the samples (a copy of a city's
+    # samples took a second).
+    result = samples if len(kept) == len(samples) else samples.subset(kept)
+    if factors is not None:
+        result = dataclasses.replace(result, noise_factors=factors[kept])
+    return result
 
 
 def merge_pools(first: SamplePool, second: SamplePool, config: Config) -> SamplePool:
@@ -253,15 +331,23 @@ def clear_free_near_hits(samples: SampleSet, radius_m: float) -> SampleSet:
         samples: any sample set.
         radius_m: clearance, metres.
     """
-    if radius_m <= 0 or not has_both_labels(samples.labels):
-        return samples
-    occupied = samples.labels > 0
+    cleared = _free_near_hits(samples.means, samples.labels, radius_m)
+    return samples if cleared is None else samples.subset(~cleared)
+
+
+def _free_near_hits(means: np.ndarray, labels: np.ndarray, radius_m: float
+                    ) -> np.ndarray | None:
+    """(N,) bool: the free samples (``labels`` (N,)) whose ``means`` (N, 2) metres lie
+    within ``radius_m`` of an occupied sample's; None when none can (``radius_m <= 0``
+    or one label only)."""
+    if radius_m <= 0 or not has_both_labels(labels):
+        return None
+    occupied = labels > 0
     free = np.flatnonzero(~occupied)
-    distance, _ = cKDTree(samples.means[occupied]).query(
-        samples.means[free], distance_upper_bound=radius_m)
-    keep = np.ones(len(samples), dtype=bool)
-    keep[free[distance < radius_m]] = False
-    return samples.subset(keep)
+    distance, _ = cKDTree(means[occupied]).query(means[free], distance_upper_bound=radius_m)
+    cleared = np.zeros(len(labels), dtype=bool)
+    cleared[free[distance < radius_m]] = True
+    return cleared
 
 
 def packed_cells(cells: np.ndarray) -> np.ndarray:
@@ -399,18 +485,31 @@ def _thinned(samples: SampleSet, cell_m: float
     counts are None for cells past 2**30."""
     if len(samples) == 0:
         return np.zeros(0, dtype=np.intp), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return _thinned_from(*_thin_keys(samples, cell_m), samples.labels)
+
+
+def _thin_keys(samples: SampleSet, cell_m: float
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """What thinning decides on: the (N, 2) cells, the (N,) (cell, label) keys (None for
+    cells past 2**30) and the (N,) float32 covariance traces."""
     cells = _cells(samples, cell_m)
     # Traces are compared in single precision (7 significant digits): samples of one scan
     # at the same distance along different beams have mathematically equal traces, and
     # round-off (which differs between code paths and BLAS builds) must not decide which
     # of them is kept.
     trace = (samples.covariances[:, 0, 0] + samples.covariances[:, 1, 1]).astype(np.float32)
-    keys = _cell_label_keys(cells, samples.labels)
+    return cells, _cell_label_keys(cells, samples.labels), trace
+
+
+def _thinned_from(cells: np.ndarray, keys: np.ndarray | None, trace: np.ndarray,
+                  labels: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """:func:`_thinned` of samples with these (non-empty) :func:`_thin_keys` and labels."""
     if keys is None:
-        return _thin_by_lexsort(cells, trace, samples.labels), None, None
+        return _thin_by_lexsort(cells, trace, labels), None, None
     if not np.isfinite(trace).all():  # NaN never equals a group's minimum
         groups, counts = np.unique(keys, return_counts=True)
-        return _thin_by_lexsort(cells, trace, samples.labels), groups, counts
+        return _thin_by_lexsort(cells, trace, labels), groups, counts
     # One pass over a hash table of the (cell, label) keys (compiled): each group's
     # smallest trace and, among the samples that have it, the smallest index; then only
     # the groups are sorted, a few thousand for a chunk of 100,000 samples.

@@ -89,6 +89,24 @@ def test_beam_segments_match_the_unscented_beam_model():
     assert np.any(np.isinf(batch.ranges))  # the doorway's no-return beams are included
 
 
+def test_coverage_of_several_logs_is_the_raster_of_all_their_beams():
+    """Batches far apart, marked one at a time on one raster, give the raster of all
+    their beams' segments at once (same corner, same cells)."""
+    config = room_config()
+    sensor = config.sensors[0]
+    batches = [room_batch(4, 60)]
+    moved = room_batch(3, 50)
+    batches.append(dataclasses.replace(moved, poses=moved.poses + [25.0, -13.0, 0.5]))
+    segments = [beam_segments(b, sensor, config) for b in batches]
+    whole = coverage_of_segments(np.concatenate([s for s, _ in segments]),
+                                 np.concatenate([e for _, e in segments]))
+    got = beam_coverage(batches, config)
+    assert (got.x0, got.y0, got.cell_m, got.step_m) == (whole.x0, whole.y0, whole.cell_m,
+                                                        whole.step_m)
+    np.testing.assert_array_equal(got.covered, whole.covered)
+    assert got.covered.shape[1] > 25.0 / got.cell_m  # one raster spans both
+
+
 def test_coverage_distance_is_within_its_bound_of_the_exact_beam_distance():
     rng = np.random.default_rng(3)
     start = rng.uniform(-3, 3, (40, 2))

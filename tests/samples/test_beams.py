@@ -195,6 +195,33 @@ def test_thinning_keeps_the_most_certain_sample_per_cell_and_label(monkeypatch):
     _assert_same_rows(_rows(chunked_all), _rows(everything))
 
 
+def test_thinning_across_batches_and_chunks_matches_thinning_their_union(monkeypatch):
+    """Three overlapping batches (two sensors) in many small chunks: the chunks are thinned
+    as they come and their union re-thinned from keys alone; the result is the brute-force
+    thinning of every unthinned sample, in build order."""
+    sensor = replace(NOISELESS, range_variance_m2=0.0004, bearing_variance_deg2=0.1)
+    other = replace(sensor, name="r2", range_variance_m2=0.0009)
+    batches = [_noisy_batch(seed=1), replace(_noisy_batch(seed=2), sensor="r2",
+                                              source="r2.log"), _noisy_batch(seed=3)]
+    config = Config(sensors=(sensor, other), samples=replace(SAMPLES, thin_cell_m=0.3))
+    monkeypatch.setattr(beams, "CHUNK_SAMPLES", 200)
+    everything = build_samples(batches, replace(config, samples=SAMPLES))
+    expected = everything.subset(_brute_force_thin(everything, 0.3))
+    thinned = build_samples(batches, config)
+    assert len(thinned) < len(everything) / 4
+    for field in ("means", "covariances", "labels", "scan_ids", "pose_factors", "sensor_ids"):
+        np.testing.assert_array_equal(getattr(thinned, field), getattr(expected, field))
+    assert thinned.sensor_names == ("r1", "r2")
+
+
+def test_a_batch_without_samples_is_named_even_between_good_ones():
+    good = _noisy_batch()
+    empty = replace(_noisy_batch(seed=4), source="empty.log",
+                    ranges=np.full((30, 40), np.nan))
+    with pytest.raises(GpoccError, match="empty.log: sensor 'r1' gave no training samples"):
+        build_samples([good, empty, good], _config(thin_cell_m=0.3))
+
+
 def test_thin_samples_ties_keep_the_first():
     means = np.array([[0.1, 0.1], [0.2, 0.3], [0.3, 0.2], [0.1, 0.1], [1.2, 0.1]])
     covs = np.repeat(np.eye(2)[None], 5, axis=0)
