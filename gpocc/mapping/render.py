@@ -183,10 +183,17 @@ def _colour(values: np.ndarray, stops: np.ndarray) -> np.ndarray:
     in :data:`NO_DATA_COLOUR`."""
     t = np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0) * (len(stops) - 1)
     i = np.minimum(t.astype(int), len(stops) - 2)
-    f = (t - i)[..., None]
-    rgb = stops[i] * (1.0 - f) + stops[i + 1] * f
-    rgb[np.isnan(values)] = [int(NO_DATA_COLOUR[k:k + 2], 16) for k in (1, 3, 5)]
-    return np.round(rgb).astype(np.uint8)
+    f = t - i
+    rest = 1.0 - f
+    no_data = np.isnan(values)
+    rgb = np.empty((*np.shape(values), 3), dtype=np.uint8)
+    # Channel by channel: (H, W) temporaries instead of (H, W, 3) ones (a city's preview
+    # took seconds).
+    for c, no_data_value in enumerate(int(NO_DATA_COLOUR[k:k + 2], 16) for k in (1, 3, 5)):
+        channel = stops[i, c] * rest + stops[i + 1, c] * f
+        channel[no_data] = no_data_value
+        rgb[..., c] = np.round(channel)
+    return rgb
 
 
 def _font(size: int):
