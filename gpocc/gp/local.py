@@ -54,10 +54,17 @@ class Prediction:
 class NeighbourIndex:
     """Nearest-neighbour look-up of training samples by their mean position."""
 
-    def __init__(self, samples: SampleSet, tree: cKDTree | None = None) -> None:
-        """``tree``: a tree of ``samples.means`` already built (:meth:`over`)."""
+    def __init__(self, samples: SampleSet, tree: cKDTree | None = None,
+                 rows: np.ndarray | None = None) -> None:
+        """``rows``: (R,) ascending indices of the only samples looked up (None: all),
+        the index of ``samples.subset(rows)`` without copying the samples (a city's
+        held-out classifier points: a second); ``tree``: a tree of their means already
+        built (:meth:`over`)."""
         self.samples = samples
-        self._tree = cKDTree(samples.means) if tree is None else tree
+        self.rows = rows
+        if tree is None:
+            tree = cKDTree(samples.means if rows is None else samples.means[rows])
+        self._tree = tree
 
     def over(self, samples: SampleSet) -> NeighbourIndex:
         """This index for ``samples`` with the same means (the same samples with other
@@ -70,7 +77,7 @@ class NeighbourIndex:
         if samples.means is not self.samples.means and not np.array_equal(
                 samples.means, self.samples.means):
             raise ValueError("samples with other means need an index of their own")
-        return NeighbourIndex(samples, self._tree)
+        return NeighbourIndex(samples, self._tree, self.rows)
 
     def problem(self, centre: np.ndarray, neighbours: int) -> LocalProblem:
         """The ``neighbours`` samples nearest ``centre`` (2,), centred at it."""
@@ -80,11 +87,13 @@ class NeighbourIndex:
         """:meth:`problem` of each of the (K, 2) ``centres``, from one look-up (a look-up
         of 128 neighbours costs 67 us alone and 21 us per centre in eights)."""
         centres = np.asarray(centres, dtype=float).reshape(-1, 2)
-        k = min(neighbours, len(self.samples))
+        k = min(neighbours, len(self.samples) if self.rows is None else len(self.rows))
         if len(centres) == 0:
             return []
         _, indices = self._tree.query(centres, k=k)
         indices = np.sort(np.asarray(indices).reshape(len(centres), k), axis=1)
+        if self.rows is not None:  # ascending rows keep each neighbourhood's order
+            indices = self.rows[indices]
         return [centred_problem(self.samples, index, centre)
                 for index, centre in zip(indices, centres, strict=True)]
 

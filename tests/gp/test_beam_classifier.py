@@ -13,6 +13,7 @@ from gpocc.errors import GpoccError
 from gpocc.gp.classify import (
     C_BOUND,
     beam_holdout_predictions,
+    cell_groups,
     fit_offset,
     fit_offset_and_temperature,
     held_out_log_probability,
@@ -329,3 +330,22 @@ def test_unique_cells_equal_numpy_unique_of_rows(spread):
     np.testing.assert_array_equal(got[inverse], cells)
     empty, none = unique_cells(np.zeros((0, 2), dtype=np.int64))
     assert empty.shape == (0, 2) and none.size == 0
+
+
+@pytest.mark.parametrize("spread", [3, 1000, 2**40])
+def test_cell_groups_list_each_cells_rows_in_input_order(spread):
+    """Against a dictionary of each distinct cell's rows, in order of appearance, and the
+    cells sorted as rows: negative cells, repeats, a range too wide for one key."""
+    rng = np.random.default_rng(spread + 1)
+    cells = rng.integers(-spread, spread, (3000, 2))
+    cells[::5] = cells[2]
+    unique, order, bounds = cell_groups(cells)
+    rows: dict[tuple[int, int], list[int]] = {}
+    for i, cell in enumerate(map(tuple, cells.tolist())):
+        rows.setdefault(cell, []).append(i)
+    assert [tuple(c) for c in unique.tolist()] == sorted(rows)
+    assert bounds[0] == 0 and bounds[-1] == len(cells) and len(bounds) == len(unique) + 1
+    for g, cell in enumerate(map(tuple, unique.tolist())):
+        assert order[bounds[g]:bounds[g + 1]].tolist() == rows[cell]
+    empty, none, first = cell_groups(np.zeros((0, 2), dtype=np.int64))
+    assert empty.shape == (0, 2) and none.size == 0 and first.tolist() == [0]

@@ -313,6 +313,23 @@ def test_an_index_over_samples_of_the_same_means_gives_their_own_problems():
         NeighbourIndex(samples).over(moved)
 
 
+def test_an_index_of_some_rows_gives_the_problems_of_their_subset():
+    # Oracle: an index of the subset itself. The neighbourhoods hold the same samples in
+    # the same order; their indices point into the full set.
+    rng = np.random.default_rng(9)
+    samples = room_samples(rng)
+    rows = np.flatnonzero(rng.random(len(samples)) < 0.6)
+    centres = rng.uniform(-3, 3, size=(5, 2))
+    got = NeighbourIndex(samples, rows=rows).problems(centres, 40)
+    want = NeighbourIndex(samples.subset(rows)).problems(centres, 40)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a.index, rows[b.index])
+        for field in ("means", "covariances", "labels", "scan_ids", "pose_factors"):
+            np.testing.assert_array_equal(getattr(a.samples, field), getattr(b.samples, field))
+    few = NeighbourIndex(samples, rows=rows[:7]).problem(np.zeros(2), 40)
+    assert sorted(few.index) == list(rows[:7])  # no more neighbours than rows
+
+
 def test_a_model_maps_alike_in_single_and_double_precision():
     """The same model's predictions through predict_locals with single- and double-
     precision local systems: latent means and variances agree to 1e-5 of the prior
