@@ -57,10 +57,12 @@ UNKNOWN = -1
 
 def occupancy_values(probability: np.ndarray) -> np.ndarray:
     """(h, w) int8 ``round(100 p)`` of p(occupied) in [0, 1], -1 where NaN."""
-    p = np.asarray(probability, dtype=np.float64)
+    p = np.asarray(probability)
     out = np.full(p.shape, UNKNOWN, dtype=np.int8)
     known = np.isfinite(p)
-    out[known] = np.rint(100.0 * np.clip(p[known], 0.0, 1.0)).astype(np.int8)
+    # Only the known cells in double precision (most of a city is no data).
+    out[known] = np.rint(100.0 * np.clip(p[known].astype(np.float64), 0.0, 1.0)
+                         ).astype(np.int8)
     return out
 
 
@@ -77,10 +79,11 @@ def class_values(classes: np.ndarray) -> np.ndarray:
 
 def variance_values(variance: np.ndarray, scale: float) -> np.ndarray:
     """(h, w) int8 ``round(100 variance / scale)`` clipped to 0..100, -1 where NaN."""
-    v = np.asarray(variance, dtype=np.float64)
+    v = np.asarray(variance)
     out = np.full(v.shape, UNKNOWN, dtype=np.int8)
     known = np.isfinite(v)
-    out[known] = np.rint(np.clip(100.0 * v[known] / scale, 0.0, 100.0)).astype(np.int8)
+    out[known] = np.rint(np.clip(100.0 * v[known].astype(np.float64) / scale, 0.0, 100.0)
+                         ).astype(np.int8)
     return out
 
 

@@ -41,17 +41,18 @@ NO_DATA_GREY = 205
 
 def scale_pixels(probability: np.ndarray) -> np.ndarray:
     """(h, w, 2) uint8 grey + alpha of (h, w) p(occupied), NaN no data."""
-    p = np.asarray(probability, dtype=np.float64)
+    p = np.asarray(probability)
     known = np.isfinite(p)
     out = np.empty(p.shape + (2,), dtype=np.uint8)
-    grey = np.full(p.shape, NO_DATA_GREY, dtype=np.float64)
-    q = np.clip(p[known], 0.0, 1.0)
+    # Only the known cells in double precision (most of a city is no data).
+    q = np.clip(p[known].astype(np.float64), 0.0, 1.0)
     # The greys Nav2 reads as percent v: |100 (255 - g) / 255 - v| < 1/2.
     v = np.rint(100.0 * q)
     low = np.maximum(np.ceil(255.0 * (1.0 - (v + 0.5) / 100.0)), 0.0)
     high = np.minimum(np.floor(255.0 * (1.0 - (v - 0.5) / 100.0)), 255.0)
-    grey[known] = np.clip(np.rint(255.0 - 255.0 * q), low, high)
-    out[..., 0] = grey.astype(np.uint8)
+    grey = out[..., 0]
+    grey[...] = NO_DATA_GREY
+    grey[known] = np.clip(np.rint(255.0 - 255.0 * q), low, high).astype(np.uint8)
     out[..., 1] = np.where(known, 255, 0).astype(np.uint8)
     return out
 

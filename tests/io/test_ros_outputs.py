@@ -305,6 +305,13 @@ def test_scale_pixels_read_in_nav2_as_the_percent_of_every_probability() -> None
     grey = scale_pixels(p[None, :])[0, :, 0].astype(np.float64)
     np.testing.assert_array_equal(np.rint(100.0 * (1.0 - grey / 255.0)), np.rint(100.0 * p))
     assert np.abs(grey - (255.0 - 255.0 * p)).max() <= 1.0
+    # The map's float32 tiles as they are (NaN: no data, grey 205 and transparent).
+    single = p.astype(np.float32)
+    single[::1000] = np.nan
+    pixels = scale_pixels(single[None, :])[0]
+    known = np.isfinite(single)
+    np.testing.assert_array_equal(pixels[known, 0], grey[known])
+    assert (pixels[~known, 0] == 205).all() and (pixels[:, 1] == np.where(known, 255, 0)).all()
 
 
 def test_trinary_map_yaml_is_unchanged_by_the_scale_map(tmp_path: Path) -> None:
