@@ -143,48 +143,49 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
     # thinned chunks have grown to twice what it held, which keeps the work linear.
     thinned_size, pending = 0, 0
     votes = LabelVotes(thin_cell) if config.samples.counts_labels else None
-    raw_samples = [0] * len(batches)
 
-    def chunk(job: tuple[int, Callable[[], SampleSet]]
-              ) -> tuple[int, _ThinnedPart, int, np.ndarray | None, np.ndarray | None]:
+    def chunk(job: Callable[[], SampleSet]
+              ) -> tuple[_ThinnedPart, np.ndarray | None, np.ndarray | None]:
         # On a helper thread: the unscented transform (compiled, GIL-free), then the
-        # chunk's thinning and label counts from one sort.
-        which, make = job
-        part = make()
+        # chunk's thinning and label counts (a hash table of its keys).
+        part = job()
         if thin_cell <= 0:
-            return which, _ThinnedPart(part, None, None), len(part), None, None
-        thinned, keys, counts = _thinned_part(part, thin_cell)
-        return which, thinned, len(part), keys, counts
+            return _ThinnedPart(part, None, None), None, None
+        return _thinned_part(part, thin_cell)
 
-    def jobs() -> Iterator[tuple[int, Callable[[], SampleSet]]]:
+    def jobs() -> Iterator[Callable[[], SampleSet]]:
         # One stream over every batch's chunks: the threads never wait for a batch's last
-        # chunk before the next batch starts (64 logs: a third of the stage's wall time).
+        # chunk before the next batch starts. Drawn ahead of the results, so a batch's
+        # error is a job that raises it: it reaches the caller after the earlier chunks'
+        # results (and errors), as if the batches were read one after another.
         offset = scan_offset
-        for which, batch in enumerate(batches):
-            sensor = beam_rules.sensor_config(batch, config)
-            sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
-            made = 0
-            for job in _batch_chunks(batch, sensor, config.samples, offset, sensor_id):
-                made += 1
-                yield which, job
-            if made == 0:
-                raise _no_samples(batch)
+        for batch in batches:
+            try:
+                sensor = beam_rules.sensor_config(batch, config)
+                sensor_id = sensor_index.setdefault(batch.sensor, len(sensor_index))
+                made = 0
+                for job in _batch_chunks(batch, sensor, config.samples, offset, sensor_id):
+                    made += 1
+                    yield job
+                if made == 0:
+                    raise _no_samples(batch)
+            except Exception as error:  # raised in order, by the job
+                yield functools.partial(_raise, error)
+                return
             offset += batch.n_scans
 
     with thread_map(chunk, jobs(), min(default_workers(), MAX_CHUNK_THREADS)) as chunks:
-        for which, part, raw, keys, counts in chunks:
-            raw_samples[which] += raw
+        for part, keys, counts in chunks:
             if votes is not None:
                 votes.add_counts(keys, counts)
+            if len(part.samples) == 0:
+                continue
             parts.append(part)
             if thin_cell > 0:
                 pending += len(part.samples)
                 if pending > max(thinned_size, CHUNK_SAMPLES):
                     parts = _thin_parts(parts, thin_cell)
                     thinned_size, pending = sum(len(p.samples) for p in parts), 0
-    for batch, raw in zip(batches, raw_samples, strict=True):
-        if raw == 0:
-            raise _no_samples(batch)
     if thin_cell > 0:
         parts = _thin_parts(parts, thin_cell)
     result = dataclasses.replace(SampleSet.concatenate([p.samples for p in parts]),
@@ -193,6 +194,10 @@ def build_pool(batches: list[ScanBatch], config: Config, scan_offset: int = 0,
     if votes is None:
         return SamplePool(result, np.zeros(0, np.int64), np.zeros(0, np.int64), n_scans)
     return SamplePool(result, *votes.table(), n_scans)
+
+
+def _raise(error: Exception) -> SampleSet:
+    raise error
 
 
 def _no_samples(batch: ScanBatch) -> GpoccError:
@@ -208,9 +213,10 @@ def _no_samples(batch: ScanBatch) -> GpoccError:
 
 @dataclass(frozen=True)
 class _ThinnedPart:
-    """A chunk's thinned samples with what thinning their union needs of them: (N,)
-    int64 (cell, label) keys (None: cells past 2**30, or thinning off) and (N,) float32
-    covariance traces (:func:`_thin_keys`)."""
+    """Samples of one chunk (thinned, unless thinning is off) with what thinning their
+    union needs of them: (N,) int64 (cell, label) keys and (N,) float32 covariance traces
+    (:func:`_thin_keys`); both None when thinning is off, the keys also for cells past
+    2**30."""
 
     samples: SampleSet
     keys: np.ndarray | None
@@ -233,7 +239,8 @@ def _thinned_part(part: SampleSet, cell_m: float
 def _thin_parts(parts: list[_ThinnedPart], cell_m: float) -> list[_ThinnedPart]:
     """:func:`thin_samples` of the parts' concatenation, as parts: each part's samples
     that thinning the whole keeps (a part that keeps all is not copied). Decided on the
-    parts' keys and traces alone, without concatenating their samples."""
+    parts' keys and traces alone, without concatenating their samples, except for cells
+    past 2**30 or non-finite traces (one part, thinned as :func:`thin_samples` does)."""
     if not parts:
         return parts
     if any(p.keys is None or p.trace is None for p in parts):
@@ -274,7 +281,7 @@ def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
     """The training samples of ``pool``: ``samples.min_label_share`` (by the pool's
     votes), then ``samples.free_clearance_m`` (:func:`clear_free_near_hits`)."""
     samples = pool.samples
-    kept = np.arange(len(samples))
+    kept: np.ndarray | None = None  # None: every sample
     factors = None
     min_share = float(config.samples.min_label_share)
     if config.samples.counts_labels and pool.vote_keys.size:
@@ -287,15 +294,17 @@ def finish_samples(pool: SamplePool, config: Config) -> SampleSet:
             factors = label_noise_factors(
                 share, counts if config.samples.label_weights == "count" else None,
                 config.samples.label_count_power)
-    cleared = _free_near_hits(samples.means[kept], samples.labels[kept],
-                              float(config.samples.free_clearance_m))
-    if cleared is not None:
-        kept = kept[~cleared]
+    means, labels = ((samples.means, samples.labels) if kept is None
+                     else (samples.means[kept], samples.labels[kept]))
+    cleared = _free_near_hits(means, labels, float(config.samples.free_clearance_m))
+    if cleared is not None and cleared.any():
+        kept = np.flatnonzero(~cleared) if kept is None else kept[~cleared]
     # The rules' choices are applied in one copy of the samples (a copy of a city's
     # samples took a second).
-    result = samples if len(kept) == len(samples) else samples.subset(kept)
+    result = samples if kept is None else samples.subset(kept)
     if factors is not None:
-        result = dataclasses.replace(result, noise_factors=factors[kept])
+        result = dataclasses.replace(
+            result, noise_factors=factors if kept is None else factors[kept])
     return result
 
 

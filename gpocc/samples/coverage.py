@@ -106,7 +106,7 @@ def _coverage_of_parts(parts: list[tuple[np.ndarray, np.ndarray]], cell_m: float
     ``start``, ``end`` arrays (metres): :func:`coverage_of_segments` of their
     concatenation, marked part by part (a city's beams concatenated took seconds)."""
     step = cell_m
-    parts = [(s, e) for s, e in parts if len(s)]
+    parts = [(start, end) for start, end in parts if len(start)]
     if not parts:
         return Coverage(0.0, 0.0, cell_m, step, np.zeros((0, 0), dtype=bool))
     # Column by column: numpy reduces an (N, 2) array along axis 0 two numbers at a time

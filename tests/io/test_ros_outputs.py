@@ -314,6 +314,27 @@ def test_scale_pixels_read_in_nav2_as_the_percent_of_every_probability() -> None
     assert (pixels[~known, 0] == 205).all() and (pixels[:, 1] == np.where(known, 255, 0)).all()
 
 
+def test_mcap_values_of_float32_layers_follow_their_formulas() -> None:
+    """round(100 p) and round(100 variance / scale) clipped to 0..100, from the float32
+    layers as stored, in double precision; -1 where no data."""
+    from gpocc.io.rosmap import occupancy_values, variance_values
+
+    rng = np.random.default_rng(12)
+    p = np.concatenate([np.linspace(0.0, 1.0, 10_001), rng.uniform(-0.1, 1.1, 999)]
+                       ).astype(np.float32)
+    p[::97] = np.nan
+    known = np.isfinite(p)
+    want = np.full(p.shape, -1)
+    want[known] = np.rint(100.0 * np.clip(p[known].astype(np.float64), 0.0, 1.0))
+    np.testing.assert_array_equal(occupancy_values(p[None, :])[0], want)
+    v = rng.uniform(0.0, 3.0, p.shape).astype(np.float32)
+    v[::89] = np.nan
+    known = np.isfinite(v)
+    want = np.full(v.shape, -1)
+    want[known] = np.rint(np.clip(100.0 * v[known].astype(np.float64) / 1.7, 0.0, 100.0))
+    np.testing.assert_array_equal(variance_values(v[None, :], 1.7)[0], want)
+
+
 def test_trinary_map_yaml_is_unchanged_by_the_scale_map(tmp_path: Path) -> None:
     folder = _write_folder(tmp_path / "m", SPEC, seed=5)
     cls, _ = _raster(folder, "class")

@@ -222,6 +222,20 @@ def test_a_batch_without_samples_is_named_even_between_good_ones():
         build_samples([good, empty, good], _config(thin_cell_m=0.3))
 
 
+def test_errors_come_in_the_order_of_the_logs():
+    """The first log's error is the one reported, though the next log is prepared while
+    the first one's samples are still being made: poses 2e9 m from the origin put its
+    samples past the label counts' range, and the log after it has no usable beam."""
+    far = _noisy_batch()
+    far = replace(far, source="far.log", poses=far.poses + [2e9, 0.0, 0.0])
+    empty = replace(_noisy_batch(seed=4), source="empty.log",
+                    ranges=np.full((30, 40), np.nan))
+    with pytest.raises(GpoccError, match="from the map origin"):
+        build_samples([far, empty], _config(thin_cell_m=0.3))
+    with pytest.raises(GpoccError, match="empty.log"):
+        build_samples([_noisy_batch(), empty, far], _config(thin_cell_m=0.3))
+
+
 def test_thin_samples_ties_keep_the_first():
     means = np.array([[0.1, 0.1], [0.2, 0.3], [0.3, 0.2], [0.1, 0.1], [1.2, 0.1]])
     covs = np.repeat(np.eye(2)[None], 5, axis=0)
