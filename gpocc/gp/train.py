@@ -600,16 +600,15 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
     scoring = fisher is not None and (from_start or config.local_search == "scoring")
     starts = [best] if from_start else distinct_starts(best, visited, config.local_starts)
     final, final_value = best, best_value
+    # Whether the search that gave the result stopped at its budget short of converging
+    # (said once, of the kept result: another start's stop changes nothing the model has).
+    final_unconverged = False
     for point in starts:
+        converged = True
         if scoring:
             found, found_value, spent, converged = _score_from(
                 point[free], first if from_start else None, fisher, jacobian, lift,
                 free_bounds, iterations)
-            if not converged:
-                budget = ("--refine-iterations" if from_start and refine_iterations is not None
-                          else "model.training.lbfgs_maxiter")
-                log(f"Fisher scoring stopped after {iterations} steps, its budget, with more "
-                    f"than {_SCORING_TOLERANCE} nats still to gain; {budget} raises it")
         else:
             refined = minimize(
                 objective_free, point[free], args=(kernel, patches, level), jac=True,
@@ -618,7 +617,12 @@ def _optimise(kernel: Kernel, noise_variance: float, patches: list[LocalProblem]
             found, found_value, spent = lift(refined.x), float(refined.fun), int(refined.nfev)
         evaluations += spent
         if found_value <= final_value:
-            final, final_value = found, found_value
+            final, final_value, final_unconverged = found, found_value, not converged
+    if final_unconverged:
+        budget = ("--refine-iterations" if from_start and refine_iterations is not None
+                  else "model.training.lbfgs_maxiter")
+        log(f"Fisher scoring stopped after {iterations} steps, its budget, with more "
+            f"than {_SCORING_TOLERANCE} nats still to gain; {budget} raises it")
     return TrainingResult(
         kernel=kernel.with_theta(final[:noise_at]),
         noise_variance=float(math.exp(final[noise_at])),

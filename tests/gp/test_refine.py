@@ -233,3 +233,25 @@ def test_local_starts_are_the_best_points_apart_from_each_other():
     for got, want in zip(starts, kept, strict=True):
         np.testing.assert_array_equal(got, want)
     assert distinct_starts(best, visited, 1) == [best]
+
+
+def test_scoring_says_once_when_the_kept_search_stops_at_its_budget(monkeypatch):
+    """Three local starts, one step each: every search stops short, and the line that
+    says so comes once, for the kept result; with a budget to converge in, never."""
+    from gpocc.gp import train as train_module
+
+    lines: list[str] = []
+    monkeypatch.setattr(train_module, "log", lines.append)
+    samples = _se_patches_problem()
+    start = SquaredExponentialKernel(0.5, (2.0, 2.0))
+    base = TrainingConfig(patches=4, patch_size=60, anneal_maxfun=30, lbfgs_maxiter=1,
+                          min_noise_variance=0.01, local_search="scoring", local_starts=3)
+    learn_hyperparameters(start, 0.5, samples, 1, base, seed=0, workers=1)
+    stopped = [line for line in lines if line.startswith("Fisher scoring stopped")]
+    assert stopped == ["Fisher scoring stopped after 1 steps, its budget, with more than "
+                       f"{TOLERANCE} nats still to gain; model.training.lbfgs_maxiter "
+                       "raises it"]
+    lines.clear()
+    learn_hyperparameters(start, 0.5, samples, 1,
+                          dataclasses.replace(base, lbfgs_maxiter=200), seed=0, workers=1)
+    assert not [line for line in lines if line.startswith("Fisher scoring stopped")]
