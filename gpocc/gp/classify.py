@@ -344,36 +344,31 @@ def beam_holdout_predictions(
 def unique_cells(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(cells, axis=0, return_inverse=True)`` of integer cells (N, 2), the
     inverse flat (N,): the distinct cells in lexicographic order and each row's index
-    among them. Each row is one key (:func:`gpocc.samples.beams.packed_cells` of the cells
-    from their minimum, so the keys sort as the rows do) for numpy's 1-D sort: axis=0
-    sorts rows as structured records, many times slower on the million held-out points
-    of a large site."""
-    if len(cells) == 0:
-        return np.zeros((0, 2), dtype=cells.dtype), np.zeros(0, dtype=np.intp)
-    low = np.array([cells[:, 0].min(), cells[:, 1].min()])  # column by column: faster
-    shifted = cells - low
-    if shifted.max() >= 2**31:  # past one packed key: rows as records
-        unique, inverse = np.unique(cells, axis=0, return_inverse=True)
-        return unique, inverse.ravel()
-    keys, inverse = np.unique(packed_cells(shifted), return_inverse=True)
-    return (np.column_stack([(keys >> 32) + low[0], (keys & 0xFFFFFFFF) + low[1]]),
-            inverse.ravel())
+    among them, from :func:`cell_groups`."""
+    unique, order, bounds = cell_groups(cells)
+    inverse = np.empty(len(cells), dtype=np.intp)
+    inverse[order] = np.repeat(np.arange(len(unique)), np.diff(bounds))
+    return unique, inverse
 
 
 def cell_groups(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The rows of integer ``cells`` (N, 2) grouped by cell: the distinct cells (G, 2) in
-    lexicographic order (:func:`unique_cells`), an order (N,) of the rows, cell by cell
-    and stable within a cell, and (G + 1,) bounds: cell g's rows are
-    ``order[bounds[g]:bounds[g + 1]]``. One stable sort of the packed keys (the
-    held-out points of a city: 3 million)."""
+    lexicographic order, an order (N,) of the rows, cell by cell and stable within a
+    cell, and (G + 1,) bounds: cell g's rows are ``order[bounds[g]:bounds[g + 1]]``.
+
+    Each row is one key (:func:`gpocc.samples.beams.packed_cells` of the cells from their
+    minimum, so the keys sort as the rows do) for one stable 1-D sort: ``np.unique`` with
+    ``axis=0`` sorts rows as structured records, many times slower on the 3 million
+    held-out points of a city."""
     if len(cells) == 0:
         return np.zeros((0, 2), dtype=cells.dtype), np.zeros(0, np.intp), np.zeros(1, np.intp)
-    low = np.array([cells[:, 0].min(), cells[:, 1].min()])
+    low = np.array([cells[:, 0].min(), cells[:, 1].min()])  # column by column: faster
     shifted = cells - low
-    if shifted.max() >= 2**31:  # past one packed key
-        unique, member = unique_cells(cells)
-        order = np.argsort(member, kind="stable")
-        return unique, order, np.searchsorted(member[order], np.arange(len(unique) + 1))
+    if shifted.max() >= 2**31:  # past one packed key: rows as records
+        unique, member = np.unique(cells, axis=0, return_inverse=True)
+        order = np.argsort(member.ravel(), kind="stable")
+        return unique, order, np.searchsorted(member.ravel()[order],
+                                              np.arange(len(unique) + 1))
     keys = packed_cells(shifted)
     order = np.argsort(keys, kind="stable")
     ordered = keys[order]

@@ -243,14 +243,12 @@ def _thin_parts(parts: list[_ThinnedPart], cell_m: float) -> list[_ThinnedPart]:
     past 2**30 or non-finite traces (one part, thinned as :func:`thin_samples` does)."""
     if not parts:
         return parts
-    if any(p.keys is None or p.trace is None for p in parts):
+    keyed = all(p.keys is not None and p.trace is not None for p in parts)
+    trace = np.concatenate([p.trace for p in parts]) if keyed else None
+    if trace is None or not np.isfinite(trace).all():  # NaN never equals a minimum
         return [_thinned_part(SampleSet.concatenate([p.samples for p in parts]),
                               cell_m)[0]]
     keys = np.concatenate([p.keys for p in parts])
-    trace = np.concatenate([p.trace for p in parts])
-    if not np.isfinite(trace).all():  # NaN never equals a group's minimum
-        return [_thinned_part(SampleSet.concatenate([p.samples for p in parts]),
-                              cell_m)[0]]
     keep = np.zeros(len(keys), dtype=bool)
     keep[compiled.thin_groups(keys, trace)[2]] = True
     out, start = [], 0
