@@ -213,7 +213,7 @@ def profile(knob: str, case: str, seed: int) -> dict:
     cfg = m.config.model
     g = float(m.input_noise_scale)
     stated = scale_input_noise(m.samples, 1.0 / g)
-    patches = make_patches(stated, cfg.training, m.config.seed)
+    patches = make_patches(stated, cfg.effective_training, m.config.seed)
     level, backend = cfg.quadrature_level, backends.choose(cfg.backend, cfg.diagonal,
                                                           cfg.covariance_precision)
     params = [*m.kernel.theta, math.log(m.noise_variance)]
@@ -230,7 +230,7 @@ def profile(knob: str, case: str, seed: int) -> dict:
                       for s in (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)]
     out["noise_slice"] = [(n, lml(n, g)) for n in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)]
     # The classifier's own points: fresh patches (seed + 1) as gpocc.gp.model fits it.
-    fit_patches = make_patches(m.samples, cfg.training, m.config.seed + 1)
+    fit_patches = make_patches(m.samples, cfg.effective_training, m.config.seed + 1)
     mu, var, y = holdout_predictions(m.kernel, m.noise_variance, fit_patches, level,
                                      cfg.training.classifier_holdout, backend,
                                      latent=cfg.training.classifier_variance == "latent")

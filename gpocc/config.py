@@ -257,8 +257,9 @@ class TrainingConfig:
     map's local problems are centred on a lattice that pays no heed to the walls, and the
     neural-network kernel is not translation invariant (a wall far from a problem's centre
     needs a larger bias variance to stay sharp), so patches centred on hits alone learn a
-    kernel for walls through the centre. 1 (default: the default block size); 0: the
-    centres as drawn (variant ``no-patch-offset`` of ``make experiment``). The
+    kernel for walls through the centre. Unset (default): ``model.block_size_m``
+    (:attr:`ModelConfig.effective_training`); 0: the centres as drawn (variant
+    ``no-patch-offset`` of ``make experiment``). The
     classifier is fitted on the same kind of patches. Global
     stage: ``scipy.optimize.dual_annealing`` limited to ``anneal_maxfun`` evaluations
     (20: on ten logs and worlds, 60 reached the same optimum with 29-54 more evaluations;
@@ -344,7 +345,7 @@ class TrainingConfig:
     patches_per_sensor: int = 2
     patch_size: int = 128
     patch_centres: str = "hits"
-    patch_offset_m: float = 1.0
+    patch_offset_m: float | None = None
     anneal_maxfun: int = 20
     lbfgs_maxiter: int = 40
     local_search: str = "lbfgs"
@@ -415,6 +416,14 @@ class ModelConfig:
     covariance_precision: str = "single"
     hyperparameters: HyperparametersConfig = field(default_factory=HyperparametersConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
+
+    @property
+    def effective_training(self) -> TrainingConfig:
+        """``training`` with an unset ``patch_offset_m`` set to ``block_size_m``: the
+        patches' centres move as a map cell lies from the anchors that blend it."""
+        if self.training.patch_offset_m is not None:
+            return self.training
+        return dataclasses.replace(self.training, patch_offset_m=self.block_size_m)
 
 
 @dataclass(frozen=True)

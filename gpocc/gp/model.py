@@ -187,7 +187,8 @@ def build_model(
     with single_threaded_blas():
         result: TrainingResult = learn_hyperparameters(
             kernel, model_cfg.hyperparameters.noise_variance, samples,
-            model_cfg.quadrature_level, model_cfg.training, config.seed, on_evaluation,
+            model_cfg.quadrature_level, model_cfg.effective_training, config.seed,
+            on_evaluation,
             backend=backend, client=client, warm_start=start,
             refine_iterations=refine_iterations, index=index,
         )
@@ -259,7 +260,7 @@ def _fit_classifier(result: TrainingResult, samples: SampleSet, config: Config,
     the largest |offset| its fit allowed (:func:`gpocc.gp.classify.offset_bound`).
     ``index``: a neighbour index of samples with the same means, for its patches."""
     model_cfg = config.model
-    training = model_cfg.training
+    training = model_cfg.effective_training
     backend = backends.choose(model_cfg.backend, model_cfg.diagonal,
                               model_cfg.covariance_precision)
     # Fresh patches (another seed) for the classifier: a and b fitted on the very

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from gpocc.config import TrainingConfig
+from gpocc.config import ModelConfig, TrainingConfig
 from gpocc.errors import GpoccError
 from gpocc.gp import backends
 from gpocc.gp.expected import same_scan_pairs, supports_scale_gradient
@@ -117,8 +117,9 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int,
     that every patch holds a boundary (over all samples when there are fewer hits than
     patches); ``samples`` spreads them over all samples. ``config.patch_offset_m`` then
     moves each centre by a tent-distributed offset per axis (see
-    :class:`gpocc.config.TrainingConfig`). The Platt classifier is fitted on patches made
-    the same way (gpocc.gp.model).
+    :class:`gpocc.config.TrainingConfig`; unset: the default ``model.block_size_m``, so
+    give :attr:`gpocc.config.ModelConfig.effective_training` for another). The Platt
+    classifier is fitted on patches made the same way (gpocc.gp.model).
     """
     if len(samples) < 10:
         raise GpoccError(
@@ -133,10 +134,12 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int,
     if config.patch_centres == "hits" and hits.sum() >= count:
         centre_pool = samples.means[hits]
     centres = spread_patch_centres(centre_pool, count, rng)
-    if config.patch_offset_m > 0:
+    offset_m = (ModelConfig.block_size_m if config.patch_offset_m is None
+                else config.patch_offset_m)
+    if offset_m > 0:
         # Where a map cell lies from the anchors that predict it: a tent, the sum of two
         # uniform draws.
-        half = config.patch_offset_m / 2
+        half = offset_m / 2
         centres = (centres + rng.uniform(-half, half, centres.shape)
                    + rng.uniform(-half, half, centres.shape))
     return [index.problem(c, config.patch_size) for c in centres]

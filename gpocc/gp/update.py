@@ -226,7 +226,7 @@ def kept_fit(model: GPModel, samples: SampleSet, config: Config) -> tuple[float,
     if not config.model.input_noise:
         samples = samples.without_input_noise()
     model_cfg = config.model
-    patches = make_patches(samples, model_cfg.training, config.seed)
+    patches = make_patches(samples, model_cfg.effective_training, config.seed)
     initial = make_kernel(model_cfg.kernel, model_cfg.hyperparameters)
     with single_threaded_blas():
         values = [

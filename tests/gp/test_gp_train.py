@@ -157,6 +157,32 @@ def test_patch_offsets_follow_the_blend_tent_and_patches_are_nearest_the_moved_c
         np.testing.assert_allclose(patch.samples.means + patch.centre, means[patch.index])
 
 
+def test_an_unset_patch_offset_follows_the_block_size_in_learning_and_the_classifier():
+    """``patch_offset_m`` unset: learning's and the classifier's patches move as with the
+    offset set to ``model.block_size_m``, and the model equals the one trained with it
+    stated; a different offset gives a different model (the comparison has power)."""
+    from gpocc.config import Config, ModelConfig
+    from gpocc.gp.model import build_model
+
+    samples = _correlated_problem()
+    training = TrainingConfig(patches=3, patch_size=40, anneal_maxfun=6, lbfgs_maxiter=3,
+                              classifier_offset="holdout", classifier_temperature="none")
+
+    def trained(block_m, offset_m):
+        model = ModelConfig(block_size_m=block_m, training=dataclasses.replace(
+            training, patch_offset_m=offset_m))
+        result = build_model(samples, Config(model=model))
+        return (*result.kernel.theta, result.noise_variance, result.classifier.a,
+                result.classifier.b)
+
+    assert ModelConfig(block_size_m=0.5).effective_training.patch_offset_m == 0.5
+    assert ModelConfig(block_size_m=0.5, training=TrainingConfig(
+        patch_offset_m=0.0)).effective_training.patch_offset_m == 0.0
+    assert trained(0.5, None) == trained(0.5, 0.5)
+    assert trained(0.5, None) != trained(0.5, 1.0)
+    assert trained(1.0, None) == trained(1.0, 1.0)
+
+
 @pytest.mark.parametrize("per_sensor", [0, 1, 2])
 def test_a_site_of_many_sensors_gets_a_patch_on_every_building(per_sensor):
     """20 buildings 60 m apart, each its own sensor: with ``patches_per_sensor: k`` there
@@ -450,7 +476,7 @@ def test_model_files_without_the_new_keys_load_with_the_settings_they_were_train
                 config.model.covariance_precision, config.model.training.patch_offset_m)
 
     assert settings(load_model(path).config) == ("hits", 0.05, "count", "latent", "platt",
-                                                 True, "single", 1.0)
+                                                 True, "single", None)
     arrays, meta = read_model_file(path)
     del meta["config"]["model"]["training"]["patch_centres"]
     del meta["config"]["samples"]["free_clearance_m"]
