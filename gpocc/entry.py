@@ -15,8 +15,13 @@ from gpocc.constants import INTERRUPTED
 
 
 def main() -> None:
-    """Import the CLI, then run it; a Ctrl-C during the import is one line, status 130."""
+    """Import the CLI, then run it; a Ctrl-C during the import is one line, status 130.
+    With glibc, freed memory is kept for the command's later arrays unless the
+    environment sets ``GPOCC_KEEP_FREED_MEMORY=0`` (:mod:`gpocc.allocator`)."""
     try:
+        from gpocc.allocator import keep_freed_memory
+
+        keep_freed_memory()
         from gpocc.cli import main as run
     except KeyboardInterrupt:
         print(INTERRUPTED, file=sys.stderr)

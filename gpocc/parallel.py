@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
+from gpocc.allocator import keep_freed_memory, keeps_freed_memory
 from gpocc.blas import single_threaded_blas
 from gpocc.errors import GpoccError, SchedulerUnreachable
 
@@ -50,7 +51,10 @@ def _die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, daemon=True, name="gpocc-parent-watch").start()
 
 
-def _init_worker(parent: int, initializer: Callable[..., None], initargs: tuple) -> None:
+def _init_worker(parent: int, keep_memory: bool, initializer: Callable[..., None],
+                 initargs: tuple) -> None:
+    if keep_memory:  # as the parent: a worker not forked from it has glibc's defaults
+        keep_freed_memory()
     # Ctrl-C reaches the whole process group: the parent handles it and ends the workers,
     # so they must not print their own KeyboardInterrupt tracebacks.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -126,7 +130,7 @@ def worker_pool(workers: int, initializer: Callable[..., None],
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
     try:
         pool = _Pool(workers, initializer=_init_worker,
-                     initargs=(os.getpid(), initializer, initargs))
+                     initargs=(os.getpid(), keeps_freed_memory(), initializer, initargs))
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
     try:
