@@ -120,6 +120,17 @@ class _Pool(multiprocessing.pool.Pool):
         return next((p.exitcode for p in self.workers if p.exitcode is not None), None)
 
 
+def _worker_context() -> Any:
+    """Linux: fork, whatever the default start method. A forkserver's workers are the
+    children of the server, not of this process, so the check that their parent lives
+    (:func:`_die_with_parent`) would end each one at its start and the pool would
+    replace them forever (Python 3.14 made forkserver Linux's default). Elsewhere, the
+    default."""
+    if os.name == "posix" and os.uname().sysname == "Linux":
+        return multiprocessing.get_context("fork")
+    return None
+
+
 @contextlib.contextmanager
 def worker_pool(workers: int, initializer: Callable[..., None],
                 initargs: tuple[Any, ...]) -> Iterator[_Pool]:
@@ -130,7 +141,8 @@ def worker_pool(workers: int, initializer: Callable[..., None],
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
     try:
         pool = _Pool(workers, initializer=_init_worker,
-                     initargs=(os.getpid(), keeps_freed_memory(), initializer, initargs))
+                     initargs=(os.getpid(), keeps_freed_memory(), initializer, initargs),
+                     context=_worker_context())
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
     try:

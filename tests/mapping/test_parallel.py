@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import textwrap
 import threading
 import time
 
@@ -118,6 +119,22 @@ def test_worker_pool_maintenance_thread_does_not_wake_on_every_result(monkeypatc
     # one per result (500 results).
     assert 1 <= len(wakes) <= 10
 
+
+@pytest.mark.skipif(sys.platform != "linux", reason="the start method is chosen on Linux only")
+def test_a_worker_pool_works_when_the_default_start_method_is_forkserver() -> None:
+    """Python 3.14's default on Linux: the pool still forks its workers (a forkserver's
+    workers are not the children of the process that checks on them, and were ended and
+    replaced forever: the map never came back)."""
+    probe = textwrap.dedent("""
+        import multiprocessing, os
+        from gpocc.parallel import worker_pool
+        multiprocessing.set_start_method("forkserver")
+        with worker_pool(2, os.getpid, ()) as pool:
+            print(sum(pool.apply(os.getpid) != os.getpid() for _ in range(8)))
+    """)
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          timeout=60, check=True)
+    assert done.stdout.split() == ["8"]
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="pipe capacity is set on Linux only")
