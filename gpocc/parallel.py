@@ -14,6 +14,7 @@ import multiprocessing
 import multiprocessing.pool
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -126,7 +127,7 @@ def _worker_context() -> Any:
     (:func:`_die_with_parent`) would end each one at its start and the pool would
     replace them forever (Python 3.14 made forkserver Linux's default). Elsewhere, the
     default."""
-    if os.name == "posix" and os.uname().sysname == "Linux":
+    if sys.platform.startswith("linux"):
         return multiprocessing.get_context("fork")
     return None
 

@@ -134,8 +134,8 @@ def make_patches(samples: SampleSet, config: TrainingConfig, seed: int,
     if config.patch_centres == "hits" and hits.sum() >= count:
         centre_pool = samples.means[hits]
     centres = spread_patch_centres(centre_pool, count, rng)
-    offset_m = (ModelConfig.block_size_m if config.patch_offset_m is None
-                else config.patch_offset_m)
+    # Unset: resolved by the one rule, here under the default block size.
+    offset_m = ModelConfig(training=config).effective_training.patch_offset_m
     if offset_m > 0:
         # Where a map cell lies from the anchors that predict it: a tent, the sum of two
         # uniform draws.
